@@ -1,0 +1,109 @@
+"""The one fluid contract shared by HydroNet and the numerical solver.
+
+Grid and array conventions (PHYSICS.md section 4; all lengths in metres, times in seconds):
+
+* The tank is a box of H x W square cells of side ``dx``; ``x`` runs along the columns
+  (index j, the long side), ``y`` along the rows (index i).  Cell (i, j) spans
+  ``[j dx, (j+1) dx] x [i dx, (i+1) dx]``; its centre is ``x_ij = ((j+1/2) dx, (i+1/2) dx)``.
+* MAC staggering (Wandel et al. 2021), every field a tensor ``[B, C, rows, cols]``:
+
+  ======================  ==================  =====================================
+  field                   shape               location of entry [i, j]
+  ======================  ==================  =====================================
+  vector potential ``a``  ``[B, 1, H+1, W+1]``  vertex ``(j dx, i dx)``
+  ``v_x = d a / d y``     ``[B, 1, H, W+1]``    vertical face ``(j dx, (i+1/2) dx)``
+  ``v_y = -d a / d x``    ``[B, 1, H+1, W]``    horizontal face ``((j+1/2) dx, i dx)``
+  pressure ``p``          ``[B, 1, H, W]``      cell centre
+  mask ``b``, ``v_d``     ``[B, 1|2, H, W]``    cell centre; ``v_d`` channels are (v_x, v_y)
+  ======================  ==================  =====================================
+
+  so ``v = curl a`` is exactly divergence free and the outermost faces are the box walls.
+* Vector channels are ordered (x, y) everywhere in fishsim.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
+
+import torch
+from torch import Tensor
+
+
+@dataclass(frozen=True)
+class Grid:
+    """A uniform H x W cell grid with spacing ``dx`` [m] (paper: 100 x 300, dx = 2.5 mm)."""
+
+    H: int = 100
+    W: int = 300
+    dx: float = 2.5e-3
+
+    @property
+    def size(self) -> tuple[float, float]:
+        """Physical extent (Lx, Ly) in metres."""
+        return self.W * self.dx, self.H * self.dx
+
+    def cell_centres(self, device=None, dtype=torch.float32) -> Tensor:
+        """Cell-centre coordinates ``x_ij`` as a tensor [H, W, 2] (x, y) in metres."""
+        y = (torch.arange(self.H, device=device, dtype=dtype) + 0.5) * self.dx
+        x = (torch.arange(self.W, device=device, dtype=dtype) + 0.5) * self.dx
+        yy, xx = torch.meshgrid(y, x, indexing="ij")
+        return torch.stack([xx, yy], dim=-1)
+
+
+@dataclass(frozen=True)
+class FluidState:
+    """Fluid state at one instant; never mutated by a step.
+
+    a: vector potential (2D stream function) on vertices, [B, 1, H+1, W+1], m^2/s.
+    p: pressure at cell centres, [B, 1, H, W], Pa (defined up to a constant; kept mean free).
+    """
+
+    a: Tensor
+    p: Tensor
+
+
+@dataclass(frozen=True)
+class Boundary:
+    """Solid/wall description for one fluid step, given per cell.
+
+    mask: soft boundary mask b in [0, 1], [B, 1, H, W]; 1 = solid or wall, 0 = fluid.
+    velocity: boundary velocity v_d, [B, 2, H, W] (v_x, v_y) in m/s, meaningful where mask > 0.
+    """
+
+    mask: Tensor
+    velocity: Tensor
+
+
+@dataclass(frozen=True)
+class FluidParams:
+    """Physical parameters of one step.
+
+    rho: fluid density [B] (kg/m^3, per unit depth in 2D), paper default 50.
+    mu: dynamic viscosity [B] (Pa s), paper default 0.125e-3.
+    h: time step (s), paper default 0.01.
+    """
+
+    rho: Tensor
+    mu: Tensor
+    h: float = 0.01
+
+
+@runtime_checkable
+class FluidModel(Protocol):
+    """Advances the fluid one time step: ``(a_t, p_t, b_t, v_d,t) -> (a_t+1, p_t+1)``.
+
+    Implemented by ``fishsim.fluid.numerical.NumericalFluid`` and
+    ``fishsim.fluid.hydronet.HydroNetFluid``; callers never branch on which they hold.
+    ``step`` is differentiable with torch autograd and never mutates its inputs.
+    """
+
+    grid: Grid
+
+    def initial_state(self, batch: int, device=None, dtype=torch.float32) -> FluidState:
+        """Fluid at rest: a = 0, p = 0."""
+        ...
+
+    def step(self, state: FluidState, boundary: Boundary, params: FluidParams) -> FluidState:
+        """Return the state one time step ``params.h`` later."""
+        ...
