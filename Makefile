@@ -1,0 +1,41 @@
+# fishsim: the README's two commands (`make demo`, `make test`) set everything up themselves.
+# TORCH picks the torch build installed first (default: the CPU build; e.g. `make install
+# TORCH="torch==2.13.0 --index-url https://download.pytorch.org/whl/cu126"` for a GPU).
+
+PYTHON ?= python3
+VENV   ?= .venv
+BIN    := $(VENV)/bin
+TORCH  ?= torch==2.13.0
+STAMP  := $(VENV)/.fishsim-installed
+DEMO   ?= outputs/demo
+export OMP_NUM_THREADS ?= 2
+
+.PHONY: install demo test test-fast bench lint clean
+
+$(STAMP): pyproject.toml
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -m pip install -q $(TORCH)
+	$(BIN)/python -m pip install -q -e '.[dev]'
+	touch $(STAMP)
+
+install: $(STAMP)
+
+demo: install
+	$(BIN)/fishsim mesh out_dir=$(DEMO)
+	@echo "demo outputs are in $(DEMO)/"
+
+test: install
+	$(BIN)/python -m pytest -q
+
+test-fast: install
+	$(BIN)/python -m pytest -q -m "not slow"
+
+bench: install
+	$(BIN)/python -m benchmarks.run
+
+lint: install
+	$(BIN)/ruff check fishsim tests benchmarks
+
+clean:
+	rm -rf $(VENV) outputs .pytest_cache

@@ -1,0 +1,155 @@
+"""HDF5 trajectories: one file per run, readable after a crash, ``complete`` marked at the end.
+
+Layout (every time series has the frame axis first and a batch axis B second)::
+
+    /mesh/{points [N,2], triangles [T,3], surface [S], actuator [T]}
+    /solid/{q, qdot, f_ext}            [T, B, N, 2]   m, m/s, N (per unit depth)
+    /controller/activation             [T, B, n_act]  muscle contraction (top/bottom elements)
+    /controller/{frequency, amplitude, wave_number, youngs_modulus}   [B]
+    /fluid/{p, vx, vy, mask}           [T', B, H, W]  Pa, m/s (cell centres), 1 = solid
+    /fluid/a                           [T', B, H+1, W+1]  m^2/s (vertices; exact restart)
+    /fluid/frame                       [T']           frame index of each stored fluid frame
+    /metrics/time                      [T]            s
+    /metrics/<name>                    [T, B]         e.g. head_x, thrust_x
+    /config                            the resolved config as a YAML string
+    attributes: fishsim_version, h, units, complete, n_frames (final), message
+
+The file is opened in HDF5 single-writer/multiple-reader mode after all datasets are declared,
+and flushed every ``flush_every`` frames: a killed run leaves a readable file holding every
+flushed frame, with ``complete = False``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional
+
+import h5py
+import numpy as np
+
+from fishsim import __version__
+from fishsim.errors import InputFileError
+
+UNITS = "SI: m, s, kg, Pa; 2D forces per unit depth (N/m); densities per unit area"
+
+
+class TrajectoryWriter:
+    """Append frames to a trajectory file.
+
+    series: {dataset path: (per-frame shape, dtype)} for every time series the run will write;
+        all are declared before the first frame (a requirement of SWMR mode).
+    static: {dataset path: array} written once (mesh, controller parameters).
+    """
+
+    def __init__(self, path: str | Path, series: dict[str, tuple[tuple, str]],
+                 static: dict[str, np.ndarray], config_yaml: str, h: float, flush_every: int = 10):
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.file = h5py.File(self.path, "w", libver="latest")
+        self.counts = {name: 0 for name in series}
+        self.flush_every = flush_every
+        self._frames = 0
+        f = self.file
+        f.attrs.update(fishsim_version=__version__, h=h, units=UNITS, complete=False, n_frames=0,
+                       message="running (or killed before the end)")
+        f.create_dataset("config", data=config_yaml)
+        for name, arr in static.items():
+            f.create_dataset(name, data=np.asarray(arr))
+        for name, (shape, dtype) in series.items():
+            f.create_dataset(name, shape=(0, *shape), maxshape=(None, *shape), dtype=dtype,
+                             chunks=(1, *shape), compression="gzip" if np.prod(shape) > 4096 else None,
+                             compression_opts=1 if np.prod(shape) > 4096 else None)
+        f.swmr_mode = True
+
+    def append(self, values: dict[str, np.ndarray]) -> None:
+        """Append one frame of the named series (any subset, e.g. fluid only every k frames)."""
+        for name, value in values.items():
+            ds = self.file[name]
+            n = self.counts[name]
+            ds.resize(n + 1, axis=0)
+            ds[n] = np.asarray(value, dtype=ds.dtype)
+            self.counts[name] = n + 1
+
+    def end_frame(self) -> None:
+        """Mark the end of a frame; flushes to disk every ``flush_every`` frames."""
+        self._frames += 1
+        if self._frames % self.flush_every == 0:
+            self.file.flush()
+
+    def close(self, complete: bool, message: str = "") -> None:
+        """Flush, close, and record whether the run finished (``complete``) and why not."""
+        self.file.flush()
+        self.file.close()
+        with h5py.File(self.path, "r+") as f:
+            f.attrs["complete"] = bool(complete)
+            f.attrs["n_frames"] = self._frames
+            f.attrs["message"] = message or ("complete" if complete else "incomplete")
+
+
+@dataclass
+class Trajectory:
+    """A trajectory read back: every dataset as a numpy array, keyed by its path."""
+
+    data: dict[str, np.ndarray]
+    attrs: dict
+    config_yaml: str
+    complete: bool
+    n_frames: int
+    path: Path = field(default_factory=Path)
+
+    def __getitem__(self, key: str) -> np.ndarray:
+        return self.data[key]
+
+
+def read_trajectory(path: str | Path, load_fluid: bool = True) -> Trajectory:
+    """Read a trajectory file; a crashed run's file is read up to its last flushed frame."""
+    path = Path(path)
+    if not path.exists():
+        raise InputFileError(f"no such trajectory file: {path} (run `fishsim simulate` to make one)")
+    try:
+        f = h5py.File(path, "r", libver="latest", swmr=True)
+    except OSError as err:
+        raise InputFileError(f"{path} is not a readable HDF5 file ({err.__class__.__name__}); "
+                             "it may be corrupt or not a fishsim trajectory") from None
+    with f:
+        if "config" not in f or "metrics/time" not in f:
+            raise InputFileError(f"{path} is an HDF5 file but not a fishsim trajectory "
+                                 "(no /config or /metrics/time)")
+        data: dict[str, np.ndarray] = {}
+
+        def visit(name: str, obj) -> None:
+            if isinstance(obj, h5py.Dataset) and name != "config":
+                if load_fluid or not name.startswith("fluid/"):
+                    data[name] = obj[()]
+
+        f.visititems(visit)
+        attrs = dict(f.attrs)
+        config_yaml = f["config"][()].decode() if isinstance(f["config"][()], bytes) else str(f["config"][()])
+    complete = bool(attrs.get("complete", False))
+    n_frames = int(attrs["n_frames"]) if complete else _flushed_frames(data)
+    return Trajectory(data, attrs, config_yaml, complete, n_frames, path)
+
+
+def _flushed_frames(data: dict[str, np.ndarray]) -> int:
+    """Frames flushed to a possibly incomplete file (metrics/time is written last in a frame)."""
+    return len(data.get("metrics/time", ()))
+
+
+def trajectory_series(n_nodes: int, batch: int, n_act: int, metrics: list[str],
+                      fluid_shape: Optional[tuple[int, int]] = None) -> dict[str, tuple[tuple, str]]:
+    """The per-frame series a simulation writes (see the module docstring)."""
+    series: dict[str, tuple[tuple, str]] = {
+        "solid/q": ((batch, n_nodes, 2), "f8"),
+        "solid/qdot": ((batch, n_nodes, 2), "f8"),
+        "solid/f_ext": ((batch, n_nodes, 2), "f8"),
+        "controller/activation": ((batch, n_act), "f4"),
+        "metrics/time": ((), "f8"),
+    }
+    series.update({f"metrics/{m}": ((batch,), "f8") for m in metrics})
+    if fluid_shape is not None:
+        H, W = fluid_shape
+        series.update({f"fluid/{k}": ((batch, H, W), "f4") for k in ("p", "vx", "vy", "mask")})
+        series["fluid/a"] = ((batch, H + 1, W + 1), "f4")
+        series["fluid/frame"] = ((), "i8")
+    return series
