@@ -1,0 +1,68 @@
+"""HDF5 trajectories: round trip, crash safety (readable and marked incomplete), bad files."""
+
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+
+from fishsim.errors import InputFileError
+from fishsim.io.trajectory import TrajectoryWriter, read_trajectory, trajectory_series
+
+
+def _writer(path, flush_every=2):
+    series = trajectory_series(n_nodes=5, batch=2, n_act=3, metrics=["head_x"], fluid_shape=(4, 6))
+    static = {"mesh/points": np.arange(10.0).reshape(5, 2)}
+    return TrajectoryWriter(path, series, static, "fish:\n  length: 0.2\n", h=0.01, flush_every=flush_every)
+
+
+def _frame(w, t):
+    w.append({"solid/q": np.full((2, 5, 2), t), "solid/qdot": np.zeros((2, 5, 2)),
+              "solid/f_ext": np.zeros((2, 5, 2)), "controller/activation": np.zeros((2, 3)),
+              "metrics/head_x": np.array([t, 2 * t]), "metrics/time": 0.01 * t})
+    if t % 2 == 0:
+        w.append({"fluid/p": np.full((2, 4, 6), t), "fluid/frame": t})
+    w.end_frame()
+
+
+def test_round_trip(tmp_path):
+    w = _writer(tmp_path / "t.h5")
+    for t in range(6):
+        _frame(w, t)
+    w.close(complete=True)
+    tr = read_trajectory(tmp_path / "t.h5")
+    assert tr.complete and tr.n_frames == 6
+    assert tr["solid/q"].shape == (6, 2, 5, 2)
+    np.testing.assert_array_equal(tr["solid/q"][3], np.full((2, 5, 2), 3.0))
+    np.testing.assert_array_equal(tr["fluid/frame"], [0, 2, 4])
+    np.testing.assert_array_equal(tr["mesh/points"], np.arange(10.0).reshape(5, 2))
+    assert "length: 0.2" in tr.config_yaml
+    assert tr.attrs["h"] == pytest.approx(0.01)
+
+
+def test_killed_writer_leaves_readable_incomplete_file(tmp_path):
+    path = tmp_path / "killed.h5"
+    script = textwrap.dedent(f"""
+        import os, signal, numpy as np
+        import tests.io.test_trajectory as T
+        w = T._writer({str(path)!r}, flush_every=2)
+        for t in range(5):
+            T._frame(w, t)
+        os.kill(os.getpid(), signal.SIGKILL)
+    """)
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True)
+    assert proc.returncode != 0
+    tr = read_trajectory(path)
+    assert not tr.complete
+    assert tr.n_frames == 4  # frames 0-3 were flushed; frame 4 was not
+    np.testing.assert_array_equal(tr["metrics/head_x"][3], [3.0, 6.0])
+
+
+def test_bad_files(tmp_path):
+    with pytest.raises(InputFileError, match="no such trajectory"):
+        read_trajectory(tmp_path / "missing.h5")
+    junk = tmp_path / "junk.h5"
+    junk.write_text("not hdf5")
+    with pytest.raises(InputFileError, match="not a readable HDF5"):
+        read_trajectory(junk)

@@ -1,0 +1,69 @@
+"""The CLI shell and the structured configs: bad input gives one line and exit code 2."""
+
+import pytest
+from typer.testing import CliRunner
+
+from fishsim.cli import app
+from fishsim.config import load_config, to_yaml
+from fishsim.errors import ConfigError
+
+runner = CliRunner()
+
+
+def test_defaults_compose_and_validate():
+    cfg = load_config("mesh")
+    assert cfg.fish.length == pytest.approx(0.2)
+    assert cfg.fish.edge_length == pytest.approx(2e-3)
+    assert "edge_length" in to_yaml(cfg)
+
+
+def test_override_applies():
+    cfg = load_config("mesh", ["fish.edge_length=3e-3", "output=x.msh"])
+    assert cfg.fish.edge_length == pytest.approx(3e-3)
+    assert cfg.output == "x.msh"
+
+
+@pytest.mark.parametrize(
+    "override, fragment",
+    [
+        ("fish.foo=1", "unknown config key 'fish.foo'"),
+        ("bogus=3", "unknown config key 'bogus'"),
+        ("fish.length=-1", "fish.length must be > 0"),
+        ("fish.length=abc", "could not be converted"),
+        ("fish.profile=zigzag", "fish.profile must be"),
+        ("fish=nope", "Could not find 'fish/nope'"),
+    ],
+)
+def test_bad_config_is_one_clear_line(override, fragment):
+    with pytest.raises(ConfigError, match=None) as err:
+        load_config("mesh", [override])
+    assert fragment in str(err.value)
+    assert "\n" not in str(err.value)
+
+
+def test_cli_bad_key_exit_code_2_no_traceback():
+    result = runner.invoke(app, ["mesh", "fish.nonsense=1"])
+    assert result.exit_code == 2
+    out = result.output
+    assert "unknown config key 'fish.nonsense'" in out
+    assert "Traceback" not in out
+    assert len([line for line in out.splitlines() if line.strip()]) == 1
+
+
+def test_help_lists_config_groups():
+    result = runner.invoke(app, ["mesh", "--help"])
+    assert result.exit_code == 0
+    assert "fish.edge_length" in result.output
+
+
+def test_show_config_prints_yaml():
+    result = runner.invoke(app, ["mesh", "--show-config", "fish.length=0.3"])
+    assert result.exit_code == 0
+    assert "length: 0.3" in result.output
+
+
+def test_only_built_commands_are_listed():
+    result = runner.invoke(app, ["--help"])
+    assert "mesh" in result.output
+    for missing in ("optimize", "validate"):
+        assert missing not in result.output
