@@ -1,0 +1,70 @@
+"""`make bench`: run every benchmark module's ``run() -> dict`` and write the results as JSON
+and as a Markdown table (benchmarks/results.json, benchmarks/results.md), so numbers can be
+compared run to run.  Usage: ``python -m benchmarks.run [name ...]`` (default: all)."""
+
+from __future__ import annotations
+
+import importlib
+import json
+import platform
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+SUITES = ["bench_solid", "bench_fluid", "bench_coupling", "bench_hydronet", "bench_rollout"]
+HERE = Path(__file__).parent
+
+
+def machine() -> dict:
+    """What the numbers were measured on."""
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return {"cpu": cpu, "torch_threads": torch.get_num_threads(), "torch": torch.__version__,
+            "cuda": torch.cuda.get_device_name() if torch.cuda.is_available() else None,
+            "date": time.strftime("%Y-%m-%d %H:%M")}
+
+
+def to_markdown(results: dict) -> str:
+    lines = [f"# fishsim benchmarks\n\nMachine: {results['machine']}\n"]
+    for suite, rows in results["suites"].items():
+        lines += [f"## {suite}\n", "| quantity | value |", "|---|---|"]
+        for key, value in _flatten(rows):
+            lines.append(f"| {key} | {value:.4g} |" if isinstance(value, float) else f"| {key} | {value} |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def _flatten(d: dict, prefix: str = ""):
+    for k, v in d.items():
+        if isinstance(v, dict):
+            yield from _flatten(v, f"{prefix}{k}.")
+        else:
+            yield f"{prefix}{k}", v
+
+
+def main(names: list[str]) -> None:
+    results = {"machine": machine(), "suites": {}}
+    for name in names or SUITES:
+        try:
+            module = importlib.import_module(f"benchmarks.{name}")
+        except ModuleNotFoundError:
+            continue
+        print(f"== {name}", flush=True)
+        t0 = time.perf_counter()
+        results["suites"][name] = module.run()
+        print(json.dumps(results["suites"][name], indent=1), f"({time.perf_counter() - t0:.0f} s)", flush=True)
+    (HERE / "results.json").write_text(json.dumps(results, indent=1))
+    (HERE / "results.md").write_text(to_markdown(results))
+    print(f"wrote {HERE / 'results.json'} and {HERE / 'results.md'}")
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
