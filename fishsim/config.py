@@ -40,7 +40,8 @@ class FishConfig:
     edge_length: float = 2.0e-3
     min_angle: float = 30.0
     actuator_spacing: float = 4.0e-3
-    actuator_x_range: list[float] = field(default_factory=lambda: [0.02, 0.8])
+    actuator_x_range: list[float] = field(default_factory=lambda: [0.05, 0.95])
+    tail_tip_width: Optional[float] = None
     mesh_file: Optional[str] = None
 
     def validate(self) -> None:
@@ -48,9 +49,8 @@ class FishConfig:
                      "fish.actuator_spacing": self.actuator_spacing})
         _require(self.profile in ("kern", "polynomial"),
                  f"fish.profile must be 'kern' or 'polynomial' (got '{self.profile}')")
-        _require(self.profile != "polynomial" or len(self.poly_coeffs) > 0,
-                 "fish.profile=polynomial needs fish.poly_coeffs=[c0,c1,...] (half-width in units of L)")
-        _require(0 < self.min_angle <= 34, f"fish.min_angle must be in (0, 34] degrees (got {self.min_angle})")
+        _require(0 < self.min_angle <= 33.8,
+                 f"fish.min_angle must be in (0, 33.8] degrees, Triangle's limit (got {self.min_angle})")
         _require(self.edge_length < self.length / 10,
                  f"fish.edge_length={self.edge_length} m is too coarse for a {self.length} m fish")
         lo, hi = self.actuator_x_range

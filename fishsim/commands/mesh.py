@@ -24,6 +24,7 @@ def build_fish_mesh(fish: FishConfig):
         min_angle=fish.min_angle,
         actuator_spacing=fish.actuator_spacing,
         actuator_x_range=tuple(fish.actuator_x_range),
+        tail_tip_width=fish.tail_tip_width,
     )
 
 
