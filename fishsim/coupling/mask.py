@@ -1,0 +1,147 @@
+"""Solid -> fluid: the soft boundary mask b and the boundary velocity v_d (paper Sec. 3.3).
+
+    b_ij    = sigmoid(delta_ij d_ij / sigma),   d_ij = soft-min over l of e_ij,l
+    v_d,ij  = (sum_l softmin_l(e_ij / tau) qdot^l) b_ij
+
+with e_ij,l the squared distance from the cell centre x_ij to surface element l, and
+delta = +1 inside the body, -1 outside.  Both are computed on the band of cells around the body
+(``band.py``); every other cell gets b = 0 and v_d = 0 exactly.
+
+Surface elements (``distance``):
+
+* ``"segment"`` (default): e = exact squared distance to the polyline segment q^l -> q^{l+1};
+  the velocity of an element is the linear interpolation of its two end velocities at the
+  closest point.  The zero level set of d is then the polyline itself, so b = 1/2 exactly on the
+  surface and the mask has no scallops between nodes.
+* ``"node"`` (the paper's literal formula): e = |x_ij - q^l|^2.  Between two nodes h apart the
+  surface sits at d ~ (h/2)^2 from them, so with h = 2 mm and sigma = 5e-7 the mask jumps between
+  ~0.12 and ~0.88 where a cell centre crosses the surface between nodes (scallops).
+
+Soft-min of the squared distances (``mean``), with weights w_l = softmin_l(e_l / xi):
+
+* ``"harmonic"`` (default): d = 1 / sum_l (w_l / e_l).  It is 0 wherever any e_l = 0, so d
+  vanishes on the surface and b is continuous (C^1) where delta flips sign.
+* ``"arithmetic"`` (the paper): d = sum_l w_l e_l.  Never 0 on the surface (neighbouring
+  elements add up to ~0.28 xi), so b jumps by up to ~sigmoid(0.28 xi / sigma) - 1/2 on either
+  side of the surface (0.43 <-> 0.57 at xi = sigma): a cell crossing the surface changes b
+  discontinuously and its gradient misses the jump.
+
+Both means lie in [min_l e_l, max_l e_l] and tend to the exact squared distance as xi -> 0.
+
+Default values (grid dx = 2.5 mm, so one cell is dx^2 = 6.25e-6 m^2 in d):
+
+* sigma = 5e-7 m^2 (the paper's middle value): with d ~ s^2 (s the signed distance) b goes
+  from 0.05 to 0.95 over |s| < 0.49 dx, i.e. across one cell: sharp enough that the thin
+  tail (half-width 1-2 mm) still reaches b ~ 0.9-1, smooth enough that sub-cell motion changes
+  b continuously.  5e-9 is a binary raster (b jumps 0 -> 1 within 0.05 dx), 5e-5 blurs over
+  ~3 cells (the body centre line only reaches b ~ 0.8).
+* xi = 5e-7 m^2 (paper): sqrt(xi) = 0.7 mm, a third of a cell and of a 2 mm surface segment:
+  the soft-min is the nearest element except where two elements tie (medial axis, tail tip).
+* tau = 5e-7 m^2 (= xi): a cell takes the velocity of the nearest surface point, blended
+  smoothly over 0.7 mm where two surface points tie (across the thin tail, at the tips).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from fishsim.coupling.band import (
+    NODE,
+    SEGMENT,
+    SurfaceBand,
+    band_margin,
+    gather_nodes,
+    scatter_band,
+    surface_band,
+)
+from fishsim.coupling.geometry import segment_closest_point
+from fishsim.fluid.base import Grid
+
+HARMONIC, ARITHMETIC = "harmonic", "arithmetic"
+XI, SIGMA, TAU = 5e-7, 5e-7, 5e-7
+
+
+def element_distances(qs: Tensor, band: SurfaceBand,
+                      dtype: torch.dtype) -> tuple[Tensor, Tensor | None]:
+    """Squared distances e [B, P, K] (m^2) from each band cell to its K nearest elements,
+    differentiable in ``qs`` [B, S, 2]; also the closest-point parameter t [B, P, K] along
+    each segment (None for nodes).  Computed in ``dtype`` relative to the band's origin."""
+    qs = (qs - band.origin).to(dtype)
+    x = band.centres.to(dtype).unsqueeze(2)
+    a = gather_nodes(qs, band.nearest)
+    if band.distance == NODE:
+        return ((x - a) ** 2).sum(-1), None
+    b = gather_nodes(qs, (band.nearest + 1) % qs.shape[1])
+    return segment_closest_point(x, a, b)[::-1]
+
+
+def soft_distance(e: Tensor, xi: float, mean: str = HARMONIC) -> Tensor:
+    """Soft-min d of the squared distances e [..., K] with weights softmin(e / xi), [...] m^2.
+
+    harmonic:   d = 1 / sum_l (w_l / e_l)     (0 on the surface)
+    arithmetic: d = sum_l w_l e_l             (paper)
+    """
+    w = torch.softmax(-e / xi, dim=-1)
+    if mean == ARITHMETIC:
+        return (w * e).sum(-1)
+    if mean == HARMONIC:
+        floor = 1e-8 * xi  # |x - q| = 1e-4 sqrt(xi) = 0.07 um: keeps 1/e^2 finite in float32
+        return 1.0 / (w / e.clamp_min(floor)).sum(-1)
+    raise ValueError(f"mean must be 'harmonic' or 'arithmetic', got {mean!r}")
+
+
+def soft_mask(qs: Tensor, grid: Grid, xi: float = XI, sigma: float = SIGMA,
+              distance: str = SEGMENT, mean: str = HARMONIC, band: SurfaceBand | None = None,
+              dtype: torch.dtype | None = None) -> Tensor:
+    """Soft boundary mask b_ij = sigmoid(delta_ij d_ij / sigma), [B, 1, H, W] in [0, 1].
+
+    qs: surface polyline [B, S, 2] (ccw, m), world frame; differentiable.
+    xi, sigma: softness (m^2); distance: "segment" | "node"; mean: "harmonic" | "arithmetic"
+    (see the module docstring for the choices and defaults).
+    band: cells to evaluate (``surface_band``); built here with ``band_margin(sigma)`` if None.
+    dtype: of the computation and the result (the fluid's, e.g. float32; default qs.dtype).
+
+    Cost (100 x 300 grid, 250 surface nodes, bent fish, float32, 2 CPU cores, unloaded):
+    mask + v_d + IBM forward ~10 ms at B = 1 and ~110 ms at B = 16 (mostly the no-grad band
+    pass), backward ~5 / ~40 ms; autograd keeps ~9 / ~90 MiB, peak RSS grows ~30 / ~280 MiB.
+    """
+    if band is None:
+        band = surface_band(qs, grid, band_margin(sigma, grid.dx), distance=distance)
+    dtype = dtype or qs.dtype
+    e, _ = element_distances(qs, band, dtype)
+    d = soft_distance(e, xi, mean)
+    delta = torch.where(band.inside, 1.0, -1.0).to(d.dtype)
+    b = torch.sigmoid(delta * d / sigma)
+    return scatter_band(b.unsqueeze(1), band, grid)
+
+
+def element_velocities(qdots: Tensor, band: SurfaceBand, t: Tensor | None) -> Tensor:
+    """Velocity [B, P, K, 2] of each band cell's K nearest elements: the node velocity, or
+    (1 - t) qdot^l + t qdot^{l+1} at the closest point of segment l."""
+    v_a = gather_nodes(qdots, band.nearest)
+    if t is None:
+        return v_a
+    v_b = gather_nodes(qdots, (band.nearest + 1) % qdots.shape[1])
+    t = t.unsqueeze(-1)
+    return (1.0 - t) * v_a + t * v_b
+
+
+def boundary_velocity(qs: Tensor, qdots: Tensor, mask: Tensor, grid: Grid, tau: float = TAU,
+                      distance: str = SEGMENT, band: SurfaceBand | None = None) -> Tensor:
+    """Boundary velocity v_d,ij = (sum_l softmin_l(e_ij,l / tau) v^l) b_ij, [B, 2, H, W] m/s.
+
+    qs, qdots: surface positions (m) and velocities (m/s) [B, S, 2]; mask: b [B, 1, H, W].
+    v^l is the velocity of element l (node, or segment interpolated at the closest point).
+    A rigid translation U gives v_d = U b exactly; a rigid rotation is exact on the surface
+    and off by |omega| * (distance to the nearest surface point) inside.
+    band: pass the one used for the mask (it must cover the mask's support); if None it is
+    rebuilt with the margin of the default sigma.  Computed and returned in mask.dtype.
+    """
+    if band is None:
+        band = surface_band(qs, grid, band_margin(SIGMA, grid.dx), distance=distance)
+    e, t = element_distances(qs, band, mask.dtype)
+    w = torch.softmax(-e / tau, dim=-1)
+    u = (w.unsqueeze(-1) * element_velocities(qdots.to(mask.dtype), band, t)).sum(2)  # [B, P, 2]
+    b = mask.flatten(2).gather(2, band.flat.unsqueeze(1))  # [B, 1, P]
+    return scatter_band(u.transpose(1, 2) * b, band, grid)

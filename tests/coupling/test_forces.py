@@ -1,0 +1,75 @@
+"""Force modes, x-axis fixing, burn-in, and the two one-call directions of the layer."""
+
+import pytest
+import torch
+
+from fishsim.coupling import (
+    CouplingConfig,
+    burn_in_scale,
+    fext_from_surface,
+    fluid_to_solid,
+    solid_to_fluid,
+)
+from fishsim.errors import ConfigError
+from fishsim.fluid.base import Boundary, Grid
+from tests.coupling.shapes import fish_outline
+
+N = 7
+SURFACE = torch.tensor([5, 0, 2, 6])
+
+
+def surface_forces():
+    return torch.arange(2 * 4 * 2, dtype=torch.float64).view(2, 4, 2) - 5.0
+
+
+def test_per_node_places_forces_on_surface_nodes():
+    f = fext_from_surface(surface_forces(), SURFACE, N)
+    assert f.shape == (2, N, 2)
+    assert torch.equal(f[:, SURFACE], surface_forces())
+    assert torch.equal(f[:, [1, 3, 4]], torch.zeros(2, 3, 2, dtype=f.dtype))
+
+
+def test_average_mode_keeps_total_force_on_every_node():
+    f = fext_from_surface(surface_forces(), SURFACE, N, mode="average")
+    assert torch.allclose(f.sum(1), surface_forces().sum(1))
+    assert torch.allclose(f, f[:, :1].expand_as(f))
+
+
+@pytest.mark.parametrize("mode", ["per_node", "average"])
+def test_fix_lateral_zeros_y(mode):
+    f = fext_from_surface(surface_forces(), SURFACE, N, mode=mode, fix_lateral=True)
+    assert (f[..., 1] == 0).all()
+    assert torch.allclose(f.sum(1)[:, 0], surface_forces().sum(1)[:, 0])
+
+
+def test_burn_in_scale():
+    assert [burn_in_scale(t, 4) for t in (0, 1, 2, 4, 9)] == [0.0, 0.25, 0.5, 1.0, 1.0]
+    assert burn_in_scale(0, 0) == 1.0
+    f = fext_from_surface(surface_forces(), SURFACE, N, scale=burn_in_scale(1, 4))
+    assert torch.allclose(f[:, SURFACE], 0.25 * surface_forces())
+
+
+def test_config_rejects_bad_values():
+    with pytest.raises(ConfigError):
+        CouplingConfig(sigma=0.0)
+    with pytest.raises(ConfigError):
+        CouplingConfig(ibm_weight="inside")
+
+
+def test_layer_round_trip_dtypes_and_burn_in():
+    grid, cfg = Grid(), CouplingConfig(n_burn_in=10)
+    qs = fish_outline(120)
+    interior = qs.mean(1, keepdim=True)
+    q = torch.cat([interior, qs], 1).repeat(2, 1, 1)  # node 0 interior, 1..S the surface
+    surface = torch.arange(1, 121).numpy()
+    qdot = torch.zeros_like(q)
+    qdot[..., 0] = 0.2
+    boundary = solid_to_fluid(q, qdot, surface, grid, cfg)
+    assert isinstance(boundary, Boundary) and boundary.mask.dtype == torch.float32
+    assert torch.allclose(boundary.velocity[:, 0], 0.2 * boundary.mask[:, 0])
+    p = (1000.0 * grid.cell_centres()[..., 1])[None, None].repeat(2, 1, 1, 1)
+    f = fluid_to_solid(q, p, boundary, surface, grid, cfg, step=5)
+    assert f.shape == q.shape and f.dtype == torch.float64
+    assert (f[:, 0] == 0).all()
+    area = 0.0023034
+    assert torch.allclose(f.sum(1)[:, 1], torch.tensor(-0.5 * 1000.0 * area, dtype=f.dtype), rtol=1e-3)
