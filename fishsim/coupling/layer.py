@@ -7,7 +7,7 @@ Only the fish is described here.  The rollout adds the tank walls (mask b_wall, 
 and combines them as a union of soft sets:
 
     b_total = 1 - (1 - b_fish)(1 - b_wall)    (= max(b_fish, b_wall) where they do not overlap)
-    v_total = v_d,fish + v_wall b_wall        (v_d,fish already carries its factor b_fish)
+    v_total = (b_fish v_fish + b_wall v_wall) / (b_fish + b_wall)     (fishsim.fluid.grid.union)
 
 and may pass the combined Boundary to ``fluid_to_solid`` (wall cells are then not sampled by the
 default fluid-side IBM weight either).
@@ -96,6 +96,10 @@ def solid_to_fluid(q: Tensor, qdot: Tensor, surface, grid: Grid, cfg: CouplingCo
                    dtype: torch.dtype = torch.float32) -> Boundary:
     """The fish as a fluid boundary: mask b [B, 1, H, W] and v_d [B, 2, H, W] in ``dtype``.
 
+    v_d is the solid's velocity field on the band of cells around the body (the softmin-weighted
+    surface velocity, without the paper's factor b: the fluid models apply the mask themselves,
+    e.g. the Brinkman blend (1 - b) v + b v_d).
+
     q, qdot: world-frame node positions (m) and velocities (m/s) [B, N, 2]; surface: [S] mesh
     indices of the ccw surface polyline (FishMesh.surface).  Differentiable in q and qdot.
     """
@@ -103,7 +107,7 @@ def solid_to_fluid(q: Tensor, qdot: Tensor, surface, grid: Grid, cfg: CouplingCo
     qs, qdots = q[:, idx], qdot[:, idx]
     band = surface_band(qs, grid, band_margin(cfg.sigma, grid.dx), cfg.k_nearest, cfg.distance)
     mask = soft_mask(qs, grid, cfg.xi, cfg.sigma, cfg.distance, cfg.mean, band, dtype)
-    velocity = boundary_velocity(qs, qdots, mask, grid, cfg.tau, cfg.distance, band)
+    velocity = boundary_velocity(qs, qdots, mask, grid, cfg.tau, cfg.distance, band, weighted=False)
     return Boundary(mask=mask, velocity=velocity)
 
 

@@ -128,8 +128,12 @@ def element_velocities(qdots: Tensor, band: SurfaceBand, t: Tensor | None) -> Te
 
 
 def boundary_velocity(qs: Tensor, qdots: Tensor, mask: Tensor, grid: Grid, tau: float = TAU,
-                      distance: str = SEGMENT, band: SurfaceBand | None = None) -> Tensor:
+                      distance: str = SEGMENT, band: SurfaceBand | None = None,
+                      weighted: bool = True) -> Tensor:
     """Boundary velocity v_d,ij = (sum_l softmin_l(e_ij,l / tau) v^l) b_ij, [B, 2, H, W] m/s.
+
+    weighted=False drops the paper's factor b_ij and returns the solid's velocity field itself
+    (the ``Boundary.velocity`` contract: the fluid models weight it by the mask where needed).
 
     qs, qdots: surface positions (m) and velocities (m/s) [B, S, 2]; mask: b [B, 1, H, W].
     v^l is the velocity of element l (node, or segment interpolated at the closest point).
@@ -144,4 +148,5 @@ def boundary_velocity(qs: Tensor, qdots: Tensor, mask: Tensor, grid: Grid, tau: 
     w = torch.softmax(-e / tau, dim=-1)
     u = (w.unsqueeze(-1) * element_velocities(qdots.to(mask.dtype), band, t)).sum(2)  # [B, P, 2]
     b = mask.flatten(2).gather(2, band.flat.unsqueeze(1))  # [B, 1, P]
-    return scatter_band(u.transpose(1, 2) * b, band, grid)
+    u = u.transpose(1, 2)
+    return scatter_band(u * b if weighted else u, band, grid)

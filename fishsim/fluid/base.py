@@ -68,7 +68,9 @@ class Boundary:
     """Solid/wall description for one fluid step, given per cell.
 
     mask: soft boundary mask b in [0, 1], [B, 1, H, W]; 1 = solid or wall, 0 = fluid.
-    velocity: boundary velocity v_d, [B, 2, H, W] (v_x, v_y) in m/s, meaningful where mask > 0.
+    velocity: boundary velocity v_d, [B, 2, H, W] (v_x, v_y) in m/s: the velocity of the solid
+        itself (not multiplied by the mask), meaningful where mask > 0; fluid models weight it
+        by the mask (Brinkman blend (1 - b) v + b v_d, HydroNet's b v_d input channel).
     """
 
     mask: Tensor
