@@ -13,7 +13,7 @@ from pathlib import Path
 
 import torch
 
-SUITES = ["bench_solid", "bench_fluid", "bench_coupling", "bench_hydronet", "bench_rollout"]
+SUITES = ["bench_solid", "bench_fluid", "bench_coupling", "bench_hydronet", "bench_rollout", "bench_render"]
 HERE = Path(__file__).parent
 
 

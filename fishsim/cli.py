@@ -60,13 +60,25 @@ def _root() -> None:
     """fishsim: a fast, differentiable simulator of soft swimming robots."""
 
 
-def _command(name: str, summary: str) -> Callable:
-    """Register ``fishsim <name>`` with help text generated from its structured config."""
+def _positional(args: Optional[List[str]], keys: tuple[str, ...]) -> List[str]:
+    """Bare arguments (no '=') become ``key=value`` for ``keys`` in order (e.g. render's paths)."""
+    out, free = [], list(keys)
+    for arg in args or []:
+        if "=" not in arg and free:
+            out.append(f"{free.pop(0)}={arg}")
+        else:
+            out.append(arg)
+    return out
+
+
+def _command(name: str, summary: str, positional: tuple[str, ...] = ()) -> Callable:
+    """Register ``fishsim <name>`` with help text generated from its structured config; bare
+    arguments fill the config keys named in ``positional``."""
     epilog = "Config (group.key=default):\n\n" + describe(ROOTS[name])
 
     def decorate(run_factory: Callable[[], Callable]) -> Callable:
         def command(overrides: Optional[List[str]] = OVERRIDES, show_config: bool = SHOW) -> None:
-            _execute(name, overrides, show_config, run_factory())
+            _execute(name, _positional(overrides, positional), show_config, run_factory())
 
         command.__doc__ = summary
         app.command(name=name, epilog=epilog)(command)
@@ -82,5 +94,24 @@ def _mesh() -> Callable:
     return run
 
 
+@_command("simulate", "Simulate B fish swimming (fluid=numerical | none); write an HDF5 trajectory.")
+def _simulate() -> Callable:
+    from fishsim.commands.simulate import run
+
+    return run
+
+
+@_command("render", "Render a trajectory (or a folder of them): PNG frames, MP4, comparisons, ParaView.",
+          positional=("path", "compare"))
+def _render() -> Callable:
+    from fishsim.render.run import run
+
+    return run
+
+
 def main() -> None:  # pragma: no cover - console entry point
     sys.exit(app())
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

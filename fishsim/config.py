@@ -14,10 +14,14 @@ from dataclasses import dataclass, field
 from importlib import resources
 from typing import Any, Optional
 
-from omegaconf import OmegaConf
+from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
+from fishsim.coupling.layer import CouplingConfig
 from fishsim.errors import ConfigError
+from fishsim.render.config import RenderConfig
+from fishsim.solid.controller import DEFAULT_C
+from fishsim.solid.model import PDOptions, SolidMaterial
 
 
 def _require(cond: bool, msg: str) -> None:
@@ -70,7 +74,135 @@ class MeshCommandConfig:
         self.fish.validate()
 
 
-ROOTS: dict[str, type] = {"mesh": MeshCommandConfig}
+@dataclass
+class SolidConfig:
+    """The PD solid: material (paper Sec. 4.1) and solver options (``fishsim.solid.model``)."""
+
+    material: SolidMaterial = field(default_factory=SolidMaterial)
+    pd: PDOptions = field(default_factory=PDOptions)
+
+
+@dataclass
+class ControllerConfig:
+    """The paper's travelling-wave controller h(X, t) = C v(X) sin(gamma X + omega t)(1 - e^(-t/t_a)).
+
+    frequency: f = omega / (2 pi) in Hz.  amplitude: C in 1/m (h is a muscle contraction).
+    wave_number: gamma in rad/m (null: 2 pi / L, one wavelength per body).  t_a: ramp time, s.
+    """
+
+    frequency: float = 5.0
+    amplitude: float = DEFAULT_C
+    wave_number: Optional[float] = None
+    t_a: float = 0.2
+
+    def validate(self) -> None:
+        _positive(**{"controller.frequency": self.frequency, "controller.t_a": self.t_a})
+        _require(self.amplitude >= 0, f"controller.amplitude must be >= 0 (got {self.amplitude})")
+        _require(self.wave_number is None or self.wave_number > 0, "controller.wave_number must be > 0")
+
+
+@dataclass
+class BatchConfig:
+    """Per-fish values for a batch of B fish simulated together (same mesh, same tank size).
+
+    Each list has one entry per fish; B is the longest list, a one-entry list is shared, and an
+    empty list takes the controller's / material's value.  Example: ``batch.frequency=[3,4,5,6,7]``.
+    """
+
+    frequency: list[float] = field(default_factory=list)
+    amplitude: list[float] = field(default_factory=list)
+    wave_number: list[float] = field(default_factory=list)
+    youngs_modulus: list[float] = field(default_factory=list)
+
+    @property
+    def size(self) -> int:
+        return max([1] + [len(v) for v in (self.frequency, self.amplitude, self.wave_number, self.youngs_modulus)])
+
+    def validate(self) -> None:
+        for name in ("frequency", "amplitude", "wave_number", "youngs_modulus"):
+            values = getattr(self, name)
+            _require(len(values) in (0, 1, self.size),
+                     f"batch.{name} has {len(values)} entries; give 1 or B = {self.size}")
+            _require(all(v > 0 for v in values) or name == "amplitude" and all(v >= 0 for v in values),
+                     f"batch.{name} values must be positive (got {list(values)})")
+
+
+@dataclass
+class FluidConfig:
+    """The fluid and its tank (PHYSICS.md section 4).
+
+    model: none (vacuum) | numerical (the reference solver).
+    rho: density, kg/m^3 (per unit area in 2D), in [10, 50]; mu: dynamic viscosity, Pa s.
+    H, W, dx: tank cells (rows along y, columns along x) and cell size (m).
+    wall_y, wall_x: thickness of the solid wall bands in cells (bottom/top, left/right).
+    inflow: x-velocity (m/s) imposed in the left/right bands (0: closed tank).
+    refinement: numerical solver only, internal grid dx / r and sub-steps h / r.
+    """
+
+    model: str = "numerical"
+    rho: float = 50.0
+    mu: float = 1.25e-4
+    H: int = 100
+    W: int = 300
+    dx: float = 2.5e-3
+    wall_y: int = 3
+    wall_x: int = 5
+    inflow: float = 0.0
+    refinement: int = 1
+
+    def validate(self) -> None:
+        _require(self.model in ("none", "numerical"), f"fluid.model must be none or numerical (got '{self.model}')")
+        _positive(**{"fluid.rho": self.rho, "fluid.mu": self.mu, "fluid.dx": self.dx})
+        _require(self.H >= 16 and self.W >= 16, f"fluid grid must be at least 16 x 16 cells (got {self.H} x {self.W})")
+        _require(0 <= self.wall_y < self.H // 4 and 0 <= self.wall_x < self.W // 4,
+                 "fluid.wall_y / fluid.wall_x must be >= 0 and leave room for the fluid")
+        _require(self.refinement in (1, 2, 4), f"fluid.refinement must be 1, 2 or 4 (got {self.refinement})")
+
+
+@dataclass
+class SimulateConfig:
+    """``fishsim simulate``: one episode of B fish swimming, written as an HDF5 trajectory.
+
+    frames: number of frames of h seconds.  origin: (x, y) in m of the fish's material origin
+    (the tail tip) in the tank.  fluid_stride: store the fluid fields every k frames.
+    vtk / vtk_stride: also write ParaView frames.  flush_every: HDF5 flush period (frames).
+    device: cpu | cuda.
+    """
+
+    fish: FishConfig = field(default_factory=FishConfig)
+    solid: SolidConfig = field(default_factory=SolidConfig)
+    controller: ControllerConfig = field(default_factory=ControllerConfig)
+    batch: BatchConfig = field(default_factory=BatchConfig)
+    fluid: FluidConfig = field(default_factory=FluidConfig)
+    coupling: CouplingConfig = field(default_factory=CouplingConfig)
+    frames: int = 300
+    h: float = 0.01
+    origin: list[float] = field(default_factory=lambda: [0.2, 0.125])
+    fluid_stride: int = 5
+    vtk: bool = False
+    vtk_stride: int = 5
+    flush_every: int = 10
+    device: str = "cpu"
+    output: str = "trajectory.h5"
+    out_dir: Optional[str] = None
+
+    def validate(self) -> None:
+        for part in (self.fish, self.controller, self.batch, self.fluid):
+            part.validate()
+        _require(self.frames >= 1, f"frames must be >= 1 (got {self.frames})")
+        _positive(h=self.h)
+        _require(self.fluid_stride >= 1 and self.vtk_stride >= 1 and self.flush_every >= 1,
+                 "fluid_stride, vtk_stride and flush_every must be >= 1")
+        _require(self.device in ("cpu", "cuda") or self.device.startswith("cuda:"),
+                 f"device must be cpu or cuda (got '{self.device}')")
+        if self.fluid.model != "none":
+            Lx, Ly = self.fluid.W * self.fluid.dx, self.fluid.H * self.fluid.dx
+            x0, y0 = self.origin
+            _require(0 < x0 and x0 + self.fish.length < Lx and 0 < y0 < Ly,
+                     f"origin={list(self.origin)} puts the fish outside the {Lx:.3f} x {Ly:.3f} m tank")
+
+
+ROOTS: dict[str, type] = {"mesh": MeshCommandConfig, "simulate": SimulateConfig, "render": RenderConfig}
 
 
 def config_dir() -> str:
@@ -101,6 +233,7 @@ def load_config(command: str, overrides: list[str] | None = None) -> Any:
 def to_dataclass(command: str, raw: Any) -> Any:
     """Merge a composed config into the command's schema, build the dataclasses, validate."""
     schema = OmegaConf.structured(ROOTS[command])
+    _writable(schema)
     try:
         merged = OmegaConf.merge(schema, raw)
         cfg = OmegaConf.to_object(merged)
@@ -108,6 +241,17 @@ def to_dataclass(command: str, raw: Any) -> Any:
         raise ConfigError(_one_line(err)) from None
     cfg.validate()
     return cfg
+
+
+def _writable(node: DictConfig) -> None:
+    """Frozen dataclasses (the modules' own parameter classes) make read-only nodes; lift that so
+    overrides can be merged in (the dataclass constructors still validate the result)."""
+    node._set_flag("readonly", False)
+    for key in node.keys():
+        child = node._get_node(key)
+        child._set_flag("readonly", False)
+        if isinstance(child, DictConfig):
+            _writable(child)
 
 
 def to_yaml(cfg: Any) -> str:

@@ -65,5 +65,5 @@ def test_show_config_prints_yaml():
 def test_only_built_commands_are_listed():
     result = runner.invoke(app, ["--help"])
     assert "mesh" in result.output
-    for missing in ("optimize", "validate"):
+    for missing in ("optimize", "validate", "train-hydronet"):
         assert missing not in result.output

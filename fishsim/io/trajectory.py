@@ -77,11 +77,13 @@ class TrajectoryWriter:
         if self._frames % self.flush_every == 0:
             self.file.flush()
 
-    def close(self, complete: bool, message: str = "") -> None:
-        """Flush, close, and record whether the run finished (``complete``) and why not."""
+    def close(self, complete: bool, message: str = "", attrs: Optional[dict] = None) -> None:
+        """Flush, close, and record whether the run finished (``complete``), why not, and any
+        extra file attributes (grid size, summary numbers)."""
         self.file.flush()
         self.file.close()
         with h5py.File(self.path, "r+") as f:
+            f.attrs.update(attrs or {})
             f.attrs["complete"] = bool(complete)
             f.attrs["n_frames"] = self._frames
             f.attrs["message"] = message or ("complete" if complete else "incomplete")

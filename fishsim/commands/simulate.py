@@ -1,0 +1,191 @@
+"""``fishsim simulate``: one episode of B fish swimming, written as a crash-safe HDF5 trajectory."""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from rich.console import Console
+from rich.markup import escape
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+from rich.table import Table
+
+from fishsim.commands.mesh import build_fish_mesh
+from fishsim.config import SimulateConfig, to_yaml
+from fishsim.errors import ConfigError, FishsimError
+from fishsim.fluid.factory import fluid_params, make_fluid, make_tank
+from fishsim.fluid.grid import curl, faces_to_centres
+from fishsim.io.outdir import make_out_dir, resolve_output
+from fishsim.io.trajectory import TrajectoryWriter, trajectory_series
+from fishsim.rollout import METRICS, SwimParams, Swimmer, rollout
+from fishsim.solid import SolidModel
+from fishsim.solid.controller import WaveController
+
+
+@dataclass
+class Episode:
+    """Everything one simulation needs, built from a config."""
+
+    swimmer: Swimmer
+    params: SwimParams
+    origin: tuple[float, float]
+    device: torch.device
+
+
+def build_episode(cfg: SimulateConfig) -> Episode:
+    """Mesh, solid, fluid, tank, coupling and the batch's parameters from the config."""
+    device = torch.device(cfg.device)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ConfigError("device=cuda but torch sees no CUDA device (install a CUDA build of torch: see README)")
+    mesh = build_fish_mesh(cfg.fish)
+    solid = SolidModel(mesh, cfg.solid.material, h=cfg.h, options=cfg.solid.pd)
+    fluid = make_fluid(cfg.fluid)
+    walls = make_tank(cfg.fluid, device) if fluid is not None else None
+    swimmer = Swimmer(solid, fluid, cfg.coupling, walls)
+    params = batch_params(cfg, mesh.length, device)
+    return Episode(swimmer, params, tuple(cfg.origin), device)
+
+
+def batch_params(cfg: SimulateConfig, length: float, device) -> SwimParams:
+    """Per-fish controller, E and fluid parameters as [B] tensors (config ``batch`` lists)."""
+    B, c, b = cfg.batch.size, cfg.controller, cfg.batch
+
+    def per_fish(values, default) -> torch.Tensor:
+        values = list(values) or [default]
+        return torch.tensor(values * (B // len(values)), dtype=torch.float64, device=device)
+
+    gamma = c.wave_number if c.wave_number is not None else 2 * math.pi / length
+    controller = WaveController(C=per_fish(b.amplitude, c.amplitude),
+                                omega=2 * math.pi * per_fish(b.frequency, c.frequency),
+                                gamma=per_fish(b.wave_number, gamma), t_a=c.t_a)
+    E = per_fish(b.youngs_modulus, cfg.solid.material.youngs_modulus)
+    fluid = fluid_params(cfg.fluid, B, cfg.h, device) if cfg.fluid.model != "none" else None
+    return SwimParams(controller=controller, E=E, fluid=fluid)
+
+
+def open_writer(cfg: SimulateConfig, episode: Episode, path) -> TrajectoryWriter:
+    """Declare every series of the run and write the static data (mesh, controller, config)."""
+    sw, p = episode.swimmer, episode.params
+    mesh, B = sw.solid.mesh, p.E.shape[0]
+    fluid_shape = (cfg.fluid.H, cfg.fluid.W) if sw.fluid is not None else None
+    series = trajectory_series(mesh.n_nodes, B, sw.solid.n_muscles, METRICS, fluid_shape)
+    static = {
+        "mesh/points": mesh.points, "mesh/triangles": mesh.triangles, "mesh/surface": mesh.surface,
+        "mesh/actuator": mesh.actuator, "mesh/muscles": sw.solid.muscles,
+        "controller/frequency": (p.controller.omega / (2 * math.pi)).cpu().numpy(),
+        "controller/amplitude": p.controller.C.cpu().numpy(),
+        "controller/wave_number": p.controller.gamma.cpu().numpy(),
+        "controller/youngs_modulus": p.E.cpu().numpy(),
+    }
+    return TrajectoryWriter(path, series, static, to_yaml(cfg), cfg.h, cfg.flush_every)
+
+
+def frame_record(t: int, state, out, metrics: dict, h: float) -> dict:
+    """The per-frame series of frame t (after the step) as numpy arrays."""
+    rec = {"solid/q": state.q, "solid/qdot": state.qdot, "solid/f_ext": out.f_ext,
+           "controller/activation": out.contraction}
+    rec = {k: v.detach().cpu().numpy() for k, v in rec.items()}
+    rec.update({f"metrics/{k}": v.detach().cpu().numpy() for k, v in metrics.items()})
+    rec["metrics/time"] = (t + 1) * h
+    return rec
+
+
+def fluid_record(t: int, state, out, dx: float) -> dict:
+    """Fluid fields of frame t at cell centres (and a on vertices) as numpy arrays."""
+    v = faces_to_centres(curl(state.fluid.a, dx))
+    fields = {"fluid/p": state.fluid.p[:, 0], "fluid/vx": v[:, 0], "fluid/vy": v[:, 1],
+              "fluid/mask": out.boundary.mask[:, 0], "fluid/a": state.fluid.a[:, 0]}
+    rec = {k: x.detach().float().cpu().numpy() for k, x in fields.items()}
+    rec["fluid/frame"] = t
+    return rec
+
+
+def run(cfg: SimulateConfig) -> dict:
+    """Simulate, writing the trajectory as it goes; print and return the summary."""
+    out_dir = make_out_dir("simulate", cfg.out_dir)
+    path = resolve_output(out_dir, cfg.output)
+    episode = build_episode(cfg)
+    sw = episode.swimmer
+    writer = open_writer(cfg, episode, path)
+    state = sw.initial_state(episode.params, episode.origin)
+    history = {k: [] for k in METRICS}
+    t_start = time.perf_counter()
+
+    with _progress() as progress:
+        task = progress.add_task("simulate", total=cfg.frames)
+
+        def on_frame(t, s, out, metrics):
+            writer.append(frame_record(t, s, out, metrics, cfg.h))
+            if sw.fluid is not None and (t + 1) % cfg.fluid_stride == 0:
+                writer.append(fluid_record(t, s, out, cfg.fluid.dx))
+            writer.end_frame()
+            for k, v in metrics.items():
+                history[k].append(v.detach().cpu().numpy())
+            progress.update(task, advance=1, description=f"simulate  head x {float(metrics['head_x'][0]):.4f} m")
+
+        try:
+            with torch.no_grad():
+                rollout(sw, state, episode.params, cfg.frames, on_frame=on_frame)
+        except (FishsimError, KeyboardInterrupt) as err:
+            writer.close(complete=False, message=f"stopped: {err}", attrs=_grid_attrs(cfg))
+            raise type(err)(f"{err} (partial trajectory kept in {path}, marked incomplete)") from None
+    wall = time.perf_counter() - t_start
+    summary = summarise(cfg, episode, history, wall)
+    writer.close(complete=True, attrs={**_grid_attrs(cfg), **{f"summary_{k}": v for k, v in summary.items()
+                                                              if isinstance(v, (int, float))}})
+    summary["trajectory"] = str(path)
+    if cfg.vtk:
+        summary["paraview"] = str(_write_vtk(path, out_dir, cfg.vtk_stride))
+    _print(summary)
+    return summary
+
+
+def _grid_attrs(cfg: SimulateConfig) -> dict:
+    return {"grid_H": cfg.fluid.H, "grid_W": cfg.fluid.W, "grid_dx": cfg.fluid.dx, "fluid_model": cfg.fluid.model}
+
+
+def summarise(cfg: SimulateConfig, episode: Episode, history: dict, wall: float) -> dict:
+    """Distance travelled by the head, mean speed, mean thrust, Strouhal number (fish 0; the
+    second half of the episode for speed/St), wall time split solid/fluid/coupling."""
+    m = {k: np.stack(v)[:, 0] for k, v in history.items()}
+    n, h = len(m["head_x"]), cfg.h
+    half = n // 2
+    distance = float(m["head_x"][-1] - (m["head_x"][0] if n else 0.0))
+    speed = float((m["centroid_x"][-1] - m["centroid_x"][half]) / max(1, n - 1 - half) / h) if n > 2 else 0.0
+    tail = m["tail_y"][half:]
+    amplitude = float(tail.max() - tail.min()) if len(tail) else 0.0
+    f = float(episode.params.controller.omega[0]) / (2 * math.pi)
+    split = episode.swimmer.timer.seconds
+    return {
+        "frames": n, "batch": int(episode.params.E.shape[0]),
+        "head distance [m]": distance, "mean speed [m/s]": speed,
+        "mean thrust x [N]": float(np.mean(m["thrust_x"])),
+        "tail peak-to-peak [m]": amplitude,
+        "Strouhal f A / U": f * amplitude / speed if speed > 1e-6 else float("nan"),
+        "wall time [s]": wall,
+        "solid [s]": split["solid"], "fluid [s]": split["fluid"], "coupling [s]": split["coupling"],
+    }
+
+
+def _write_vtk(path, out_dir, stride: int):
+    from fishsim.io.vtk_io import write_vtk_series
+    from fishsim.render.data import load_render_data
+
+    data = load_render_data(path)
+    written = write_vtk_series(data, out_dir / "paraview", frames=range(0, data.n_frames, stride))
+    return written["fish"]
+
+
+def _progress() -> Progress:
+    return Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
+                    TimeElapsedColumn(), TimeRemainingColumn(), transient=False)
+
+
+def _print(summary: dict) -> None:
+    table = Table(title="fishsim simulate (fish 0)", show_header=False)
+    for k, v in summary.items():
+        table.add_row(escape(k), f"{v:.4g}" if isinstance(v, float) else escape(str(v)))
+    Console().print(table)

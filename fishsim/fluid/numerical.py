@@ -1,0 +1,311 @@
+"""Numerical reference fluid: incompressible Navier-Stokes by projection on the MAC grid
+(PHYSICS.md section 6), implementing the ``FluidModel`` contract.
+
+One step advances (a, p) by h with n sub-steps of dt = h / n, each a Heun (SSP-RK2) step whose
+two stages are the same three phases (Chorin projection with Brinkman penalization):
+
+    predict    w = v + dt [ -(v . grad) v + nu lap v ]          advection: Koren-limited 3rd-order
+                                                               upwind flux form; viscosity explicit
+    penalize   u = (1 - b_f) w + b_f v_d                       Brinkman, lambda -> inf with the soft
+                                                               mask (or implicit with finite lambda)
+    project    v = u - grad phi,  lap phi = div u              DCT-II direct solve, div v ~ 1e-15
+
+    stage 1:  v1 = project(penalize(predict(v)))
+    stage 2:  v' = project(penalize((v + predict(v1)) / 2))
+
+n is chosen per step so that both the advective Courant number max|v| dt / dx <= ``cfl`` and the
+diffusion number nu dt / dx^2 <= ``diffusion`` (explicit stability of SSP-RK2 on these stencils:
+Courant <= 1 for the TVD scheme, nu dt/dx^2 <= 1/4).  The returned pressure is the one whose
+gradient the step applied, p = rho (phi1/2 + phi2) / dt averaged over the sub-steps (mean free),
+so (v, v', p) satisfy the IMEX momentum residual (``fishsim.fluid.residual``) to truncation error.
+
+Refinement r: the step runs on the r-times finer grid (dx / r, at least r sub-steps so dt <= h / r).
+Prolongation: a bilinearly on the vertices (so v stays divergence free), b and v_d bilinearly on
+the cell centres (edge-clamped).  Restriction: a by injection at the coarse vertices (so the coarse
+face velocity is the exact mean of the fine face velocities along it: flux conserving), p by the
+mean of the r x r fine cells.  The returned state is a ``RefinedState`` that also carries the fine
+potential, so successive steps keep the fine-scale flow; a plain ``FluidState`` input is prolonged.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from fishsim.errors import SimulationBlowUp
+from fishsim.fluid.base import Boundary, FluidParams, FluidState, Grid
+from fishsim.fluid.dct import neumann_eigenvalues, solve_neumann_poisson
+from fishsim.fluid.grid import (
+    NO_SLIP,
+    Faces,
+    WallBC,
+    advection,
+    curl,
+    divergence,
+    face_masks,
+    gradient,
+    laplacian_faces,
+    stream_function,
+    vector_to_faces,
+    zero_walls,
+)
+from fishsim.fluid.residual import per_sample
+
+
+@dataclass(frozen=True)
+class RefinedState(FluidState):
+    """A ``FluidState`` on the r = 1 grid that also carries the potential of the fine grid
+    (``fine_a`` [B, 1, rH+1, rW+1], m^2/s) used by a refined ``NumericalFluid``."""
+
+    fine_a: Tensor | None = None
+
+
+@dataclass(frozen=True)
+class StepDiagnostics:
+    """What one step did, for validation.
+
+    substeps: number of sub-steps n (dt = h / n).
+    penalty: mean penalization acceleration over the step on the (fine) faces, m/s^2:
+        the velocity the penalization added, divided by h.  rho * penalty is the force per unit
+        area the body and wall bands exert on the fluid.
+    dx: spacing of ``penalty`` (the fine grid), m.
+    refinement: r.
+    """
+
+    substeps: int
+    penalty: Faces
+    dx: float
+    refinement: int
+
+    def force(self, rho: Tensor | float, region: Tensor | None = None) -> Tensor:
+        """Hydrodynamic force on the penalized body, [B, 2] (x, y) in N/m (per unit depth):
+
+            F = - sum_faces rho * penalty * w_f dx^2
+
+        the reaction to the Brinkman force on the fluid (the momentum the penalization injects
+        per unit time).  ``region`` [B, 1, H, W] on the r = 1 grid (a cell mask around the body)
+        restricts the sum to faces whose cells are in it (weight w_f = face average of region;
+        default: every face, i.e. body and wall bands together).
+        """
+        px, py = self.penalty
+        rho_ = per_sample(rho, px)
+        if region is None:
+            wx, wy = torch.ones_like(px), torch.ones_like(py)
+        else:
+            wx, wy = face_masks(_prolong_centres(region.to(px), self.refinement))
+        fx = -(rho_ * px * wx).sum(dim=(-3, -2, -1)) * self.dx**2
+        fy = -(rho_ * py * wy).sum(dim=(-3, -2, -1)) * self.dx**2
+        return torch.stack([fx, fy], -1)
+
+
+def _prolong_centres(q: Tensor, r: int) -> Tensor:
+    """Cell-centred field to the r-times finer grid, bilinear, edge-clamped."""
+    return q if r == 1 else F.interpolate(q, scale_factor=r, mode="bilinear", align_corners=False)
+
+
+def _prolong_vertices(a: Tensor, r: int) -> Tensor:
+    """Vertex field to the r-times finer grid, bilinear (coarse vertices are fine vertices)."""
+    if r == 1:
+        return a
+    H, W = a.shape[-2] - 1, a.shape[-1] - 1
+    return F.interpolate(a, size=(r * H + 1, r * W + 1), mode="bilinear", align_corners=True)
+
+
+def _mean_free(q: Tensor) -> Tensor:
+    return q - q.mean(dim=(-2, -1), keepdim=True)
+
+
+# --------------------------------------------------------------------------------------------
+# The three phases (each a pure function of its inputs)
+# --------------------------------------------------------------------------------------------
+
+
+def predict(v: Faces, nu: Tensor, dt: float, dx: float, walls: WallBC, scheme: str) -> Faces:
+    """Explicit momentum update without pressure: w = v + dt [ -(v.grad)v + nu lap v ].
+    Wall faces keep their (prescribed) normal velocity."""
+    adv = advection(v, dx, walls, scheme)
+    lap = zero_walls(laplacian_faces(v, dx, walls))
+    return tuple(c + dt * (nu * L - A) for c, A, L in zip(v, adv, lap))
+
+
+def penalize(w: Faces, b: Faces, v_d: Faces, lam_dt: float | None = None) -> tuple[Faces, Faces]:
+    """Brinkman penalization of the body and wall bands, returns (u, u - w).
+
+    lam_dt None:  u = (1 - b_f) w + b_f v_d                      (the limit lambda -> inf with a
+                                                                  soft mask: a volume-fraction blend)
+    lam_dt = lambda dt:  u = (w + lambda dt b_f v_d) / (1 + lambda dt b_f)   (implicit Euler of
+                                                                  dv/dt = lambda b (v_d - v))
+    The normal velocity on the box-wall faces becomes b_f v_d (impermeable where b_f = 0).
+    """
+    def one(wc: Tensor, bc: Tensor, vc: Tensor) -> Tensor:
+        if lam_dt is None:
+            return wc + bc * (vc - wc)
+        return (wc + lam_dt * bc * vc) / (1 + lam_dt * bc)
+
+    ux, uy = (one(*t) for t in zip(w, b, v_d))
+    wall_x, wall_y = b[0] * v_d[0], b[1] * v_d[1]
+    ux = torch.cat([wall_x[..., :1], ux[..., 1:-1], wall_x[..., -1:]], -1)
+    uy = torch.cat([wall_y[..., :1, :], uy[..., 1:-1, :], wall_y[..., -1:, :]], -2)
+    return (ux, uy), (ux - w[0], uy - w[1])
+
+
+def project(u: Faces, dx: float, eigenvalues: Tensor | None = None) -> tuple[Faces, Tensor]:
+    """Helmholtz projection onto divergence-free fields: v = u - grad phi with lap phi = div u
+    (Neumann walls, DCT-II direct solve), wall faces unchanged; returns (v, phi), phi in m^2/s.
+    On return div v = 0 to round-off wherever the net wall flux of u is zero."""
+    phi = solve_neumann_poisson(divergence(u, dx), dx, eigenvalues)
+    gx, gy = gradient(phi, dx)
+    return (u[0] - gx, u[1] - gy), phi
+
+
+# --------------------------------------------------------------------------------------------
+# The model
+# --------------------------------------------------------------------------------------------
+
+
+class NumericalFluid:
+    """Projection-method Navier-Stokes solver with Brinkman penalization (module docstring).
+
+    grid: the r = 1 grid of the states and boundaries it exchanges.
+    refinement: r in {1, 2, 4, ...}: internal grid dx / r, sub-steps <= h / r.
+    walls: box-wall condition for the tangential velocity (default no-slip at rest; a lid is
+        ``WallBC(u_top=U)``; ``FREE_SLIP`` for slip walls).
+    scheme: advection interpolation, "koren" (default) or "central".
+    cfl: largest advective Courant number max|v| dt / dx per sub-step (default 0.5).
+    diffusion: largest nu dt / dx^2 per sub-step (default 0.2).
+    brinkman: lambda [1/s] of the implicit penalization; None (default) is the blend limit.
+    substeps: fix the number of sub-steps per step (e.g. for finite-difference gradient checks);
+        None chooses it from cfl/diffusion every step.
+    max_substeps: raise ``SimulationBlowUp`` when a step would need more (runaway velocity).
+    """
+
+    def __init__(
+        self,
+        grid: Grid,
+        refinement: int = 1,
+        walls: WallBC = NO_SLIP,
+        scheme: str = "koren",
+        cfl: float = 0.5,
+        diffusion: float = 0.2,
+        brinkman: float | None = None,
+        substeps: int | None = None,
+        max_substeps: int = 200,
+    ):
+        if refinement < 1:
+            raise ValueError(f"refinement must be a positive integer, got {refinement}")
+        self.grid = grid
+        self.refinement = int(refinement)
+        self.fine = Grid(grid.H * refinement, grid.W * refinement, grid.dx / refinement)
+        self.walls, self.scheme = walls, scheme
+        self.cfl, self.diffusion, self.brinkman = cfl, diffusion, brinkman
+        self.substeps, self.max_substeps = substeps, max_substeps
+        self.steps_taken = 0  # only used to name the step in blow-up messages
+        self._eig: dict = {}
+
+    # -- contract ------------------------------------------------------------------------------
+
+    def initial_state(self, batch: int, device=None, dtype=torch.float32) -> FluidState:
+        """Fluid at rest: a = 0, p = 0 on the r = 1 grid."""
+        g = self.grid
+        return FluidState(
+            a=torch.zeros(batch, 1, g.H + 1, g.W + 1, device=device, dtype=dtype),
+            p=torch.zeros(batch, 1, g.H, g.W, device=device, dtype=dtype),
+        )
+
+    def step(self, state: FluidState, boundary: Boundary, params: FluidParams) -> FluidState:
+        """(a_t, p_t, b_t, v_d,t) -> (a_t+1, p_t+1); p_t is not needed by a projection method."""
+        return self.step_with_diagnostics(state, boundary, params)[0]
+
+    # -- the step ------------------------------------------------------------------------------
+
+    def step_with_diagnostics(
+        self, state: FluidState, boundary: Boundary, params: FluidParams
+    ) -> tuple[FluidState, StepDiagnostics]:
+        """``step`` plus what it did (sub-step count, penalization force density)."""
+        r, dx, h = self.refinement, self.fine.dx, params.h
+        v = curl(self._fine_potential(state), dx)
+        b = face_masks(_prolong_centres(boundary.mask, r))
+        v_d = vector_to_faces(_prolong_centres(boundary.velocity, r))
+        rho, mu = per_sample(params.rho, v[0]), per_sample(params.mu, v[0])
+        nu = mu / rho
+        n = self._count_substeps(v, b, v_d, nu, h)
+        dt = h / n
+        p_sum, pen_sum = 0.0, (0.0, 0.0)
+        for _ in range(n):
+            v, phi, pen = self._substep(v, b, v_d, nu, dt)
+            p_sum = p_sum + phi
+            pen_sum = tuple(s + q for s, q in zip(pen_sum, pen))
+        self.steps_taken += 1
+        self._check_finite(v, h)
+        a = stream_function(v, dx)
+        p = _mean_free(rho * p_sum / h)
+        if r > 1:
+            new = RefinedState(a=_mean_free(a[..., ::r, ::r]), p=F.avg_pool2d(p, r), fine_a=a)
+        else:
+            new = FluidState(a=a, p=p)
+        diag = StepDiagnostics(n, tuple(q / h for q in pen_sum), dx, r)
+        return new, diag
+
+    def _substep(self, v: Faces, b: Faces, v_d: Faces, nu: Tensor, dt: float):
+        """One Heun (SSP-RK2) sub-step; returns (v', phi dt-weighted sum, penalization increment)."""
+        dx, lam_dt = self.fine.dx, (None if self.brinkman is None else self.brinkman * dt)
+        eig = self._eigenvalues(v[0])
+        u1, pen1 = penalize(predict(v, nu, dt, dx, self.walls, self.scheme), b, v_d, lam_dt)
+        v1, phi1 = project(u1, dx, eig)
+        w2 = tuple(0.5 * (c + q) for c, q in zip(v, predict(v1, nu, dt, dx, self.walls, self.scheme)))
+        u2, pen2 = penalize(w2, b, v_d, lam_dt)
+        v2, phi2 = project(u2, dx, eig)
+        return v2, 0.5 * phi1 + phi2, tuple(0.5 * q1 + q2 for q1, q2 in zip(pen1, pen2))
+
+    # -- helpers -------------------------------------------------------------------------------
+
+    def _fine_potential(self, state: FluidState) -> Tensor:
+        r = self.refinement
+        fine_a = getattr(state, "fine_a", None)
+        if r > 1 and fine_a is not None and fine_a.shape[-2:] == (self.fine.H + 1, self.fine.W + 1):
+            return fine_a
+        return _prolong_vertices(state.a, r)
+
+    def _eigenvalues(self, like: Tensor) -> Tensor:
+        key = (like.device, like.dtype)
+        if key not in self._eig:
+            self._eig[key] = neumann_eigenvalues(self.fine.H, self.fine.W, self.fine.dx, like.device, like.dtype)
+        return self._eig[key]
+
+    def _count_substeps(self, v: Faces, b: Faces, v_d: Faces, nu: Tensor, h: float) -> int:
+        """n >= r with max|v| (h/n) / dx <= cfl and nu (h/n) / dx^2 <= diffusion."""
+        dx = self.fine.dx
+        with torch.no_grad():
+            speed = max(
+                float(torch.maximum(c.abs().amax(), (bc * vc).abs().amax())) for c, bc, vc in zip(v, b, v_d)
+            )
+            nu_max = float(nu.amax())
+        if not math.isfinite(speed):
+            raise SimulationBlowUp(
+                f"fluid step {self.steps_taken}: non-finite velocity in the input state or boundary "
+                "velocity; the previous step diverged (CFL/viscous instability) or v_d is NaN"
+            )
+        if self.substeps is not None:
+            return self.substeps
+        n = max(self.refinement, math.ceil(speed * h / (self.cfl * dx)), math.ceil(nu_max * h / (self.diffusion * dx**2)))
+        if n > self.max_substeps:
+            raise SimulationBlowUp(
+                f"fluid step {self.steps_taken}: max |v| = {speed:.3g} m/s, nu = {nu_max:.3g} m^2/s need {n} "
+                f"sub-steps (> max_substeps = {self.max_substeps}) at h = {h:g} s, dx = {dx:g} m: "
+                "runaway velocity (CFL); check the boundary velocity, h and mu/rho"
+            )
+        return n
+
+    def _check_finite(self, v: Faces, h: float) -> None:
+        with torch.no_grad():
+            ok = all(bool(torch.isfinite(c).all()) for c in v)
+        if not ok:
+            raise SimulationBlowUp(
+                f"fluid step {self.steps_taken - 1}: non-finite velocity after the step "
+                f"(h = {h:g} s, {self.fine.H}x{self.fine.W} cells); likely an unstable sub-step count "
+                "(fixed `substeps` too small for the CFL) or a non-finite mask/boundary velocity"
+            )

@@ -1,0 +1,80 @@
+"""Result plots (matplotlib Agg), each written as PNG and SVG:
+
+* ``plot_optimisation_history``: objective and parameter per iteration for several methods on
+  the same axes (paper Fig. 5: gradient descent vs CMA-ES on the controller frequency);
+* ``plot_validation``: a quantity (head x-position) against the controller frequency for
+  several simulators, optional error bars (paper Fig. 4: HydroNet vs the numerical solver).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+MARKERS = "osd^v<>"
+
+
+def save_png_svg(fig: Figure, path: str | Path) -> list[Path]:
+    """Save ``fig`` as <path>.png and <path>.svg (any suffix of ``path`` is replaced)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    out = [path.with_suffix(".png"), path.with_suffix(".svg")]
+    for p in out:
+        fig.savefig(p, dpi=150)
+    return out
+
+
+def _figure(rows: int, height: float) -> tuple[Figure, list]:
+    fig = Figure(figsize=(6.4, height), layout="constrained")
+    FigureCanvasAgg(fig)
+    axes = [fig.add_subplot(rows, 1, i + 1) for i in range(rows)]
+    return fig, axes
+
+
+def plot_optimisation_history(histories: Mapping[str, Mapping[str, Sequence[float]]], path: str | Path,
+                              objective_label: str = "objective", parameter_label: str = "frequency [Hz]",
+                              optimum: float | None = None) -> list[Path]:
+    """histories: {method: {"objective": [per iteration], "parameter": [per iteration]}}; a
+    method may give "iteration" (x values, e.g. cumulative simulations) instead of 0, 1, 2...
+    ``optimum``: a reference parameter value drawn as a dotted line."""
+    fig, (ax_obj, ax_par) = _figure(2, 5.2)
+    for i, (method, h) in enumerate(histories.items()):
+        obj = np.asarray(h["objective"], float)
+        it = np.asarray(h.get("iteration", np.arange(len(obj))), float)
+        style = {"marker": MARKERS[i % len(MARKERS)], "markersize": 3, "label": method}
+        ax_obj.plot(it, obj, **style)
+        if "parameter" in h:
+            ax_par.plot(it, np.asarray(h["parameter"], float), **style)
+    if optimum is not None:
+        ax_par.axhline(optimum, color="0.4", linestyle=":", label="optimum")
+    ax_obj.set_ylabel(objective_label)
+    ax_par.set_ylabel(parameter_label)
+    ax_par.set_xlabel("iteration")
+    for ax in (ax_obj, ax_par):
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    ax_obj.set_title("optimisation history")
+    return save_png_svg(fig, path)
+
+
+def plot_validation(frequencies: Sequence[float], values: Mapping[str, Sequence[float]], path: str | Path,
+                    errors: Mapping[str, Sequence[float]] | None = None,
+                    ylabel: str = "head x-position [m]", xlabel: str = "controller frequency [Hz]",
+                    title: str = "travelled distance vs controller frequency") -> list[Path]:
+    """values: {simulator: [one value per frequency]}; errors: same keys, error-bar half-widths."""
+    fig, (ax,) = _figure(1, 3.8)
+    f = np.asarray(frequencies, float)
+    for i, (name, v) in enumerate(values.items()):
+        err = None if not errors or name not in errors else np.asarray(errors[name], float)
+        ax.errorbar(f, np.asarray(v, float), yerr=err, marker=MARKERS[i % len(MARKERS)], capsize=3,
+                    label=name)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend()
+    return save_png_svg(fig, path)

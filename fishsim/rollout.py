@@ -1,0 +1,256 @@
+"""The coupled swimmer and its batched, checkpointed episode: the one loop every command reuses.
+
+One frame (PHYSICS.md section 1, h = 0.01 s):
+
+1. solid (q_t, qdot_t) -> soft mask b_t and boundary velocity v_d,t  (fish united with the walls)
+2. fluid model (a_t, p_t, b_t, v_d,t) -> (a_t+1, p_t+1)             (HydroNet or numerical)
+3. IBM: p_t+1 sampled around the surface nodes -> f_ext (burn-in scaled)
+4. PD solid step with f_ext and the muscle contraction h(X, t_+1) -> (q_t+1, qdot_t+1)
+
+Without a fluid (``fluid=None``, vacuum) steps 1-3 are skipped and f_ext = 0.
+Every arrow is differentiable; ``rollout`` checkpoints segments of frames so long episodes fit in
+memory (only the segment boundaries are kept; frames are recomputed during backward).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Optional
+
+import numpy as np
+import torch
+from torch import Tensor
+from torch.utils.checkpoint import checkpoint
+
+from fishsim.coupling import CouplingConfig, fluid_to_solid, solid_to_fluid
+from fishsim.errors import SimulationBlowUp
+from fishsim.fluid.base import Boundary, FluidModel, FluidParams, FluidState
+from fishsim.fluid.grid import union
+from fishsim.solid import SolidModel, pd_step
+from fishsim.solid.controller import WaveController
+
+
+@dataclass(frozen=True)
+class SwimState:
+    """State of a batch of swimmers at one frame (never mutated).
+
+    q, qdot: world-frame node positions (m) and velocities (m/s), [B, N, 2], float64.
+    fluid: the fluid state (None in vacuum).
+    """
+
+    q: Tensor
+    qdot: Tensor
+    fluid: Optional[FluidState] = None
+
+
+@dataclass(frozen=True)
+class SwimParams:
+    """Per-sample parameters of an episode, each differentiable if it requires grad.
+
+    controller: the travelling-wave controller ([B] tensors C, omega, gamma).
+    E: Young's modulus [B] (Pa).
+    fluid: rho, mu [B] and h (None in vacuum).
+    """
+
+    controller: WaveController
+    E: Tensor
+    fluid: Optional[FluidParams] = None
+
+
+@dataclass
+class FrameOutput:
+    """What one frame produced besides the new state (for outputs and objectives).
+
+    f_ext: [B, N, 2] hydrodynamic nodal forces (N per unit depth). contraction: [B, n_act].
+    boundary: the combined fish + wall boundary seen by the fluid (None in vacuum).
+    """
+
+    f_ext: Tensor
+    contraction: Tensor
+    boundary: Optional[Boundary] = None
+
+
+@dataclass
+class PhaseTimer:
+    """Wall time spent in each phase of the frame (s), summed over frames."""
+
+    seconds: dict = field(default_factory=lambda: {"coupling": 0.0, "fluid": 0.0, "solid": 0.0})
+
+    def add(self, phase: str, t0: float, device: torch.device) -> float:
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        now = time.perf_counter()
+        self.seconds[phase] += now - t0
+        return now
+
+
+class Swimmer:
+    """Fish (PD solid) + fluid model + coupling layer + tank walls: the coupled system.
+
+    solid: SolidModel of the fish mesh.  fluid: a FluidModel or None (vacuum).
+    coupling: CouplingConfig.  walls: the tank's Boundary [1, ., H, W] (mask 1 in the walls).
+    fluid_dtype: dtype of the fluid fields (float32 for HydroNet and the numerical solver).
+    """
+
+    def __init__(self, solid: SolidModel, fluid: Optional[FluidModel], coupling: CouplingConfig,
+                 walls: Optional[Boundary] = None, fluid_dtype: torch.dtype = torch.float32):
+        self.solid, self.fluid, self.coupling = solid, fluid, coupling
+        self.walls, self.fluid_dtype = walls, fluid_dtype
+        self.surface = torch.as_tensor(solid.mesh.surface, dtype=torch.long)
+        self.timer = PhaseTimer()
+
+    @property
+    def h(self) -> float:
+        return self.solid.h
+
+    def initial_state(self, params: SwimParams, origin: tuple[float, float]) -> SwimState:
+        """Fish at rest with its material frame translated to ``origin`` (x, y) in metres
+        (material X = 0, the tail, sits at x = origin[0]); fluid at rest."""
+        B = params.E.shape[0]
+        q = torch.as_tensor(self.solid.mesh.points, dtype=torch.float64, device=params.E.device)
+        q = (q + torch.tensor(origin, dtype=q.dtype, device=q.device)).expand(B, -1, -1).clone()
+        fluid = None
+        if self.fluid is not None:
+            fluid = self.fluid.initial_state(B, device=q.device, dtype=self.fluid_dtype)
+        return SwimState(q=q, qdot=torch.zeros_like(q), fluid=fluid)
+
+    def boundary(self, state: SwimState) -> Boundary:
+        """Step 1: the fish's soft mask and velocity, united with the tank walls."""
+        fish = solid_to_fluid(state.q, state.qdot, self.surface, self.fluid.grid, self.coupling,
+                              dtype=self.fluid_dtype)
+        if self.walls is None:
+            return fish
+        B = state.q.shape[0]
+        walls = Boundary(self.walls.mask.expand(B, -1, -1, -1), self.walls.velocity.expand(B, -1, -1, -1))
+        return union(fish, walls)
+
+    def frame(self, state: SwimState, params: SwimParams, t: int) -> tuple[SwimState, FrameOutput]:
+        """Advance one frame (module docstring); ``t`` is the index of the frame being left."""
+        dev, clock = state.q.device, self.timer
+        t0 = time.perf_counter()
+        fluid, boundary = state.fluid, None
+        f_ext = torch.zeros_like(state.q)
+        if self.fluid is not None:
+            boundary = self.boundary(state)
+            t0 = clock.add("coupling", t0, dev)
+            fluid = self.fluid.step(state.fluid, boundary, params.fluid)
+            t0 = clock.add("fluid", t0, dev)
+            f_ext = fluid_to_solid(state.q, fluid.p, boundary, self.surface, self.fluid.grid,
+                                   self.coupling, step=t + 1)
+            t0 = clock.add("coupling", t0, dev)
+        contraction = params.controller.contraction(self.solid, (t + 1) * self.h)
+        q, qdot = pd_step(self.solid, state.q, state.qdot, contraction, f_ext, params.E)
+        clock.add("solid", t0, dev)
+        return SwimState(q, qdot, fluid), FrameOutput(f_ext, contraction, boundary)
+
+
+# ------------------------------------------------------------------------------------------------
+# Per-frame metrics (differentiable scalars per sample, [B])
+# ------------------------------------------------------------------------------------------------
+
+
+def head_node(mesh) -> int:
+    """Index of the nose node (largest material X)."""
+    return int(np.argmax(mesh.points[:, 0]))
+
+
+def tail_node(mesh) -> int:
+    """Index of the surface node closest to the tail tip (material (0, 0))."""
+    pts = mesh.points[mesh.surface]
+    return int(mesh.surface[np.argmin(np.hypot(pts[:, 0], pts[:, 1]))])
+
+
+METRICS = ["head_x", "head_y", "tail_y", "centroid_x", "centroid_y", "thrust_x", "force_y"]
+
+
+def frame_metrics(swimmer: Swimmer, state: SwimState, out: FrameOutput) -> dict[str, Tensor]:
+    """head_x, head_y, tail_y (m), centroid_x (m, mass weighted), thrust_x, force_y (N, total
+    hydrodynamic force on the fish), each [B]."""
+    mesh, mass = swimmer.solid.mesh, torch.as_tensor(swimmer.solid.fem.mass, dtype=state.q.dtype)
+    head, tail = head_node(mesh), tail_node(mesh)
+    centroid = (state.q * mass[None, :, None].to(state.q.device)).sum(1) / mass.sum()
+    values = [state.q[:, head, 0], state.q[:, head, 1], state.q[:, tail, 1], centroid[:, 0],
+              centroid[:, 1], out.f_ext[..., 0].sum(1), out.f_ext[..., 1].sum(1)]
+    return dict(zip(METRICS, values))
+
+
+def check_finite(state: SwimState, t: int) -> None:
+    """Raise SimulationBlowUp naming the frame and the quantity if anything went non-finite."""
+    checks = {"solid positions q": state.q, "solid velocities qdot": state.qdot}
+    if state.fluid is not None:
+        checks.update({"fluid vector potential a": state.fluid.a, "fluid pressure p": state.fluid.p})
+    for name, x in checks.items():
+        if not bool(torch.isfinite(x).all()):
+            raise SimulationBlowUp(
+                f"simulation blew up at frame {t + 1}: non-finite {name} (try a smaller controller "
+                "amplitude, a longer coupling.n_burn_in, or fluid=numerical to check the surrogate)")
+
+
+# ------------------------------------------------------------------------------------------------
+# The episode
+# ------------------------------------------------------------------------------------------------
+
+
+def _flatten(state: SwimState) -> tuple[Tensor, ...]:
+    return (state.q, state.qdot) if state.fluid is None else (state.q, state.qdot, state.fluid.a, state.fluid.p)
+
+
+def _unflatten(tensors: tuple[Tensor, ...]) -> SwimState:
+    if len(tensors) == 2:
+        return SwimState(*tensors)
+    q, qdot, a, p = tensors
+    return SwimState(q, qdot, FluidState(a=a, p=p))
+
+
+def rollout(swimmer: Swimmer, state: SwimState, params: SwimParams, n_frames: int,
+            segment: int = 0, on_frame: Optional[Callable[[int, SwimState, FrameOutput, dict], None]] = None,
+            start: int = 0) -> tuple[SwimState, dict[str, Tensor]]:
+    """Run ``n_frames`` frames from frame ``start``; return the final state and the per-frame
+    metrics stacked to [n_frames, B] (differentiable w.r.t. the initial state and ``params``).
+
+    segment: gradient-checkpoint segment length in frames (0: no checkpointing, keep every
+        frame's graph). Only segment boundaries are stored; frames are recomputed in backward.
+    on_frame(t, state, output, metrics): called once per frame after frame t (0-based, counted
+        from ``start``) in the forward pass only (not again during checkpoint recomputation),
+        e.g. to write outputs; raising stops the episode.
+    Raises SimulationBlowUp naming the frame if a state goes non-finite.
+    """
+    recorded = [start - 1]
+
+    def run_frames(t0: int, count: int, *tensors: Tensor):
+        s, rows = _unflatten(tensors), []
+        for t in range(t0, t0 + count):
+            s, out = swimmer.frame(s, params, t)
+            m = frame_metrics(swimmer, s, out)
+            if t > recorded[0]:
+                check_finite(s, t)
+                if on_frame is not None:
+                    on_frame(t, s, out, m)
+                recorded[0] = t
+            rows.append(torch.stack(list(m.values())))
+        return (*_flatten(s), torch.stack(rows))
+
+    seg = segment if segment > 0 and torch.is_grad_enabled() else n_frames
+    tensors, chunks = _flatten(state), []
+    t = start
+    while t < start + n_frames:
+        count = min(seg, start + n_frames - t)
+        if seg < n_frames:
+            result = checkpoint(run_frames, t, count, *tensors, use_reentrant=False)
+        else:
+            result = run_frames(t, count, *tensors)
+        tensors, rows = result[:-1], result[-1]
+        chunks.append(rows)
+        t += count
+    stacked = torch.cat(chunks)  # [n_frames, n_metrics, B]
+    return _unflatten(tensors), {name: stacked[:, i] for i, name in enumerate(METRICS)}
+
+
+def strouhal(tail_y: np.ndarray, frequency: float, speed: float) -> float:
+    """St = f A / U with A the tail's peak-to-peak excursion (m) and U the mean speed (m/s)."""
+    amplitude = float(np.max(tail_y) - np.min(tail_y))
+    return frequency * amplitude / speed if speed > 0 else math.nan
+
+

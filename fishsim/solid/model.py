@@ -1,0 +1,174 @@
+"""The solid model: material, solver options, and everything precomputed from the mesh.
+
+The projective-dynamics global matrix (PHYSICS.md section 3) is, per axis ("per-axis split"),
+
+    A(E) = M / h^2 + G^T diag(W(E)) G = M / h^2 + K_muscle + E K0          [N, N]
+
+with W the per-row PD weights: every F row of element e gets E area_e / (1 + nu) (= 2 mu_s area,
+co-rotated) plus E area_e nu / ((1 + nu)(1 - 2 nu)) (= lambda_s area, volume term, if enabled),
+and the fiber row (j = 0, fiber m = (1, 0)) of a muscle element gets k_m area_e. A does not depend
+on q or on the activations, so it is factorised once per distinct E and reused every step
+(fishsim.solid.preconditioner builds and caches the factorisations).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+
+from fishsim.errors import ConfigError
+from fishsim.mesh.fish_mesh import FishMesh
+from fishsim.solid.fem import FemQuantities, fem_quantities
+
+
+@dataclass(frozen=True)
+class SolidMaterial:
+    """Material of the fish (paper Sec. 4.1), SI units.
+
+    youngs_modulus: E in Pa (default per sample; a step may pass its own E, shape [B]).
+    poisson_ratio: nu, dimensionless.
+    density: rho_s in kg/m^3 (per unit area in 2D).
+    muscle_stiffness: k_m in Pa; a muscle element's PD weight is k_m * area. Default = E: an
+        isolated element then reaches k_m / (k_m + 2 mu_s) = 59 % of its target contraction,
+        so the muscles are neither a weak perturbation nor a constraint that dominates the
+        tissue (DiffAqua uses 0.4 E, the DiffPD water snake 0.1 E); the controller's amplitude
+        C is calibrated on top of this value.
+    volume_term: add the lambda_s area ||F - closest det-1 matrix||^2 energy (DiffPD's
+        'volume'). Off by default, like DiffPD's underwater examples; see the report in
+        fishsim/solid/README.md for its measured effect.
+    """
+
+    youngs_modulus: float = 6e5
+    poisson_ratio: float = 0.45
+    density: float = 100.0
+    muscle_stiffness: float = 6e5
+    volume_term: bool = False
+
+    def __post_init__(self):
+        if not self.youngs_modulus > 0 or not self.density > 0 or not self.muscle_stiffness >= 0:
+            raise ConfigError("solid material needs youngs_modulus > 0, density > 0, muscle_stiffness >= 0")
+        if not -1 < self.poisson_ratio < 0.5:
+            raise ConfigError(f"poisson_ratio must lie in (-1, 0.5), got {self.poisson_ratio}")
+
+    @property
+    def corotated_per_E(self) -> float:
+        """2 mu_s / E = 1 / (1 + nu)."""
+        return 1.0 / (1.0 + self.poisson_ratio)
+
+    @property
+    def volume_per_E(self) -> float:
+        """lambda_s / E = nu / ((1 + nu)(1 - 2 nu)) if the volume term is on, else 0."""
+        nu = self.poisson_ratio
+        return nu / ((1 + nu) * (1 - 2 * nu)) if self.volume_term else 0.0
+
+
+@dataclass(frozen=True)
+class PDOptions:
+    """Solver settings.
+
+    atol: forward stopping rule, max over nodes of |M/h^2 (q+ - y) - f_int(q+)| <= atol, in N
+        (per unit depth). Absolute, so it does not depend on where the fish is (DiffPD's
+        relative rule scales with |q|). 1e-6 N is ~1e-5 of the muscle forces of the default fish
+        and moves a node by < 1e-6 m.
+    max_iter: forward L-BFGS iterations before giving up (a warning, and info.converged False).
+    history: L-BFGS memory (pairs kept).
+    backward_rtol: adjoint stopping rule, |(A - dA) x - b|_max <= backward_rtol |b|_max.
+    backward_max_iter: preconditioned CG iterations before a direct sparse solve takes over.
+    backward_method: 'auto' (PCG, direct fallback), 'pcg' or 'direct'.
+    preconditioner: initial inverse Hessian of L-BFGS and preconditioner of the adjoint CG:
+        'rest_newton' (default): the Newton matrix of the rest shape, M/h^2 + K(rest), rotated
+        per sample into the best-fit rigid frame of the current shape, factorised once per E;
+        'pd': DiffPD's per-axis PD matrix A(E). On the default fish at 5 Hz, 'pd' needs
+        ~160 iterations per step to atol 1e-6 N, 'rest_newton' ~10 (A penalises the element
+        rotations of bending as much as stretching; the rest Newton matrix does not).
+    """
+
+    atol: float = 1e-6
+    max_iter: int = 500
+    history: int = 8
+    backward_rtol: float = 1e-10
+    backward_max_iter: int = 200
+    backward_method: str = "auto"
+    preconditioner: str = "rest_newton"
+
+    def __post_init__(self):
+        if self.preconditioner not in ("rest_newton", "pd"):
+            raise ConfigError(f"preconditioner must be rest_newton or pd, got {self.preconditioner!r}")
+        if self.backward_method not in ("auto", "pcg", "direct"):
+            raise ConfigError(f"backward_method must be auto, pcg or direct, got {self.backward_method!r}")
+        if not (self.atol > 0 and self.backward_rtol > 0 and self.max_iter > 0 and self.history > 0):
+            raise ConfigError("PD solver tolerances and iteration limits must be positive")
+
+
+@dataclass
+class SolverStats:
+    """Solver diagnostics (the only mutable part of a model): the last forward step's L-BFGS
+    iterations and residual per sample, the last adjoint's CG iterations and number of samples
+    solved directly, and running totals (reset by assigning a fresh SolverStats())."""
+
+    forward_iterations: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    forward_residual: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    backward_iterations: int = 0
+    backward_direct: int = 0
+    forward_steps: int = 0
+    forward_iterations_total: int = 0
+    backward_steps: int = 0
+    backward_iterations_total: int = 0
+    backward_direct_total: int = 0
+
+    def record_forward(self, iterations: np.ndarray, residual: np.ndarray) -> None:
+        self.forward_iterations, self.forward_residual = iterations, residual
+        self.forward_steps += 1
+        self.forward_iterations_total += int(iterations.max())
+
+    def record_backward(self, iterations: int, direct: int) -> None:
+        self.backward_iterations, self.backward_direct = iterations, direct
+        self.backward_steps += 1
+        self.backward_iterations_total += iterations
+        self.backward_direct_total += direct
+
+
+class SolidModel:
+    """Mesh, material, time step and precomputed operators of the PD solid (read-only after
+    construction, except for the factorisation cache `factors` and the diagnostics `stats`).
+
+    fem: FemQuantities of the mesh.  muscles: [n_act] actuated element indices.
+    muscle_weight: [n_act] k_m area (Pa m^2).  mass_h2: [N] m_i / h^2.
+    K0: [N, N] sparse, dA/dE.  K_muscle: [N, N] sparse.
+    """
+
+    def __init__(self, mesh: FishMesh, material: SolidMaterial = SolidMaterial(),
+                 h: float = 0.01, options: PDOptions = PDOptions()):
+        if not h > 0:
+            raise ConfigError(f"time step h must be positive, got {h}")
+        self.mesh, self.material, self.h, self.options = mesh, material, float(h), options
+        self.fem: FemQuantities = fem_quantities(mesh, material.density)
+        self.muscles = np.asarray(mesh.actuated, np.int64)
+        self.muscle_weight = material.muscle_stiffness * self.fem.area[self.muscles]
+        self.mass_h2 = self.fem.mass / self.h**2
+        self.K0, self.K_muscle = self._stiffness_parts()
+        self.stats = SolverStats()
+        self.factors: dict[float, object] = {}   # E -> factorisation (preconditioner.py)
+
+    @property
+    def n_nodes(self) -> int:
+        return self.fem.n_nodes
+
+    @property
+    def n_muscles(self) -> int:
+        return len(self.muscles)
+
+    def _stiffness_parts(self) -> tuple[sp.csc_matrix, sp.csc_matrix]:
+        G, area, T = self.fem.G, self.fem.area, self.fem.n_elements
+        per_E = np.tile(area * (self.material.corotated_per_E + self.material.volume_per_E), 2)
+        muscle_rows = np.zeros(2 * T)
+        muscle_rows[self.muscles] = self.muscle_weight            # fiber rows j = 0
+        K0 = (G.T @ sp.diags(per_E) @ G).tocsc()
+        K_muscle = (G.T @ sp.diags(muscle_rows) @ G).tocsc()
+        return K0, K_muscle
+
+    def global_matrix(self, E: float) -> sp.csc_matrix:
+        """A(E) = M/h^2 + K_muscle + E K0, [N, N] sparse SPD."""
+        return (sp.diags(self.mass_h2) + self.K_muscle + E * self.K0).tocsc()

@@ -1,0 +1,103 @@
+"""Prefactorised approximate inverse Hessians H0 ~ (M/h^2 - df_int/dq)^-1 for the solves.
+
+Both matrices are constant in time and affine in E, so each is factorised once per distinct E
+(sparse LU, SuperLU in symmetric mode; cached in model.factors) and reused every step:
+
+- 'pd': DiffPD's global matrix A(E) = M/h^2 + G^T W(E) G, the same [N, N] matrix for x and y.
+- 'rest_newton' (default): K0(E) = M/h^2 - df_int/dq at the rest shape, [2N, 2N]. Since
+  f_int(R q) = R f_int(q) for a rigid rotation R, the Newton matrix of a rotated rest shape is
+  R K0 R^T; each sample is therefore preconditioned in its best-fit rigid frame,
+  H0 r = R_b K0^-1 R_b^T r, with R_b the rotation that best maps the rest shape onto the
+  sample's current shape (mass-weighted Procrustes fit; 2D closed form).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from fishsim.solid import elastic
+from fishsim.solid.model import SolidModel
+
+_CACHE_SIZE = 64
+
+
+def _splu(K: sp.csc_matrix):
+    return spla.splu(K.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                     options={"SymmetricMode": True})
+
+
+def pd_matrix(model: SolidModel, E: float) -> sp.csc_matrix:
+    """A(E) = M/h^2 + K_muscle + E K0, [N, N]."""
+    return (sp.diags(model.mass_h2) + model.K_muscle + E * model.K0).tocsc()
+
+
+def rest_newton_matrix(model: SolidModel, E: float) -> sp.csc_matrix:
+    """Newton matrix M/h^2 - df_int/dq at the rest shape with relaxed muscles, [2N, 2N]."""
+    X = elastic.to_columns(np.asarray(model.mesh.points, np.float64)[None])
+    p = elastic.project(model, elastic.deformation_gradients(model, X), np.zeros((model.n_muscles, 1)),
+                        np.array([E]))
+    return elastic.newton_matrix(model, p, 0)
+
+
+def factor(model: SolidModel, E: float):
+    """Cached factorisation of the preconditioner matrix of `model.options` for Young's modulus E."""
+    key = float(E)
+    if key not in model.factors:
+        if len(model.factors) >= _CACHE_SIZE:
+            model.factors.pop(next(iter(model.factors)))
+        build = rest_newton_matrix if model.options.preconditioner == "rest_newton" else pd_matrix
+        model.factors[key] = _splu(build(model, key))
+    return model.factors[key]
+
+
+def best_fit_rotation(model: SolidModel, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(cos, sin) [B] of the rotation R_b minimising sum_i m_i |R (X_i - Xbar) - (x_i - xbar)|^2
+    for the current positions X [N, 2B]: the angle of the conformal part of
+    sum_i m_i (x_i - xbar)(X_i - Xbar)^T."""
+    m = model.fem.mass
+    rest = np.asarray(model.mesh.points)
+    Xc = (rest - m @ rest / m.sum()) * m[:, None]              # mass-weighted, centred rest shape
+    C = Xc.T @ X                                                 # [2 (j), 2B]: sum_i m_i X_ij x_ia
+    B = X.shape[1] // 2
+    angle = np.arctan2(C[0, B:] - C[1, :B], C[0, :B] + C[1, B:])
+    return np.cos(angle), np.sin(angle)
+
+
+def _rotate(R: np.ndarray, cos: np.ndarray, sin: np.ndarray) -> np.ndarray:
+    """Rotate every node's vector of sample b by the angle (cos_b, sin_b); R [N, 2B]."""
+    B = R.shape[1] // 2
+    x, y = R[:, :B], R[:, B:]
+    return np.concatenate([cos * x - sin * y, sin * x + cos * y], axis=1)
+
+
+class Preconditioner:
+    """r -> H0 r for [N, 2B] arrays, one factorisation per distinct E among the samples;
+    `X_frame` [N, 2B] (rest_newton only) sets each sample's rigid frame."""
+
+    def __init__(self, model: SolidModel, E: np.ndarray, X_frame: np.ndarray | None = None):
+        values, inverse = np.unique(E, return_inverse=True)
+        self.groups = [(factor(model, v), np.flatnonzero(inverse.ravel() == i)) for i, v in enumerate(values)]
+        self.rotated = model.options.preconditioner == "rest_newton"
+        if self.rotated:
+            self.cos, self.sin = best_fit_rotation(model, X_frame)
+
+    def __call__(self, R: np.ndarray) -> np.ndarray:
+        if self.rotated:
+            R = _rotate(R, self.cos, -self.sin)
+        if len(self.groups) == 1:
+            Z = self._solve(self.groups[0][0], R)
+        else:
+            Z = np.empty_like(R)
+            B = R.shape[1] // 2
+            for lu, samples in self.groups:
+                cols = np.concatenate([samples, B + samples])
+                Z[:, cols] = self._solve(lu, R[:, cols])
+        return _rotate(Z, self.cos, self.sin) if self.rotated else Z
+
+    def _solve(self, lu, R: np.ndarray) -> np.ndarray:
+        if not self.rotated:                                   # per-axis [N, N] matrix
+            return lu.solve(np.asfortranarray(R))
+        N, B = R.shape[0], R.shape[1] // 2                     # as [2N, B] with DOF 2i + a
+        return lu.solve(R.reshape(2 * N, B)).reshape(N, 2 * B)

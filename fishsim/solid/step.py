@@ -1,0 +1,141 @@
+"""`pd_step`: one differentiable implicit-Euler projective-dynamics step of a batch of fish.
+
+    qdot+ = qdot + h M^-1 (f_ext + f_int(q+; u, E)),   q+ = q + h qdot+
+
+solved as q+ = argmin Phi(q) (see solve.py). The step is one `torch.autograd.Function`; its
+backward is DiffPD's adjoint, never autograd through the iterations. With lambda the solution of
+(A - dA) lambda = b, b = dL/dq+ + dL/dqdot+ / h (A - dA = M/h^2 - df_int/dq at q+):
+
+    dL/dq     = M/h^2 lambda - dL/dqdot+ / h       dL/dqdot = M/h lambda
+    dL/df_ext = lambda                              dL/dtheta = lambda^T df_int/dtheta
+                                                    = -(G lambda) : dS/dtheta   (theta = u, E)
+
+Device: the solver runs on the CPU in numpy/scipy (float64); tensors on another device are copied
+to the CPU and the results back (a few kB per step for the fish, cheaper than a dense GPU solve).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from fishsim.errors import SimulationBlowUp
+from fishsim.solid import elastic
+from fishsim.solid.model import SolidModel
+from fishsim.solid.solve import ForwardInfo, newton_solve, pd_solve
+
+
+def _np(t: torch.Tensor) -> np.ndarray:
+    return t.detach().to("cpu", torch.float64).numpy()
+
+
+def _inertial_target(model: SolidModel, q: np.ndarray, qdot: np.ndarray, f_ext: np.ndarray) -> np.ndarray:
+    """y = q + h qdot + h^2 M^-1 f_ext, all [B, N, 2] (m)."""
+    h = model.h
+    return q + h * qdot + h * h * f_ext / model.fem.mass[None, :, None]
+
+
+def forward_step(model: SolidModel, q, qdot, contraction, f_ext, E) -> tuple[np.ndarray, np.ndarray, ForwardInfo]:
+    """numpy step: q, qdot, f_ext [B, N, 2], contraction [B, n_act], E [B] -> (q+, qdot+, info)."""
+    Y = elastic.to_columns(_inertial_target(model, q, qdot, f_ext))
+    X, info = pd_solve(model, Y, Y, np.ascontiguousarray(contraction.T), E)
+    q_next = elastic.from_columns(X)
+    return q_next, (q_next - q) / model.h, info
+
+
+def adjoint_gradients(model: SolidModel, q_next, contraction, E, grad_q_next, grad_qdot_next):
+    """numpy backward of one step. Returns (dL/dq, dL/dqdot, dL/du [B, n_act], dL/df_ext, dL/dE [B])."""
+    h = model.h
+    X = elastic.to_columns(q_next)
+    p = elastic.project(model, elastic.deformation_gradients(model, X), np.ascontiguousarray(contraction.T), E)
+    b = elastic.to_columns(grad_q_next + grad_qdot_next / h)
+    lam, its, direct = newton_solve(model, p, X, b, E)
+    model.stats.record_backward(its, direct)
+    dZ = elastic.deformation_gradients(model, lam)                       # G lambda, Z layout
+    dS0, dS1 = elastic.fiber_stress_per_contraction(p)
+    grad_u = -(dZ[0, model.muscles, 0] * dS0 + dZ[0, model.muscles, 1] * dS1).T
+    grad_E = -(dZ * elastic.stress_per_E(model, p)).sum(axis=(0, 1, 2))
+    lam = elastic.from_columns(lam)
+    mass = model.fem.mass[None, :, None]
+    return mass / h**2 * lam - grad_qdot_next / h, mass / h * lam, grad_u, lam, grad_E
+
+
+class PDStepFunction(torch.autograd.Function):
+    """(q, qdot, contraction, f_ext, E) -> (q+, qdot+); backward by the adjoint (module doc)."""
+
+    @staticmethod
+    def forward(ctx, model, q, qdot, contraction, f_ext, E):
+        q_next, qdot_next, info = forward_step(model, _np(q), _np(qdot), _np(contraction), _np(f_ext), _np(E))
+        model.stats.record_forward(info.iterations, info.residual)
+        if not (np.isfinite(q_next).all() and np.isfinite(qdot_next).all()):
+            raise SimulationBlowUp("PD step produced non-finite positions; reduce the time step, the "
+                                   "activation or the external force, or raise E")
+        ctx.model = model
+        out_q, out_qdot = (torch.as_tensor(x, dtype=q.dtype, device=q.device) for x in (q_next, qdot_next))
+        ctx.save_for_backward(out_q, contraction, E)
+        return out_q, out_qdot
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad_q_next, grad_qdot_next):
+        q_next, contraction, E = ctx.saved_tensors
+        zeros = torch.zeros_like(q_next)
+        grads = adjoint_gradients(ctx.model, _np(q_next), _np(contraction), _np(E),
+                                  _np(grad_q_next if grad_q_next is not None else zeros),
+                                  _np(grad_qdot_next if grad_qdot_next is not None else zeros))
+        like = (q_next, q_next, contraction, q_next, E)
+        return (None,) + tuple(torch.as_tensor(g, dtype=t.dtype, device=t.device) for g, t in zip(grads, like))
+
+
+def _batch_E(model: SolidModel, E, B: int, like: torch.Tensor) -> torch.Tensor:
+    """E as a [B] tensor (Pa): None -> the model's material value, scalar -> broadcast."""
+    if E is None:
+        E = model.material.youngs_modulus
+    E = torch.as_tensor(E, dtype=like.dtype, device=like.device)
+    if E.ndim == 0:
+        E = E.expand(B)
+    if E.shape != (B,):
+        raise ValueError(f"E must be a scalar or have shape [B] = [{B}], got {tuple(E.shape)}")
+    if not bool((E > 0).all()):
+        raise ValueError("Young's modulus E must be positive")
+    return E
+
+
+def pd_step(model: SolidModel, q: torch.Tensor, qdot: torch.Tensor, contraction: torch.Tensor,
+            f_ext: torch.Tensor | None = None, E=None, return_info: bool = False):
+    """Advance a batch of fish by one implicit-Euler PD step of length model.h.
+
+    q, qdot: [B, N, 2] positions (m) and velocities (m/s).
+    contraction: [B, n_act] muscle contraction u in [0, 1) per actuated element (model.muscles
+        order); the muscle's target stretch along its fiber is a = 1 - u.
+    f_ext: [B, N, 2] external nodal forces (N per unit depth), or None for zero.
+    E: Young's modulus (Pa): None (the material's), a float, or a [B] tensor (differentiable).
+    Returns (q+, qdot+), both [B, N, 2], differentiable w.r.t. q, qdot, contraction, f_ext and E;
+    with return_info also the ForwardInfo (L-BFGS iterations and residual per sample).
+    Raises SimulationBlowUp if the step produces non-finite values.
+    """
+    if q.ndim != 3 or q.shape[1:] != (model.n_nodes, 2) or qdot.shape != q.shape:
+        raise ValueError(f"q and qdot must both have shape [B, {model.n_nodes}, 2], got "
+                         f"{tuple(q.shape)} and {tuple(qdot.shape)}")
+    B = q.shape[0]
+    if contraction.shape != (B, model.n_muscles):
+        raise ValueError(f"contraction must have shape [B, n_act] = [{B}, {model.n_muscles}], "
+                         f"got {tuple(contraction.shape)}")
+    if not bool(((contraction >= 0) & (contraction < 1)).all()):
+        raise ValueError("muscle contraction must lie in [0, 1) (target stretch 1 - contraction > 0)")
+    f_ext = torch.zeros_like(q) if f_ext is None else f_ext
+    if f_ext.shape != q.shape:
+        raise ValueError(f"f_ext must have shape {tuple(q.shape)}, got {tuple(f_ext.shape)}")
+    E = _batch_E(model, E, B, q)
+    q_next, qdot_next = PDStepFunction.apply(model, q, qdot, contraction, f_ext, E)
+    if return_info:
+        stats = model.stats
+        return q_next, qdot_next, ForwardInfo(stats.forward_iterations, stats.forward_residual,
+                                              stats.forward_residual <= model.options.atol)
+    return q_next, qdot_next
+
+
+def rest_state(model: SolidModel, batch: int = 1, dtype=torch.float64, device="cpu"):
+    """(q, qdot) of fish at rest in their material configuration, [B, N, 2] each."""
+    q = torch.as_tensor(model.mesh.points, dtype=dtype, device=device).expand(batch, -1, -1).clone()
+    return q, torch.zeros_like(q)
