@@ -182,7 +182,7 @@ def check_finite(state: SwimState, t: int) -> None:
     if state.fluid is not None:
         checks.update({"fluid vector potential a": state.fluid.a, "fluid pressure p": state.fluid.p})
     for name, x in checks.items():
-        if not bool(torch.isfinite(x).all()):
+        if not bool(torch.isfinite(x.detach()).all()):  # detached: isfinite would save x for autograd
             raise SimulationBlowUp(
                 f"simulation blew up at frame {t + 1}: non-finite {name} (try a smaller controller "
                 "amplitude, a longer coupling.n_burn_in, or fluid=numerical to check the surrogate)")
