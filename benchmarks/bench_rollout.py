@@ -1,0 +1,102 @@
+"""The paper's Table 1 on this machine: a 300-frame episode on the 100 x 300 grid with the default
+mesh, B = 1 (warm-up, forward with its solid / fluid / coupling split, backward, peak memory) and
+B = 16 (time per fish), for each fluid model; plus the distance travelled in 1.2 s at 3-7 Hz
+(the paper's Fig. 4 in preview).  ``FISHSIM_BENCH_FRAMES`` shortens the episode for a quick look."""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+import warnings
+
+import torch
+
+from fishsim.commands.simulate import build_episode
+from fishsim.config import load_config
+from fishsim.rollout import SwimParams, rollout
+
+FRAMES = int(os.environ.get("FISHSIM_BENCH_FRAMES", "300"))
+FLUIDS = ["numerical"]
+
+
+def _reset_peak() -> None:
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+    except OSError:
+        pass
+
+
+def _peak_mib() -> float:
+    for line in open("/proc/self/status"):
+        if line.startswith("VmHWM"):
+            return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+def _episode(fluid: str, batch: int, frequencies=None):
+    overrides = [f"fluid={fluid}"]
+    if frequencies is not None:
+        overrides.append("batch.frequency=[" + ",".join(str(f) for f in frequencies) + "]")
+    elif batch > 1:
+        overrides.append("batch.frequency=[" + ",".join(["5.0"] * batch) + "]")
+    return build_episode(load_config("simulate", overrides))
+
+
+def _differentiable(params: SwimParams) -> tuple[SwimParams, torch.Tensor]:
+    omega = params.controller.omega.clone().requires_grad_(True)
+    ctrl = type(params.controller)(params.controller.C, omega, params.controller.gamma, params.controller.t_a)
+    return SwimParams(ctrl, params.E, params.fluid), omega
+
+
+def episode_timing(fluid: str, batch: int, frames: int) -> dict:
+    """Warm-up (build mesh, solid factorisation, fluid model; first frame), forward (split),
+    backward of d(head x)/d(omega), peak RSS."""
+    t0 = time.perf_counter()
+    ep = _episode(fluid, batch)
+    sw = ep.swimmer
+    params, omega = _differentiable(ep.params)
+    state = sw.initial_state(params, ep.origin)
+    with torch.no_grad():
+        rollout(sw, state, params, 1)
+    warmup = time.perf_counter() - t0
+    sw.timer.seconds = dict.fromkeys(sw.timer.seconds, 0.0)
+    _reset_peak()
+    t0 = time.perf_counter()
+    _, metrics = rollout(sw, state, params, frames, segment=10)
+    forward = time.perf_counter() - t0
+    split = dict(sw.timer.seconds)
+    t0 = time.perf_counter()
+    metrics["head_x"][-1].sum().backward()
+    backward = time.perf_counter() - t0
+    return {"frames": frames, "batch": batch, "warmup_s": warmup, "forward_s": forward,
+            "forward_solid_s": split["solid"], "forward_fluid_s": split["fluid"],
+            "forward_coupling_s": split["coupling"], "backward_s": backward,
+            "forward_per_fish_s": forward / batch, "backward_per_fish_s": backward / batch,
+            "peak_rss_mib": _peak_mib(), "dhead_domega": float(omega.grad[0])}
+
+
+def distance_sweep(fluid: str, frequencies=(3.0, 4.0, 5.0, 6.0, 7.0), frames: int = 120) -> dict:
+    """Head x-displacement after ``frames`` frames, one batched run over the frequencies."""
+    ep = _episode(fluid, len(frequencies), frequencies)
+    state = ep.swimmer.initial_state(ep.params, ep.origin)
+    with torch.no_grad():
+        _, m = rollout(ep.swimmer, state, ep.params, frames)
+    d = (m["head_x"][-1] - state.q[:, ep.swimmer.solid.mesh.points[:, 0].argmax(), 0]).tolist()
+    return {f"{f:g} Hz": dist for f, dist in zip(frequencies, d)}
+
+
+def run() -> dict:
+    warnings.simplefilter("ignore", RuntimeWarning)
+    out = {}
+    for fluid in FLUIDS:
+        out[fluid] = {"B=1": episode_timing(fluid, 1, FRAMES), "B=16": episode_timing(fluid, 16, FRAMES),
+                      "distance_1.2s_m": distance_sweep(fluid)}
+    return out
+
+
+if __name__ == "__main__":
+    import json
+
+    print(json.dumps(run(), indent=1))
