@@ -52,7 +52,7 @@ def idct(X: Tensor, dim: int = -1) -> Tensor:
 def neumann_eigenvalues(H: int, W: int, dx: float, device=None, dtype=torch.float64) -> Tensor:
     """Eigenvalues [H, W] of ``grid.laplacian_centres`` on the DCT-II modes (k along y, l along x)."""
     k = torch.arange(H, device=device, dtype=dtype)
-    l = torch.arange(W, device=device, dtype=dtype)  # noqa: E741
+    l = torch.arange(W, device=device, dtype=dtype)
     sy = torch.sin(math.pi * k / (2 * H)) ** 2
     sx = torch.sin(math.pi * l / (2 * W)) ** 2
     return -(4 / dx**2) * (sy[:, None] + sx[None, :])

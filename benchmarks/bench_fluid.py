@@ -1,0 +1,104 @@
+"""Numerical fluid timings on the paper's tank (100 x 300, dx = 2.5 mm, h = 0.01 s): ms per step
+forward and forward + backward, B = 1 and B = 16, refinement r = 1 and 2, with the CFL sub-step
+counts.  `run() -> dict` for the `make bench` driver; `python -m benchmarks.bench_fluid` prints it.
+
+Scenario: a fish-shaped soft mask (length 10 cm, NACA-like thickness) undulating at 5 Hz with a
+travelling wave whose tail speed reaches 0.5 m/s (Courant number u h / dx = 2), in a closed tank
+with wall bands; rho = 50, mu = 0.125 mPa s.  The flow is warmed up for ``warmup`` steps from rest
+(no grad) before timing, so the sub-step counts are those of a developed flow.  float32, CPU
+threads as torch is configured.  Backward: gradient of the final kinetic energy w.r.t. the wave
+amplitude (through mask velocity) after one step.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+
+import torch
+
+from fishsim.fluid import grid as G
+from fishsim.fluid.base import Boundary, FluidParams, Grid
+from fishsim.fluid.numerical import NumericalFluid
+
+GRID = Grid(100, 300, 2.5e-3)
+LENGTH, FREQ, TAIL_SPEED = 0.1, 5.0, 0.5
+
+
+def fish_boundary(grid: Grid, t: float, amplitude: torch.Tensor, batch: int = 1) -> Boundary:
+    """Tank walls plus an undulating fish: centreline y_c(s) = y0 + A(s) sin(k s - w t),
+    A(s) = amplitude (s / L)^2, half-thickness of a NACA 0012 profile (6 % of L at most), soft edge of one
+    cell; boundary velocity dy_c/dt inside the body.  amplitude: scalar tensor [m]."""
+    c = grid.cell_centres(dtype=amplitude.dtype)
+    x0, y0, w, k = 0.3, grid.H * grid.dx / 2, 2 * math.pi * FREQ, 2 * math.pi / LENGTH
+    s = ((c[..., 0] - x0) / LENGTH).clamp(0, 1)
+    env = amplitude * s**2
+    yc = y0 + env * torch.sin(k * s * LENGTH - w * t)
+    half = 5 * 0.12 * LENGTH * (0.2969 * s.sqrt() - 0.126 * s - 0.3516 * s**2 + 0.2843 * s**3 - 0.1036 * s**4)
+    inside = ((c[..., 0] > x0) & (c[..., 0] < x0 + LENGTH)).to(c.dtype)
+    b = ((0.5 - ((c[..., 1] - yc).abs() - half) / grid.dx).clamp(0, 1) * inside)[None, None]
+    vy = -env * w * torch.cos(k * s * LENGTH - w * t)
+    vel = torch.stack([torch.zeros_like(vy), vy])[None] * b
+    fish = Boundary(b.expand(batch, -1, -1, -1), vel.expand(batch, -1, -1, -1))
+    return G.union(G.closed_tank(grid, 3, 5, batch, dtype=c.dtype), fish)
+
+
+def _params(batch: int) -> FluidParams:
+    return FluidParams(torch.full((batch,), 50.0), torch.full((batch,), 0.125e-3), 0.01)
+
+
+def _time(fn, repeats: int) -> float:
+    fn()  # warm caches / allocator
+    t0 = time.perf_counter()
+    for _ in range(repeats):
+        fn()
+    return (time.perf_counter() - t0) / repeats * 1e3
+
+
+def bench_case(refinement: int, batch: int, warmup: int = 30, repeats: int = 3, backward: bool = True) -> dict:
+    amp0 = torch.tensor(TAIL_SPEED / (2 * math.pi * FREQ))
+    model = NumericalFluid(GRID, refinement=refinement)
+    state = model.initial_state(1)
+    with torch.no_grad():
+        for n in range(warmup):
+            state = model.step(state, fish_boundary(GRID, n * 0.01, amp0), _params(1))
+    state = type(state)(**{k: (v.expand(batch, *v.shape[1:]).contiguous() if torch.is_tensor(v) else v)
+                          for k, v in vars(state).items()})
+    t = warmup * 0.01
+    boundary, params = fish_boundary(GRID, t, amp0, batch), _params(batch)
+    counts = []
+
+    def forward():
+        with torch.no_grad():
+            _, diag = model.step_with_diagnostics(state, boundary, params)
+        counts.append(diag.substeps)
+
+    def forward_backward():
+        amp = amp0.clone().requires_grad_(True)
+        new = model.step(state, fish_boundary(GRID, t, amp, batch), params)
+        vx, vy = G.curl(new.a, GRID.dx)
+        (vx.square().sum() + vy.square().sum()).backward()
+
+    out = {"forward_ms": _time(forward, repeats)}
+    if backward:
+        out["forward_backward_ms"] = _time(forward_backward, max(1, repeats - 1))
+    return {
+        **out,
+        "substeps": counts[-1],
+        "max_speed_m_s": max(c.abs().max().item() for c in G.curl(state.a, GRID.dx)),
+    }
+
+
+def run(full: bool = False) -> dict:
+    """All cases; the r = 2, B = 16 backward (about 100 s per step and several GB on the 2-core
+    CPU) only with ``full``."""
+    out = {"grid": f"{GRID.H}x{GRID.W}", "threads": torch.get_num_threads()}
+    for r in (1, 2):
+        for batch in (1, 16):
+            out[f"r{r}_B{batch}"] = bench_case(r, batch, backward=full or r * batch < 32)
+    return out
+
+
+if __name__ == "__main__":
+    print(json.dumps(run(), indent=2))
