@@ -28,7 +28,7 @@ demo: install
 	@echo "demo outputs are in $(DEMO)/"
 
 test: install
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n 2
 
 test-fast: install
 	$(BIN)/python -m pytest -q -m "not slow"

@@ -1,5 +1,5 @@
-"""The fluid tests run small grids where torch's intra-op threading only adds synchronisation
-(and oversubscribes the 2 shared CI cores): run them on one thread, restoring it afterwards."""
+"""Tests run small problems where torch's intra-op threading only adds synchronisation (and
+oversubscribes the 2 shared CI cores when pytest-xdist runs two workers): one thread per test."""
 
 import pytest
 import torch
