@@ -61,3 +61,28 @@ def test_distance_gradient_matches_finite_differences(fluid):
             lo = f(**{**x0, name: value - eps})[0].item()
         fd = (hi - lo) / (2 * eps)
         assert abs(g.item() - fd) <= 1e-3 * abs(fd) + 1e-14, (name, g.item(), fd)
+
+
+def _episode(overrides, frames):
+    cfg = load_config("simulate", SMALL + list(overrides))
+    ep = build_episode(cfg)
+    state = ep.swimmer.initial_state(ep.params, ep.origin)
+    with torch.no_grad():
+        final, m = rollout(ep.swimmer, state, ep.params, frames)
+    return ep, state, final, m
+
+
+def test_passive_fish_in_still_fluid_does_not_drift():
+    ep, s0, s1, m = _episode(["controller.amplitude=0", "origin=[0.15,0.08]"], 20)
+    assert torch.allclose(s1.q, s0.q, atol=1e-9)
+    assert m["thrust_x"].abs().max() < 1e-9 and m["force_y"].abs().max() < 1e-9
+
+
+def test_per_node_and_average_force_modes():
+    _, _, s_node, m_node = _episode(["coupling.force_mode=per_node"], 6)
+    ep, _, s_avg, m_avg = _episode(["coupling.force_mode=average", "coupling.fix_lateral=true"], 6)
+    assert torch.isfinite(s_node.q).all() and torch.isfinite(s_avg.q).all()
+    assert m_node["thrust_x"].abs().max() > 0
+    # average mode with the lateral force removed: no net y force, no lateral drift of the centroid
+    assert m_avg["force_y"].abs().max() < 1e-12
+    np.testing.assert_allclose(m_avg["centroid_y"].numpy(), ep.origin[1], atol=2e-5)
