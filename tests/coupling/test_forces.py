@@ -68,7 +68,7 @@ def test_layer_round_trip_dtypes_and_burn_in():
     assert isinstance(boundary, Boundary) and boundary.mask.dtype == torch.float32
     # v_d is the solid's own velocity (no factor b) wherever the band reaches, 0 elsewhere
     band = boundary.velocity[:, 0] != 0
-    assert torch.allclose(boundary.velocity[:, 0][band], torch.tensor(0.2))
+    assert torch.allclose(boundary.velocity[:, 0][band], torch.tensor(0.2, dtype=boundary.velocity.dtype))
     assert (boundary.mask[:, 0][~band] == 0).all()
     p = (1000.0 * grid.cell_centres()[..., 1])[None, None].repeat(2, 1, 1, 1)
     f = fluid_to_solid(q, p, boundary, surface, grid, cfg, step=5)

@@ -8,8 +8,16 @@ import torch
 from fishsim.fluid import grid as G
 from fishsim.fluid.base import Grid
 
-torch.set_default_dtype(torch.float64)
 D = torch.float64
+
+
+@pytest.fixture(autouse=True)
+def _float64_default():
+    """Stencil checks run in float64; restore the default so other tests in this worker keep theirs."""
+    before = torch.get_default_dtype()
+    torch.set_default_dtype(D)
+    yield
+    torch.set_default_dtype(before)
 
 
 def _vertices(n, L=1.0):
