@@ -12,5 +12,13 @@ from fishsim.solid.model import PDOptions, SolidMaterial, SolidModel
 from fishsim.solid.solve import ForwardInfo
 from fishsim.solid.step import pd_step, rest_state
 
-__all__ = ["FemQuantities", "fem_quantities", "PDOptions", "SolidMaterial", "SolidModel", "ForwardInfo",
-           "pd_step", "rest_state"]
+__all__ = [
+           "FemQuantities",
+           "ForwardInfo",
+           "PDOptions",
+           "SolidMaterial",
+           "SolidModel",
+           "fem_quantities",
+           "pd_step",
+           "rest_state",
+]

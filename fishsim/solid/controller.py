@@ -10,8 +10,12 @@ so C has units 1/m: the tail's contraction amplitude is C L / 10.
 Antagonistic mapping: top muscles (Y > 0) contract by max(0, h), bottom muscles by max(0, -h);
 h > 0 shortens the top side and bends the body towards +Y there.
 
-Default amplitude C = 4.0 1/m (tail contraction amplitude 8 %): calibrated in vacuum at 5 Hz with
-the default material (E = 6e5 Pa, k_m = E) on the default 2 mm fish; see DEFAULT_C.
+Default amplitude C = 35 1/m (largest contraction of the default fish's muscles 0.36; the
+envelope's tail value C L/10 = 0.7 lies behind the first muscle at X = 0.05 L): calibrated in
+vacuum at 5 Hz with the default material (E = 6e5 Pa, k_m = E, no volume term) on the default
+fish (make_fish_mesh(), 1181 nodes): the tail tip's peak-to-peak lateral excursion after the ramp
+(t in 1.0-1.2 s) is 30.0 mm = 0.15 L, the middle of PHYSICS.md's 0.1-0.2 L (re-check in water
+once the fluid is coupled: added mass and drag change it).
 """
 
 from __future__ import annotations
@@ -25,8 +29,8 @@ import torch
 from fishsim.mesh.fish_mesh import ACTUATOR_TOP
 from fishsim.solid.model import SolidModel
 
-# Calibrated amplitude (1/m); measured tail peak-to-peak lateral excursion: see module docstring.
-DEFAULT_C = 4.0
+# Calibrated amplitude (1/m): tail peak-to-peak excursion 30.0 mm = 0.15 L at 5 Hz in vacuum.
+DEFAULT_C = 35.0
 
 
 def envelope(X: torch.Tensor, length: float) -> torch.Tensor:
@@ -64,7 +68,7 @@ class WaveController:
 
     @staticmethod
     def default(length: float = 0.2, batch: int = 1, frequency: float = 5.0, C: float = DEFAULT_C,
-                dtype=torch.float64, device="cpu") -> "WaveController":
+                dtype=torch.float64, device="cpu") -> WaveController:
         """The documented defaults: C = DEFAULT_C, gamma = 2 pi / L, omega = 2 pi frequency."""
         full = lambda v: torch.full((batch,), float(v), dtype=dtype, device=device)
         return WaveController(full(C), full(2 * math.pi * frequency), full(2 * math.pi / length))

@@ -148,19 +148,30 @@ def energy_and_stress(model: SolidModel, p: Projections, out: np.ndarray | None 
     return energy, _add_muscle(model, _assemble_conformal(*coords, out=out), s0, s1)
 
 
-def stress_differential(model: SolidModel, p: Projections, dZ: np.ndarray, out: np.ndarray | None = None):
+def stress_differential(model: SolidModel, p: Projections, dZ: np.ndarray, out: np.ndarray | None = None,
+                        projected: bool = False):
     """dS[dF] = sum_i w_i (dF - dP_i[dF]) in Z layout: the element Hessians of E_int applied to
-    dF; G^T dS[G dX] is the tangent stiffness -df_int/dq applied to dX (i.e. dA's complement)."""
+    dF; G^T dS[G dX] is the tangent stiffness -df_int/dq applied to dX. `projected` clamps the
+    two indefinite eigenvalues (co-rotated rotation mode 1 - 1/c under compression c < 1, muscle
+    transverse mode 1 - a/|F m|) at zero and replaces the volume term's Hessian by its
+    Gauss-Newton part w n n^T (n = cof F / |cof F|, the normal of det F = 1): a positive
+    semi-definite approximation for preconditioning."""
     dF00, dF01, dF10, dF11 = _components(dZ)
     d = en.conformal_parts(dF00, dF01, dF10, dF11)
-    dR = en.corotated_projection_differential(*p.rotation, d[0], d[1])
+    alpha_R, beta_R, c = p.rotation
+    dR = en.corotated_projection_differential(alpha_R, beta_R, np.maximum(c, 1.0) if projected else c, d[0], d[1])
     coords = [p.w_corotated * (d[0] - dR[0]), p.w_corotated * (d[1] - dR[1]),
               p.w_corotated * d[2], p.w_corotated * d[3]]
-    if p.volume is not None:
+    if p.volume is not None and projected:                 # Gauss-Newton: w n n^T, n ~ cof F
+        n = (p.F[0], p.F[1], -p.F[2], -p.F[3])
+        scale = p.w_volume * sum(x * y for x, y in zip(n, d)) / sum(x * x for x in n)
+        coords = [c + scale * x for c, x in zip(coords, n)]
+    elif p.volume is not None:
         dD = en.volume_projection_differential(*p.F, p.volume[4], *d)
         coords = [c + p.w_volume * (x - y) for c, x, y in zip(coords, d, dD)]
     df0, df1 = dF00[model.muscles], dF10[model.muscles]
-    dp = en.muscle_projection_differential(*p.muscle[2:5], p.muscle[5], df0, df1)
+    n0, n1, length, a = p.muscle[2:6]
+    dp = en.muscle_projection_differential(n0, n1, np.maximum(length, a) if projected else length, a, df0, df1)
     return _add_muscle(model, _assemble_conformal(*coords, out=out), p.w_muscle * (df0 - dp[0]),
                        p.w_muscle * (df1 - dp[1]))
 
@@ -181,7 +192,7 @@ def fiber_stress_per_contraction(p: Projections) -> tuple[np.ndarray, np.ndarray
     return p.w_muscle * p.muscle[2], p.w_muscle * p.muscle[3]
 
 
-def element_hessians(model: SolidModel, p: Projections, sample: int) -> np.ndarray:
+def element_hessians(model: SolidModel, p: Projections, sample: int, projected: bool = False) -> np.ndarray:
     """H [T, 4, 4]: d vec(S) / d vec(F) of one sample, vec index 2a + j (columns of dS[dF])."""
     T = model.fem.n_elements
     p1 = select_sample(p, sample)
@@ -190,15 +201,17 @@ def element_hessians(model: SolidModel, p: Projections, sample: int) -> np.ndarr
         a, j = divmod(col, 2)
         dZ = np.zeros((2, T, 2, 1))
         dZ[j, :, a, 0] = 1.0
-        H[:, :, col] = stress_differential(model, p1, dZ)[:, :, :, 0].transpose(1, 2, 0).reshape(T, 4)
+        dS = stress_differential(model, p1, dZ, projected=projected)
+        H[:, :, col] = dS[:, :, :, 0].transpose(1, 2, 0).reshape(T, 4)
     return H
 
 
-def newton_matrix(model: SolidModel, p: Projections, sample: int) -> sp.csc_matrix:
+def newton_matrix(model: SolidModel, p: Projections, sample: int, projected: bool = False) -> sp.csc_matrix:
     """Assembled Newton matrix M/h^2 - df_int/dq = M/h^2 + sum_e G_e^T H_e G_e of one sample,
-    sparse [2N, 2N] over DOFs 2i + a (x and y coupled, unlike the per-axis PD matrix)."""
+    sparse [2N, 2N] over DOFs 2i + a (x and y coupled, unlike the per-axis PD matrix);
+    `projected`: the positive definite approximation of stress_differential."""
     Ge = model.fem.element_G
-    Ke = Ge.transpose(0, 2, 1) @ element_hessians(model, p, sample) @ Ge
+    Ke = Ge.transpose(0, 2, 1) @ element_hessians(model, p, sample, projected) @ Ge
     return model.fem.pattern.assemble(Ke) + sp.diags(np.repeat(model.mass_h2, 2))
 
 

@@ -61,7 +61,7 @@ class FemQuantities:
     mass: np.ndarray
     centroid_X: np.ndarray
     element_G: np.ndarray
-    pattern: "CscPattern"
+    pattern: CscPattern
 
     @property
     def n_nodes(self) -> int:

@@ -1,10 +1,16 @@
 """Prefactorised approximate inverse Hessians H0 ~ (M/h^2 - df_int/dq)^-1 for the solves.
 
-Both matrices are constant in time and affine in E, so each is factorised once per distinct E
+- 'lagged_newton' (forward default): per sample, the projected (positive definite) Newton matrix
+  of elastic.newton_matrix, factorised at the start of a step and reused by later steps until one
+  needs more than options.refresh_iterations iterations (kept in model.lagged; the batch size
+  changing rebuilds them). It follows the body's local rotations, which the two fixed matrices
+  below cannot.
+
+The next two are constant in time and affine in E, so each is factorised once per distinct E
 (sparse LU, SuperLU in symmetric mode; cached in model.factors) and reused every step:
 
 - 'pd': DiffPD's global matrix A(E) = M/h^2 + G^T W(E) G, the same [N, N] matrix for x and y.
-- 'rest_newton' (default): K0(E) = M/h^2 - df_int/dq at the rest shape, [2N, 2N]. Since
+- 'rest_newton': K0(E) = M/h^2 - df_int/dq at the rest shape, [2N, 2N]. Since
   f_int(R q) = R f_int(q) for a rigid rotation R, the Newton matrix of a rotated rest shape is
   R K0 R^T; each sample is therefore preconditioned in its best-fit rigid frame,
   H0 r = R_b K0^-1 R_b^T r, with R_b the rotation that best maps the rest shape onto the
@@ -41,14 +47,14 @@ def rest_newton_matrix(model: SolidModel, E: float) -> sp.csc_matrix:
     return elastic.newton_matrix(model, p, 0)
 
 
-def factor(model: SolidModel, E: float):
-    """Cached factorisation of the preconditioner matrix of `model.options` for Young's modulus E."""
-    key = float(E)
+def factor(model: SolidModel, E: float, kind: str):
+    """Cached factorisation of the 'rest_newton' or 'pd' matrix for Young's modulus E."""
+    key = (kind, float(E))
     if key not in model.factors:
         if len(model.factors) >= _CACHE_SIZE:
             model.factors.pop(next(iter(model.factors)))
-        build = rest_newton_matrix if model.options.preconditioner == "rest_newton" else pd_matrix
-        model.factors[key] = _splu(build(model, key))
+        build = rest_newton_matrix if kind == "rest_newton" else pd_matrix
+        model.factors[key] = _splu(build(model, float(E)))
     return model.factors[key]
 
 
@@ -76,10 +82,11 @@ class Preconditioner:
     """r -> H0 r for [N, 2B] arrays, one factorisation per distinct E among the samples;
     `X_frame` [N, 2B] (rest_newton only) sets each sample's rigid frame."""
 
-    def __init__(self, model: SolidModel, E: np.ndarray, X_frame: np.ndarray | None = None):
+    def __init__(self, model: SolidModel, E: np.ndarray, X_frame: np.ndarray | None = None,
+                 kind: str = "rest_newton"):
         values, inverse = np.unique(E, return_inverse=True)
-        self.groups = [(factor(model, v), np.flatnonzero(inverse.ravel() == i)) for i, v in enumerate(values)]
-        self.rotated = model.options.preconditioner == "rest_newton"
+        self.groups = [(factor(model, v, kind), np.flatnonzero(inverse.ravel() == i)) for i, v in enumerate(values)]
+        self.rotated = kind == "rest_newton"
         if self.rotated:
             self.cos, self.sin = best_fit_rotation(model, X_frame)
 
@@ -101,3 +108,32 @@ class Preconditioner:
             return lu.solve(np.asfortranarray(R))
         N, B = R.shape[0], R.shape[1] // 2                     # as [2N, B] with DOF 2i + a
         return lu.solve(R.reshape(2 * N, B)).reshape(N, 2 * B)
+
+
+class LaggedNewton:
+    """r -> K_b^-1 r per sample with the lagged projected Newton factors of `model.lagged`."""
+
+    def __init__(self, model: SolidModel, X: np.ndarray, contraction: np.ndarray, E: np.ndarray):
+        B = X.shape[1] // 2
+        if len(model.lagged) != B:
+            model.lagged = [None] * B
+        stale = [b for b in range(B) if model.lagged[b] is None]
+        if stale:
+            p = elastic.project(model, elastic.deformation_gradients(model, X), contraction, E)
+            for b in stale:
+                model.lagged[b] = _splu(elastic.newton_matrix(model, p, b, projected=True))
+        self.factors = list(model.lagged)
+        self.model = model
+
+    def __call__(self, R: np.ndarray) -> np.ndarray:
+        N, B = R.shape[0], R.shape[1] // 2
+        Z = np.empty_like(R)
+        for b, lu in enumerate(self.factors):
+            cols = [b, B + b]
+            Z[:, cols] = lu.solve(np.ascontiguousarray(R[:, cols]).reshape(2 * N)).reshape(N, 2)
+        return Z
+
+    def refresh(self, iterations: np.ndarray) -> None:
+        """Mark samples whose step needed more than refresh_iterations for refactorisation."""
+        for b in np.flatnonzero(iterations > self.model.options.refresh_iterations):
+            self.model.lagged[b] = None

@@ -23,12 +23,11 @@ import warnings
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from fishsim.solid import elastic
-from fishsim.solid.preconditioner import Preconditioner
 from fishsim.solid.model import SolidModel
+from fishsim.solid.preconditioner import LaggedNewton, Preconditioner
 
 
 @dataclass(frozen=True)
@@ -102,7 +101,11 @@ def pd_solve(model: SolidModel, Y: np.ndarray, X0: np.ndarray, contraction: np.n
     """q+ = argmin Phi for every sample. Y, X0: [N, 2B]; contraction [n_act, B]; E [B].
     Returns (X [N, 2B], ForwardInfo). Converged samples stop moving while others iterate."""
     opts = model.options
-    objective, precondition = Objective(model, Y, contraction, E), Preconditioner(model, E, Y)
+    objective = Objective(model, Y, contraction, E)
+    if opts.preconditioner == "lagged_newton":
+        precondition = LaggedNewton(model, Y, contraction, E)
+    else:
+        precondition = Preconditioner(model, E, Y, opts.preconditioner)
     B = Y.shape[1] // 2
     X = X0.copy()
     phi, g = objective(X)
@@ -128,6 +131,8 @@ def pd_solve(model: SolidModel, Y: np.ndarray, X0: np.ndarray, contraction: np.n
         history = (history + [(s, y, rho)])[-opts.history:]
         X, phi, g = X_new, phi_new, g_new
         residual = max_nodal_norm(g)
+    if isinstance(precondition, LaggedNewton):
+        precondition.refresh(iterations)
     X, g = _remove_net_residual(model, X, g)
     residual = max_nodal_norm(g)
     converged = residual <= opts.atol
@@ -184,7 +189,7 @@ def newton_solve(model: SolidModel, p: elastic.Projections, X: np.ndarray, b: np
     B = b.shape[1] // 2
     if method == "direct":
         return _direct_solve(model, p, b, np.arange(B)), 0, B
-    x, ok, its = _pcg(NewtonOperator(model, p), Preconditioner(model, E, X), b,
+    x, ok, its = _pcg(NewtonOperator(model, p), Preconditioner(model, E, X, "rest_newton"), b,
                       model.options.backward_rtol, model.options.backward_max_iter)
     failed = np.flatnonzero(~ok)
     if len(failed) and method == "auto":

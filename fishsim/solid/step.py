@@ -32,11 +32,12 @@ def _np(t: torch.Tensor) -> np.ndarray:
 def _inertial_target(model: SolidModel, q: np.ndarray, qdot: np.ndarray, f_ext: np.ndarray) -> np.ndarray:
     """y = q + h qdot + h^2 M^-1 f_ext, all [B, N, 2] (m)."""
     h = model.h
-    return q + h * qdot + h * h * f_ext / model.fem.mass[None, :, None]
+    y = q + h * qdot
+    return y if f_ext is None else y + h * h * f_ext / model.fem.mass[None, :, None]
 
 
 def forward_step(model: SolidModel, q, qdot, contraction, f_ext, E) -> tuple[np.ndarray, np.ndarray, ForwardInfo]:
-    """numpy step: q, qdot, f_ext [B, N, 2], contraction [B, n_act], E [B] -> (q+, qdot+, info)."""
+    """numpy step: q, qdot, f_ext [B, N, 2] (or None), contraction [B, n_act], E [B] -> (q+, qdot+, info)."""
     Y = elastic.to_columns(_inertial_target(model, q, qdot, f_ext))
     X, info = pd_solve(model, Y, Y, np.ascontiguousarray(contraction.T), E)
     q_next = elastic.from_columns(X)
@@ -65,12 +66,13 @@ class PDStepFunction(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, model, q, qdot, contraction, f_ext, E):
-        q_next, qdot_next, info = forward_step(model, _np(q), _np(qdot), _np(contraction), _np(f_ext), _np(E))
+        f = None if f_ext is None else _np(f_ext)
+        q_next, qdot_next, info = forward_step(model, _np(q), _np(qdot), _np(contraction), f, _np(E))
         model.stats.record_forward(info.iterations, info.residual)
         if not (np.isfinite(q_next).all() and np.isfinite(qdot_next).all()):
             raise SimulationBlowUp("PD step produced non-finite positions; reduce the time step, the "
                                    "activation or the external force, or raise E")
-        ctx.model = model
+        ctx.model, ctx.has_f_ext = model, f_ext is not None
         out_q, out_qdot = (torch.as_tensor(x, dtype=q.dtype, device=q.device) for x in (q_next, qdot_next))
         ctx.save_for_backward(out_q, contraction, E)
         return out_q, out_qdot
@@ -84,7 +86,10 @@ class PDStepFunction(torch.autograd.Function):
                                   _np(grad_q_next if grad_q_next is not None else zeros),
                                   _np(grad_qdot_next if grad_qdot_next is not None else zeros))
         like = (q_next, q_next, contraction, q_next, E)
-        return (None,) + tuple(torch.as_tensor(g, dtype=t.dtype, device=t.device) for g, t in zip(grads, like))
+        out = [torch.as_tensor(g, dtype=t.dtype, device=t.device) for g, t in zip(grads, like)]
+        if not ctx.has_f_ext:
+            out[3] = None
+        return (None, *out)
 
 
 def _batch_E(model: SolidModel, E, B: int, like: torch.Tensor) -> torch.Tensor:
@@ -108,7 +113,7 @@ def pd_step(model: SolidModel, q: torch.Tensor, qdot: torch.Tensor, contraction:
     q, qdot: [B, N, 2] positions (m) and velocities (m/s).
     contraction: [B, n_act] muscle contraction u in [0, 1) per actuated element (model.muscles
         order); the muscle's target stretch along its fiber is a = 1 - u.
-    f_ext: [B, N, 2] external nodal forces (N per unit depth), or None for zero.
+    f_ext: [B, N, 2] external nodal forces (N per unit depth), or None for none.
     E: Young's modulus (Pa): None (the material's), a float, or a [B] tensor (differentiable).
     Returns (q+, qdot+), both [B, N, 2], differentiable w.r.t. q, qdot, contraction, f_ext and E;
     with return_info also the ForwardInfo (L-BFGS iterations and residual per sample).
@@ -123,8 +128,7 @@ def pd_step(model: SolidModel, q: torch.Tensor, qdot: torch.Tensor, contraction:
                          f"got {tuple(contraction.shape)}")
     if not bool(((contraction >= 0) & (contraction < 1)).all()):
         raise ValueError("muscle contraction must lie in [0, 1) (target stretch 1 - contraction > 0)")
-    f_ext = torch.zeros_like(q) if f_ext is None else f_ext
-    if f_ext.shape != q.shape:
+    if f_ext is not None and f_ext.shape != q.shape:
         raise ValueError(f"f_ext must have shape {tuple(q.shape)}, got {tuple(f_ext.shape)}")
     E = _batch_E(model, E, B, q)
     q_next, qdot_next = PDStepFunction.apply(model, q, qdot, contraction, f_ext, E)

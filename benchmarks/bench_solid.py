@@ -1,0 +1,88 @@
+"""Solid (projective dynamics) timings on the default fish: forward / backward ms per step at
+B = 1 and B = 16, PD iterations per step. `run() -> dict` for the `make bench` driver;
+`python benchmarks/bench_solid.py` prints the dict as JSON.
+
+Scenario: the default controller in vacuum (5 Hz; B = 16 spreads 3-7 Hz over the batch), timed
+over `steps` steps after `warmup` steps (past most of the activation ramp), float64 on the CPU.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+
+import numpy as np
+import torch
+
+from fishsim.mesh import make_fish_mesh
+from fishsim.solid import SolidModel, pd_step, rest_state
+from fishsim.solid.controller import WaveController
+from fishsim.solid.model import SolverStats
+
+
+def _controller(batch: int, length: float) -> WaveController:
+    freqs = torch.linspace(3.0, 7.0, batch) if batch > 1 else torch.tensor([5.0])
+    ctrl = WaveController.default(length, batch)
+    return WaveController(ctrl.C, (2 * math.pi * freqs).to(torch.float64), ctrl.gamma, ctrl.t_a)
+
+
+def _warm_state(model: SolidModel, ctrl: WaveController, warmup: int):
+    q, qdot = rest_state(model, len(ctrl.C))
+    with torch.no_grad():
+        for k in range(warmup):
+            q, qdot = pd_step(model, q, qdot, ctrl.contraction(model, k * model.h))
+    return q, qdot
+
+
+def _time_forward(model, ctrl, q, qdot, start: int, steps: int) -> tuple[float, float]:
+    """(ms per step, mean L-BFGS iterations per step, max over the batch) without autograd."""
+    its = []
+    with torch.no_grad():
+        t0 = time.perf_counter()
+        for k in range(start, start + steps):
+            q, qdot, info = pd_step(model, q, qdot, ctrl.contraction(model, k * model.h), return_info=True)
+            its.append(info.iterations.max())      # a batch costs its slowest sample
+        elapsed = time.perf_counter() - t0
+    return 1e3 * elapsed / steps, float(np.mean(its))
+
+
+def _time_backward(model, ctrl, q, qdot, start: int, steps: int) -> tuple[float, float]:
+    """(ms per step of the adjoint pass, mean adjoint CG iterations per step); the loss is the
+    tail's final lateral position plus the mean x-velocity, w.r.t. omega and the initial state."""
+    omega = ctrl.omega.clone().requires_grad_()
+    ctrl = WaveController(ctrl.C, omega, ctrl.gamma, ctrl.t_a)
+    q, qdot = q.clone().requires_grad_(), qdot.clone().requires_grad_()
+    q0, qdot0 = q, qdot
+    for k in range(start, start + steps):
+        q, qdot = pd_step(model, q, qdot, ctrl.contraction(model, k * model.h))
+    loss = q[:, :, 1].sum() + qdot[:, :, 0].mean()
+    model.stats = SolverStats()
+    t0 = time.perf_counter()
+    torch.autograd.grad(loss, [omega, q0, qdot0])
+    elapsed = time.perf_counter() - t0
+    return 1e3 * elapsed / steps, model.stats.backward_iterations_total / steps
+
+
+def run(steps: int = 20, warmup: int = 40, repeats: int = 3) -> dict:
+    """Benchmark dict: mesh size, ms/step forward and backward at B = 1 and 16 (best of
+    `repeats`, the machine is shared), iterations per step."""
+    torch.set_num_threads(1)
+    mesh = make_fish_mesh()
+    model = SolidModel(mesh)
+    out = {"nodes": model.n_nodes, "elements": mesh.n_elements, "actuated": model.n_muscles,
+           "atol_N": model.options.atol, "backward_rtol": model.options.backward_rtol}
+    for B in (1, 16):
+        ctrl = _controller(B, mesh.length)
+        q, qdot = _warm_state(model, ctrl, warmup)
+        fwd, its = min(_time_forward(model, ctrl, q, qdot, warmup, steps) for _ in range(repeats))
+        bwd, bits = min(_time_backward(model, ctrl, q, qdot, warmup, steps) for _ in range(repeats))
+        out.update({f"forward_ms_B{B}": round(fwd, 3), f"backward_ms_B{B}": round(bwd, 3),
+                    f"pd_iterations_B{B}": round(its, 2), f"adjoint_iterations_B{B}": round(bits, 2)})
+    out["batch16_over_batch1_forward"] = round(out["forward_ms_B16"] / out["forward_ms_B1"], 2)
+    out["batch16_over_batch1_backward"] = round(out["backward_ms_B16"] / out["backward_ms_B1"], 2)
+    return out
+
+
+if __name__ == "__main__":
+    print(json.dumps(run(), indent=2))
