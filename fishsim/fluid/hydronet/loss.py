@@ -1,0 +1,103 @@
+"""HydroNet's unsupervised physics loss (paper Eqs. 7-9; Wandel et al. 2021), in grid units.
+
+Per sample, with R the IMEX momentum residual of ``fishsim.fluid.residual`` (Pa/m) and the
+reference scales of ``scales.py`` (U* = dx/h, R* = rho U*/h):
+
+    L_p = sum_f w_f (R_f / R*)^2 / N,            w = fluid face weight (1 - b_f, 0 on the box walls)
+    L_b = sum_f b_f ((v_f - v_d,f) / U*)^2 / N,   b_f = boundary face weight
+    L   = beta L_p + gamma L_b                        (Wandel: beta = 1, gamma = 20)
+    objective = mean over the batch of log(L + eps)
+
+with N the number of faces (x and y). Averaging the masked squares over all faces, as Wandel's
+code does, fixes the balance per face (a boundary face counts gamma / beta = 20 times a fluid
+face) whatever the share of solid in the scene or crop; normalising each term by its own mask
+instead would weight boundary faces by 20 N_fluid / N_solid (~100 in our crops), changing with
+the scene.
+
+Scaling. R / R* = R h^2 / (rho dx) = (R dx) / (rho U*^2): the paper's "rescale by 1/0.0025 = 400"
+multiplies R (Pa/m) by dx (m), which makes it a pressure; dividing further by P* = rho U*^2 makes it
+dimensionless and equal to the residual Wandel's code computes in grid units (dx = h = rho = 1).
+Likewise (v - v_d) / U* is the boundary error in cells per step. So both terms are O(1) for O(1)
+velocity changes per step, independent of rho, and Wandel's tested balance beta : gamma = 1 : 20
+keeps its meaning. (Dividing R by 400 but keeping v in m/s would weight L_p about 160x more than
+this at rho = 50, 2.5 mm, 0.01 s.)
+
+Advection scheme. The residual's (vbar . grad) vbar uses Koren's limited third-order upwind
+interpolation (``grid.advection``, the numerical solver's scheme), not Wandel's central one.
+Central differences cannot see a 2-cell (checkerboard) mode and at the paper's viscosity
+(nu* = 0.004) the Laplacian barely does, so a net trained with "central" let grid-scale vorticity
+noise grow in its rollouts at almost no cost (measured on such a rollout: fluid-face residual 3e-3
+central vs 3e-2 Koren; the numerical solver's own steps give 2.7e-9 with Koren in the fluid, so
+its discrete dynamics are almost an exact minimiser). Eager, the Koren residual costs ~0.15 s per
+batch of 16 at 64 x 128 (10x central); ``torch.compile`` brings it back to ~15 ms (train.py).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from fishsim.fluid.base import Boundary, FluidParams, FluidState, Grid
+from fishsim.fluid.grid import curl, vector_to_faces
+from fishsim.fluid.hydronet.scales import scales_of
+from fishsim.fluid.residual import boundary_face_masks, fluid_face_masks, momentum_residual
+
+EPS = 1e-12
+
+
+@dataclass(frozen=True)
+class LossConfig:
+    """beta: weight of L_p; gamma: weight of L_b (Wandel: 1 and 20); eps: floor inside the log;
+    scheme: advective interpolation of the residual, "koren" (default) or "central" (Wandel)."""
+
+    beta: float = 1.0
+    gamma: float = 20.0
+    eps: float = EPS
+    scheme: str = "koren"
+
+
+@dataclass(frozen=True)
+class LossTerms:
+    """Per-sample terms [B] (dimensionless) and the scalar training objective mean(log(L + eps))."""
+
+    momentum: Tensor
+    boundary: Tensor
+    total: Tensor
+    objective: Tensor
+
+
+def masked_mean(q: tuple[Tensor, Tensor], w: tuple[Tensor, Tensor]) -> Tensor:
+    """sum_f w_f q_f / N over the N x- and y-faces of each sample, [B]."""
+    num = sum((wi * qi).flatten(1).sum(1) for qi, wi in zip(q, w))
+    return num / sum(qi[0].numel() for qi in q)
+
+
+def momentum_loss(old: FluidState, new: FluidState, boundary: Boundary, params: FluidParams,
+                  grid: Grid, scheme: str = "koren") -> Tensor:
+    """L_p [B]: fluid-masked mean of the squared IMEX residual in units of R* = rho U* / h."""
+    s = scales_of(grid, params)
+    r = momentum_residual(curl(old.a, grid.dx), curl(new.a, grid.dx), new.p, params.rho, params.mu,
+                          params.h, grid, scheme=scheme)
+    return masked_mean(tuple((ri / s.residual) ** 2 for ri in r), fluid_face_masks(boundary.mask))
+
+
+def boundary_loss(new: FluidState, boundary: Boundary, params: FluidParams, grid: Grid) -> Tensor:
+    """L_b [B]: boundary-masked mean of ((v_t+1 - v_d) / U*)^2, v_d averaged onto the faces."""
+    u = grid.dx / params.h
+    v, v_d = curl(new.a, grid.dx), vector_to_faces(boundary.velocity)
+    err = tuple(((vi - di) / u) ** 2 for vi, di in zip(v, v_d))
+    return masked_mean(err, boundary_face_masks(boundary.mask))
+
+
+def hydronet_loss(old: FluidState, new: FluidState, boundary: Boundary, params: FluidParams,
+                  grid: Grid, cfg: LossConfig = LossConfig()) -> LossTerms:
+    """L = beta L_p + gamma L_b per sample and the objective mean_B log(L + eps) (module docstring).
+
+    old: (a_t, p_t), new: (a_t+1, p_t+1) in physical units; boundary: b, v_d of the step.
+    """
+    lp = momentum_loss(old, new, boundary, params, grid, cfg.scheme)
+    lb = boundary_loss(new, boundary, params, grid)
+    total = cfg.beta * lp + cfg.gamma * lb
+    return LossTerms(lp, lb, total, torch.log(total + cfg.eps).mean())

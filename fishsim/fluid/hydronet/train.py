@@ -1,0 +1,454 @@
+"""Training HydroNet on the scene pool: ``run(TrainConfig(...))`` (the CLI's ``train-hydronet``).
+
+One iteration (Wandel et al. 2021): ask the pool for a batch (state at t, boundary at t + h),
+step it once with the network, minimise mean_B log(beta L_p + gamma L_b) (``loss.py``) with Adam,
+and tell the pool the new (detached) states, so the network trains on its own rollouts.
+
+Outputs under ``out_dir``: ``ckpt.pt`` (latest: model, optimiser, pool, RNG, counters; written
+atomically, every ``ckpt_every`` iterations or ``ckpt_minutes``, and on Ctrl-C), ``best.pt`` (the
+model with the lowest validation loss: a fixed set of scenes rolled out from rest in eval mode),
+``log.csv`` and TensorBoard events in ``tb/``. ``resume=True`` continues exactly where ``ckpt.pt``
+stopped. Ctrl-C or ``kill PID`` (SIGTERM) saves ``ckpt.pt`` and exits cleanly. Command line: ``python -m fishsim.fluid.hydronet key=value ...`` (keys of TrainConfig,
+dotted for groups: ``net.hidden=16 pool.H=64``). Multi-GPU/CPU: ``torchrun --nproc_per_node N -m
+fishsim.fluid.hydronet ...`` (DistributedDataParallel; each rank its own pool, ``ckpt_rank{r}.pt``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import math
+import os
+import signal
+import sys
+import threading
+import time
+from dataclasses import asdict, dataclass, field, fields, is_dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.distributed as dist
+from torch import nn
+
+from fishsim.fluid.base import Boundary, FluidParams, FluidState
+from fishsim.fluid.hydronet.loss import LossConfig, LossTerms, hydronet_loss
+from fishsim.fluid.hydronet.pool import PoolConfig, ScenePool, advance, random_scene, scene_boundaries
+from fishsim.fluid.hydronet.unet import HydroNet, NetConfig
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Everything a training run needs (plain values; mirrors the Hydra config).
+
+    net, pool: network and scene-pool settings (``pool.rho``/``pool.mu`` are the fluid ranges).
+    iterations: total optimiser steps; batch: scenes per step (per rank); lr: Adam step size.
+    beta, gamma: loss weights; advection: "koren" | "central" scheme of the loss's residual.
+    device: "cpu" | "cuda"; threads: torch CPU threads (0: default).
+    bf16: bfloat16 autocast for the U-Net trunk; channels_last: NHWC memory layout;
+    compile: torch.compile the trunk (measured slower on CPU); compile_loss: torch.compile the
+    loss (~80 s once; then the Koren residual's forward + backward runs 10x faster). log_every, ckpt_every (iterations), ckpt_minutes,
+    val_every, val_scenes, val_steps: bookkeeping. grad_clip: max gradient norm (0: off).
+    resume: continue from ``out_dir/ckpt.pt`` exactly (its lr replaced by ``lr``).
+    init_from: start a new run from the weights of this best.pt / ckpt.pt (fresh optimiser and
+    pool: fine-tuning on another crop size or fluid range); ignored when resuming.
+    """
+
+    out_dir: str = "runs/hydronet"
+    iterations: int = 200_000
+    batch: int = 16
+    lr: float = 1e-3
+    beta: float = 1.0
+    gamma: float = 20.0
+    advection: str = "koren"
+    net: NetConfig = field(default_factory=lambda: NetConfig(hidden=16))
+    pool: PoolConfig = field(default_factory=PoolConfig)
+    device: str = "cpu"
+    threads: int = 0
+    bf16: bool = True
+    channels_last: bool = True
+    compile: bool = False
+    compile_loss: bool = True
+    seed: int = 0
+    log_every: int = 10
+    ckpt_every: int = 2000
+    ckpt_minutes: float = 5.0
+    val_every: int = 500
+    val_scenes: int = 8
+    val_steps: int = 40
+    grad_clip: float = 0.0
+    resume: bool = False
+    init_from: str = ""
+    progress: bool = True
+
+
+@dataclass
+class Run:
+    """The mutable training state (what a checkpoint holds, plus the loss function)."""
+
+    model: nn.Module
+    opt: torch.optim.Optimizer
+    pool: ScenePool
+    loss_fn: object = None
+    iteration: int = 0
+    best_val: float = math.inf
+    last_val: float = math.nan
+    elapsed: float = 0.0
+
+
+def make_loss_fn(cfg: TrainConfig):
+    """(a_t, p_t, a_t+1, p_t+1, b, v_d, rho, mu, h) -> (L_p [B], L_b [B], L [B], objective), the
+    loss of ``loss.py`` on plain tensors, compiled when ``cfg.compile_loss``."""
+    grid, loss_cfg = cfg.pool.grid, LossConfig(cfg.beta, cfg.gamma, scheme=cfg.advection)
+
+    def loss_fn(a0, p0, a1, p1, b, vd, rho, mu, h):
+        t = hydronet_loss(FluidState(a0, p0), FluidState(a1, p1), Boundary(b, vd), FluidParams(rho, mu, h),
+                          grid, loss_cfg)
+        return t.momentum, t.boundary, t.total, t.objective
+
+    return torch.compile(loss_fn) if cfg.compile_loss else loss_fn
+
+
+# ----------------------------------------------------------------------------- one step
+
+
+def train_step(run: Run, cfg: TrainConfig, net: nn.Module) -> LossTerms:
+    """ask -> step -> loss -> Adam -> tell; returns the detached loss terms of the batch."""
+    idx, state, boundary, params = run.pool.ask(cfg.batch)
+    with torch.autocast(run.pool.device.type, dtype=torch.bfloat16, enabled=cfg.bf16):
+        a, p = net(state.a, state.p, boundary.mask, boundary.velocity, params.rho, params.mu,
+                   run.pool.grid.dx, params.h)
+    new = FluidState(a, p)
+    terms = LossTerms(*run.loss_fn(state.a, state.p, a, p, boundary.mask, boundary.velocity, params.rho,
+                                   params.mu, params.h))
+    run.opt.zero_grad(set_to_none=True)
+    terms.objective.backward()
+    if cfg.grad_clip > 0:
+        nn.utils.clip_grad_norm_(net.parameters(), cfg.grad_clip)
+    run.opt.step()
+    run.pool.tell(idx, new)
+    run.iteration += 1
+    return LossTerms(*(t.detach() for t in (terms.momentum, terms.boundary, terms.total, terms.objective)))
+
+
+@torch.no_grad()
+def validate(model: HydroNet, cfg: TrainConfig, seed: int = 12345) -> float:
+    """Mean log L over the second half of ``val_steps`` eval-mode steps of ``val_scenes`` fixed
+    scenes started from rest (same scenes and motions every call)."""
+    rng = np.random.default_rng(seed)
+    scenes = [random_scene(rng, cfg.pool) for _ in range(cfg.val_scenes)]
+    grid, dev = cfg.pool.grid, next(model.parameters()).device
+    params = FluidParams(torch.tensor([s.rho for s in scenes], device=dev, dtype=torch.float32),
+                         torch.tensor([s.mu for s in scenes], device=dev, dtype=torch.float32), cfg.pool.h)
+    state = FluidState(torch.zeros(len(scenes), 1, grid.H + 1, grid.W + 1, device=dev, dtype=torch.float32),
+                       torch.zeros(len(scenes), 1, grid.H, grid.W, device=dev, dtype=torch.float32))
+    was_training, losses = model.training, []
+    model.eval()
+    for k in range(cfg.val_steps):
+        scenes = [advance(s, cfg.pool, rng) for s in scenes]
+        boundary = scene_boundaries(scenes, grid, dev)
+        with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=cfg.bf16):
+            new = FluidState(*model(state.a, state.p, boundary.mask, boundary.velocity, params.rho,
+                                    params.mu, grid.dx, params.h))
+        if k >= cfg.val_steps // 2:
+            loss_cfg = LossConfig(cfg.beta, cfg.gamma, scheme=cfg.advection)
+            losses.append(hydronet_loss(state, new, boundary, params, grid, loss_cfg).objective.item())
+        state = new
+    model.train(was_training)
+    return float(np.mean(losses))
+
+
+# ------------------------------------------------------------------------ checkpoints
+
+
+def atomic_save(obj, path: Path) -> None:
+    """torch.save to ``path`` via a temporary file and os.replace (never a half-written file)."""
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+def save_checkpoint(run: Run, cfg: TrainConfig, out: Path, rank: int) -> None:
+    """Rank 0: model, optimiser, counters, pool, RNG in ckpt.pt; other ranks: their pool, RNG and
+    model copy (identical parameters under DDP) in ckpt_rank{r}.pt."""
+    model = run.model.module if hasattr(run.model, "module") else run.model
+    common = {"pool": run.pool.state_dict(), "torch_rng": torch.get_rng_state(), "iteration": run.iteration,
+              "model": model.state_dict()}
+    if rank > 0:
+        atomic_save(common, out / f"ckpt_rank{rank}.pt")
+        return
+    atomic_save({**common, "optimizer": run.opt.state_dict(),
+                 "net": asdict(model.cfg), "config": asdict(cfg), "best_val": run.best_val,
+                 "last_val": run.last_val, "elapsed": run.elapsed}, out / "ckpt.pt")
+
+
+def load_checkpoint(run: Run, out: Path, rank: int, lr: float | None = None) -> None:
+    """Restore ``run`` from ckpt.pt (and ckpt_rank{r}.pt for rank r > 0); ``lr`` replaces the
+    saved learning rate."""
+    main = torch.load(out / "ckpt.pt", map_location="cpu", weights_only=False)
+    own = main if rank == 0 else torch.load(out / f"ckpt_rank{rank}.pt", map_location="cpu", weights_only=False)
+    model = run.model.module if hasattr(run.model, "module") else run.model
+    model.load_state_dict(main["model"])
+    run.opt.load_state_dict(main["optimizer"])
+    for group in run.opt.param_groups:  # the configured lr wins: resume with a smaller one to anneal
+        group["lr"] = main["config"]["lr"] if lr is None else lr
+    run.pool.load_state_dict(own["pool"])
+    torch.set_rng_state(own["torch_rng"])
+    run.iteration, run.best_val = main["iteration"], main["best_val"]
+    run.last_val, run.elapsed = main["last_val"], main["elapsed"]
+
+
+def save_best(model: HydroNet, run: Run, out: Path) -> None:
+    atomic_save({"model": model.state_dict(), "net": asdict(model.cfg), "iteration": run.iteration,
+                 "val": run.best_val}, out / "best.pt")
+
+
+def load_hydronet(path: str | Path, device="cpu") -> HydroNet:
+    """A trained HydroNet (eval mode) from best.pt or ckpt.pt; wrap it in ``HydroNetFluid``."""
+    sd = torch.load(path, map_location=device, weights_only=False)
+    model = HydroNet(NetConfig(**sd["net"])).to(device)
+    model.load_state_dict(sd["model"])
+    return model.eval()
+
+
+# ------------------------------------------------------------------------------ logging
+
+
+class Logger:
+    """CSV + TensorBoard (rank 0 only) and a rich progress bar (plain lines when not a terminal)."""
+
+    COLUMNS = ("iteration", "seconds", "loss", "L_p", "L_b", "val", "it_per_s", "samples_per_s")
+
+    def __init__(self, out: Path, cfg: TrainConfig, start: int):
+        from rich.console import Console
+
+        self.cfg, self.t0, self.i0 = cfg, time.perf_counter(), start
+        new = not (out / "log.csv").exists()
+        self.csv_file = open(out / "log.csv", "a", newline="")  # noqa: SIM115 (closed in close())
+        self.csv = csv.writer(self.csv_file)
+        if new:
+            self.csv.writerow(self.COLUMNS)
+        from torch.utils.tensorboard import SummaryWriter
+
+        self.tb = SummaryWriter(str(out / "tb"), purge_step=start + 1 if start else None)
+        self.console = Console()
+        self.bar = self._progress(start) if cfg.progress and self.console.is_terminal else None
+
+    def _progress(self, start: int):
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+        bar = Progress(TextColumn("hydronet"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
+                       TextColumn("{task.fields[status]}"), console=self.console)
+        bar.start()
+        self.task = bar.add_task("train", total=self.cfg.iterations, completed=start, status="")
+        return bar
+
+    def log(self, run: Run, terms: LossTerms) -> None:
+        dt = time.perf_counter() - self.t0
+        rate = (run.iteration - self.i0) / max(dt, 1e-9)
+        row = [run.iteration, round(run.elapsed, 1), terms.objective.item(), terms.momentum.mean().item(),
+               terms.boundary.mean().item(), run.last_val, rate, rate * self.cfg.batch]
+        self.csv.writerow(row)
+        self.csv_file.flush()
+        for name, value in zip(self.COLUMNS[2:], row[2:]):
+            if math.isfinite(value):
+                self.tb.add_scalar(f"train/{name}", value, run.iteration)
+        status = f"loss {row[2]:.3f}  L_p {row[3]:.2e}  L_b {row[4]:.2e}  val {row[5]:.3f}  {rate:.2f} it/s"
+        if self.bar is not None:
+            self.bar.update(self.task, completed=run.iteration, status=status)
+        elif run.iteration % (10 * self.cfg.log_every) == 0:
+            print(f"[{time.strftime('%H:%M:%S')}] it {run.iteration}: {status}", flush=True)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.stop()
+        self.csv_file.close()
+        self.tb.close()
+
+
+# ---------------------------------------------------------------------------------- run
+
+
+def _setup_distributed(cfg: TrainConfig) -> tuple[int, int, torch.device]:
+    """(rank, world size, device); initialises torch.distributed under torchrun (WORLD_SIZE > 1):
+    gloo on CPU, nccl on CUDA (one GPU per local rank)."""
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    device = torch.device(cfg.device)
+    if world > 1 and not dist.is_initialized():
+        dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
+    rank = dist.get_rank() if world > 1 else 0
+    if device.type == "cuda":
+        device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
+        torch.cuda.set_device(device)
+    return rank, world, device
+
+
+def build(cfg: TrainConfig, rank: int, world: int, device: torch.device) -> tuple[Run, nn.Module]:
+    """Model (seeded), optimiser and pool (seeded per rank); the second value is what the training
+    step calls (DDP wrapper and/or compiled module)."""
+    torch.manual_seed(cfg.seed)
+    model = HydroNet(cfg.net).to(device)
+    if cfg.channels_last:
+        model = model.to(memory_format=torch.channels_last)
+    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
+    pool = ScenePool(cfg.pool, cfg.batch, seed=cfg.seed * 1000 + rank, device=device)
+    net: nn.Module = model
+    if world > 1:
+        net = nn.parallel.DistributedDataParallel(model, device_ids=[device.index] if device.type == "cuda" else None)
+    if cfg.compile:
+        net = torch.compile(net)
+    return Run(model, opt, pool, make_loss_fn(cfg)), net
+
+
+def _due(run: Run, cfg: TrainConfig, last_save: float, world: int) -> bool:
+    """Checkpoint now? Every ``ckpt_every`` iterations, or ``ckpt_minutes`` after the last save
+    (rank 0's clock decides, broadcast so that all ranks save at the same iteration)."""
+    due = run.iteration % cfg.ckpt_every == 0
+    if run.iteration % cfg.log_every == 0:
+        timed = torch.tensor([float(time.perf_counter() - last_save > 60 * cfg.ckpt_minutes)],
+                             device=run.pool.device)  # NCCL broadcasts CUDA tensors only
+        if world > 1:
+            dist.broadcast(timed, 0)
+        due = due or bool(timed.item())
+    return due
+
+
+def _after_step(run: Run, cfg: TrainConfig, out: Path, rank: int, world: int, log: Logger | None,
+                terms: LossTerms, last_save: float) -> float:
+    """Validation (+ best.pt), logging and checkpointing after one iteration; returns the time of
+    the last checkpoint."""
+    if rank == 0 and run.iteration % cfg.val_every == 0:
+        run.last_val = validate(run.model, cfg)
+        if run.last_val < run.best_val:
+            run.best_val = run.last_val
+            save_best(run.model, run, out)
+    if log is not None and run.iteration % cfg.log_every == 0:
+        log.log(run, terms)
+    if _due(run, cfg, last_save, world):
+        save_checkpoint(run, cfg, out, rank)
+        return time.perf_counter()
+    return last_save
+
+
+def _restore(run: Run, cfg: TrainConfig, out: Path, rank: int, device: torch.device) -> None:
+    """resume: everything from out/ckpt.pt; else init_from: the weights only."""
+    if cfg.resume and (out / "ckpt.pt").exists():
+        load_checkpoint(run, out, rank, cfg.lr)
+    elif cfg.init_from:
+        run.model.load_state_dict(torch.load(cfg.init_from, map_location=device, weights_only=False)["model"])
+
+
+def _raise_interrupt(signum, frame):
+    raise KeyboardInterrupt(f"signal {signum}")
+
+
+@contextlib.contextmanager
+def interruptible():
+    """Within: Ctrl-C and SIGTERM raise KeyboardInterrupt, so ``kill PID`` also saves and exits
+    (a shell starts background jobs with SIGINT ignored). Handlers are restored on exit."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.signal(signal.SIGTERM, _raise_interrupt)
+    try:
+        yield
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+
+
+def run(cfg: TrainConfig | dict) -> dict:
+    """Train HydroNet as configured (a TrainConfig or the same as a nested dict); returns a
+    summary (iterations, losses, this session's iterations/s and samples/s, paths)."""
+    cfg = train_config(cfg)
+    if cfg.threads > 0:
+        torch.set_num_threads(cfg.threads)
+    rank, world, device = _setup_distributed(cfg)
+    out = Path(cfg.out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    run_, net = build(cfg, rank, world, device)
+    _restore(run_, cfg, out, rank, device)
+    log = Logger(out, cfg, run_.iteration) if rank == 0 else None
+    start, t0, interrupted, terms = run_.iteration, time.perf_counter(), False, None
+    last_save = t_last = t0
+    try:
+        with interruptible():
+            while run_.iteration < cfg.iterations:
+                terms = train_step(run_, cfg, net)
+                now = time.perf_counter()
+                run_.elapsed, t_last = run_.elapsed + now - t_last, now
+                last_save = _after_step(run_, cfg, out, rank, world, log, terms, last_save)
+    except KeyboardInterrupt:
+        interrupted = True
+    save_checkpoint(run_, cfg, out, rank)
+    if log is not None:
+        log.close()
+    if world > 1:
+        dist.destroy_process_group()
+    rate = (run_.iteration - start) / max(time.perf_counter() - t0, 1e-9)
+    return {"iteration": run_.iteration, "interrupted": interrupted, "best_val": run_.best_val,
+            "last_val": run_.last_val, "loss": terms.objective.item() if terms is not None else math.nan,
+            "it_per_s": rate, "samples_per_s": rate * cfg.batch * world, "out_dir": str(out), "rank": rank}
+
+
+# ------------------------------------------------------------------------ command line
+
+
+def _set(obj, key: str, text: str):
+    """A copy of dataclass ``obj`` with dotted ``key`` set from ``text`` (type from the field)."""
+    head, _, rest = key.partition(".")
+    names = {f.name: f for f in fields(obj)}
+    if head not in names:
+        raise SystemExit(f"unknown config key {key!r}; known: {sorted(names)}")
+    current = getattr(obj, head)
+    if rest:
+        return replace(obj, **{head: _set(current, rest, text)})
+    if isinstance(current, bool):
+        value = text.lower() in ("1", "true", "yes", "on")
+    elif isinstance(current, tuple):
+        value = tuple(type(current[0])(v) for v in text.strip("()[]").split(","))
+    elif is_dataclass(current):
+        raise SystemExit(f"{key!r} is a group; set its fields, e.g. {key}.{fields(current)[0].name}=...")
+    else:
+        value = type(current)(text)
+    return replace(obj, **{head: value})
+
+
+def _from_dict(cls, d: dict):
+    """Dataclass ``cls`` from a plain (nested) dict; lists become tuples; unknown keys fail."""
+    names = {f.name: f for f in fields(cls)}
+    unknown = set(d) - set(names)
+    if unknown:
+        raise ValueError(f"unknown {cls.__name__} keys {sorted(unknown)}; known: {sorted(names)}")
+    defaults = cls()
+    kw = {}
+    for k, v in d.items():
+        cur = getattr(defaults, k)
+        kw[k] = _from_dict(type(cur), v) if is_dataclass(cur) else tuple(v) if isinstance(v, list) else v
+    return cls(**kw)
+
+
+def train_config(d: dict | TrainConfig) -> TrainConfig:
+    """A TrainConfig from a plain dict (e.g. ``OmegaConf.to_container`` of the Hydra config)."""
+    return d if isinstance(d, TrainConfig) else _from_dict(TrainConfig, d)
+
+
+def config_from_args(args: list[str]) -> TrainConfig:
+    """TrainConfig from ``key=value`` arguments, e.g. ``net.hidden=16 pool.H=64 resume=true``."""
+    cfg = TrainConfig()
+    for arg in args:
+        key, sep, text = arg.partition("=")
+        if not sep:
+            raise SystemExit(f"expected key=value, got {arg!r}")
+        cfg = _set(cfg, key, text)
+    return cfg
+
+
+def main(argv: list[str] | None = None) -> dict:
+    """``python -m fishsim.fluid.hydronet key=value ...`` (also under torchrun)."""
+    summary = run(config_from_args(sys.argv[1:] if argv is None else argv))
+    if summary["rank"] == 0:
+        print(summary, flush=True)
+    return summary

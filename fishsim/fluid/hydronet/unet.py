@@ -1,0 +1,215 @@
+"""HydroNet: the physics-constrained U-Net fluid step (paper Sec. 3.1; Wandel et al. 2021, "UNet2").
+
+One step maps (a_t, p_t, b_t, v_d,t) -> (a_t+1, p_t+1). Inside the network everything is in grid
+units (``scales.py``): velocities in U* = dx/h, the potential in A* = dx^2/h, pressure in
+P* = rho U*^2, so the network sees O(1) numbers for every fluid and every grid spacing.
+
+Canvas. All inputs are stacked on the (H+1) x (W+1) vertex grid of ``a``. A field whose entry [i, j]
+sits at a face or cell centre is put at canvas index [i, j] (a half-cell shift the convolutions
+absorb, as in Wandel's code) and padded on the bottom row / right column: with zeros for p, v and
+v_d, by replication for the mask (the outermost cells are walls, so replicating keeps them solid).
+Input channels (13, Wandel's order; +2 with ``condition=True``):
+
+    p, a / A_IN, v_x, v_y, f, b v_dx, b v_dy, b, f p, f v_x, f v_y, b v_x, b v_y [, rho~, nu~]
+
+with b the soft mask (1 solid), f = 1 - b, v = curl a, and the potential further divided by
+A_IN = 32 (a's scale is set by the domain size, not by a cell, so in grid units it is O(10-100)).
+Conditioning channels are constant: rho~ = (rho - 30) / 20 and nu~ = (ln nu* - ln 0.025) / 1.85,
+both in [-1, 1] over rho in [10, 50] kg/m^3, mu in [0.125, 1] mPa s at 2.5 mm / 0.01 s. Once p is
+divided by rho U*^2 the dimensionless equations depend on nu* = mu h / (rho dx^2) only.
+
+Bounded residual update (grid units), then per-sample mean removal:
+
+    a_t+1 = A tanh((a_t + da) / A),   p_t+1 = P tanh((p_t + dp) / P),   x <- x - mean(x)
+
+A = 400 A* (0.25 m^2/s at 2.5 mm / 0.01 s): the mean-free potential of a 0.5 m/s stream across the
+0.25 m tank is +-0.06 m^2/s, so realistic states use < 1/4 of the range and tanh stays within 2 % of
+the identity there. P = 64 P* (200 Pa at rho = 50): the dynamic pressure of 0.5 m/s is 2 P* and
+the inertial pressure of the tail (0.5 m/s * 2 pi 8 Hz over ~2 cm) ~ 8 P*; larger values only arise
+from impulsive starts, which the bound clips (Wandel: "avoid filling the pool with diverged data").
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from fishsim.fluid.base import Boundary, FluidParams, FluidState, Grid
+from fishsim.fluid.grid import curl
+from fishsim.fluid.hydronet.scales import scales_of
+
+A_IN = 32.0
+RHO_MID, RHO_HALF = 30.0, 20.0
+LOG_NU_MID, LOG_NU_HALF = math.log(0.025), 1.85
+
+
+@dataclass(frozen=True)
+class NetConfig:
+    """U-Net hyper-parameters. hidden: channels of the first level (Wandel: 20); depth: number of
+    down/up levels (Wandel: 4); bound_a, bound_p: A, P in grid units; condition: (rho, nu*) inputs."""
+
+    hidden: int = 20
+    depth: int = 4
+    bound_a: float = 400.0
+    bound_p: float = 64.0
+    condition: bool = False
+
+    @property
+    def in_channels(self) -> int:
+        return 15 if self.condition else 13
+
+
+class DoubleConv(nn.Sequential):
+    """[conv 3x3 -> BatchNorm -> ReLU] x 2 (Wandel/milesial ``DoubleConv``)."""
+
+    def __init__(self, c_in: int, c_out: int, c_mid: int | None = None):
+        c_mid = c_mid or c_out
+        super().__init__(
+            nn.Conv2d(c_in, c_mid, 3, padding=1), nn.BatchNorm2d(c_mid), nn.ReLU(inplace=True),
+            nn.Conv2d(c_mid, c_out, 3, padding=1), nn.BatchNorm2d(c_out), nn.ReLU(inplace=True),
+        )
+
+
+class Up(nn.Module):
+    """Bilinear x2 upsampling, pad to the skip's size, concat [skip, up], DoubleConv(c_in, c_out, c_in/2)."""
+
+    def __init__(self, c_in: int, c_out: int):
+        super().__init__()
+        self.conv = DoubleConv(c_in, c_out, c_in // 2)
+
+    def forward(self, x: Tensor, skip: Tensor) -> Tensor:
+        x = F.interpolate(x, scale_factor=2, mode="bilinear", align_corners=True)
+        dy, dx = skip.shape[-2] - x.shape[-2], skip.shape[-1] - x.shape[-1]
+        x = F.pad(x, (dx // 2, dx - dx // 2, dy // 2, dy - dy // 2))
+        return self.conv(torch.cat([skip, x], dim=1))
+
+
+class UNet(nn.Module):
+    """Wandel's UNet2 trunk: ``depth`` max-pool levels down, bilinear up, 1x1 conv out.
+
+    Channels c_k = hidden 2^k (k < depth); the bottleneck has c_{depth-1} channels. With
+    hidden = 20, depth = 4, 13 inputs and 2 outputs it has Wandel's 1,691,322 parameters.
+    Input [B, c_in, h, w], output [B, c_out, h, w].
+    """
+
+    def __init__(self, c_in: int, c_out: int, hidden: int = 20, depth: int = 4):
+        super().__init__()
+        ch = [hidden * 2**k for k in range(depth)]
+        self.inc = DoubleConv(c_in, ch[0])
+        self.downs = nn.ModuleList(
+            nn.Sequential(nn.MaxPool2d(2), DoubleConv(ch[k - 1], c))
+            for k, c in enumerate(ch[1:] + [ch[-1]], start=1)
+        )
+        self.ups = nn.ModuleList(Up(2 * ch[k], ch[k - 1] if k > 0 else ch[0]) for k in reversed(range(depth)))
+        self.outc = nn.Conv2d(ch[0], c_out, 1)
+
+    def forward(self, x: Tensor) -> Tensor:
+        skips = [self.inc(x)]
+        for down in self.downs:
+            skips.append(down(skips[-1]))
+        x = skips.pop()
+        for up in self.ups:
+            x = up(x, skips.pop())
+        with torch.autocast(x.device.type, enabled=False):  # full-precision output under autocast
+            return self.outc(x.to(self.outc.weight.dtype))
+
+
+def to_canvas(x: Tensor, rows: int, cols: int, mode: str = "constant") -> Tensor:
+    """Pad [B, C, r, c] on the bottom/right to the canvas [B, C, rows, cols] (zeros or replicate)."""
+    pad = (0, cols - x.shape[-1], 0, rows - x.shape[-2])
+    return F.pad(x, pad, mode=mode) if any(pad) else x
+
+
+def network_inputs(a: Tensor, p: Tensor, b: Tensor, v_d: Tensor, v: tuple[Tensor, Tensor],
+                   cond: Tensor | None) -> Tensor:
+    """Stack the input channels on the vertex canvas (module docstring); all fields in grid units.
+
+    a [B,1,H+1,W+1], p [B,1,H,W], b [B,1,H,W], v_d [B,2,H,W], v = (v_x [B,1,H,W+1], v_y [B,1,H+1,W]),
+    cond [B,2] or None -> [B, 13 (+2), H+1, W+1].
+    """
+    rows, cols = a.shape[-2:]
+    b = to_canvas(b, rows, cols, mode="replicate")
+    f = 1.0 - b
+    p = to_canvas(p, rows, cols)
+    vel = torch.cat([to_canvas(v[0], rows, cols), to_canvas(v[1], rows, cols)], dim=1)
+    chans = [p, a / A_IN, vel, f, b * to_canvas(v_d, rows, cols), b, f * p, f * vel, b * vel]
+    if cond is not None:
+        chans.append(cond[:, :, None, None].expand(-1, -1, rows, cols))
+    return torch.cat(chans, dim=1)
+
+
+class HydroNet(nn.Module):
+    """The U-Net plus its physical-unit wrapper: (a, p, b, v_d, rho, mu) -> (a_t+1, p_t+1).
+
+    ``forward`` takes and returns physical units (a in m^2/s, p in Pa, v_d in m/s, rho [B] kg/m^3,
+    mu [B] Pa s, dx in m, h in s); the grid-unit conversion, bounds and mean removal are inside.
+    """
+
+    def __init__(self, cfg: NetConfig = NetConfig()):
+        super().__init__()
+        self.cfg = cfg
+        self.unet = UNet(cfg.in_channels, 2, cfg.hidden, cfg.depth)
+
+    def forward(self, a: Tensor, p: Tensor, b: Tensor, v_d: Tensor, rho: Tensor, mu: Tensor,
+                dx: float, h: float) -> tuple[Tensor, Tensor]:
+        grid = Grid(p.shape[-2], p.shape[-1], dx)
+        s = scales_of(grid, FluidParams(rho=rho, mu=mu, h=h))
+        a_g, p_g, vd_g = a / s.potential, p / s.pressure, v_d / s.velocity
+        v_g = curl(a_g, 1.0)
+        cond = self._condition(rho, s.nu) if self.cfg.condition else None
+        x = network_inputs(a_g, p_g, b, vd_g, v_g, cond)
+        if x.dtype != self.unet.outc.weight.dtype and not torch.is_autocast_enabled(x.device.type):
+            x = x.to(self.unet.outc.weight.dtype)
+        if self.unet.inc[0].weight.is_contiguous(memory_format=torch.channels_last):
+            x = x.contiguous(memory_format=torch.channels_last)
+        out = self.unet(x).to(a.dtype)
+        a_new = self._bounded(a_g + out[:, :1], self.cfg.bound_a)
+        p_new = self._bounded(p_g + out[:, 1:, : p.shape[-2], : p.shape[-1]], self.cfg.bound_p)
+        return a_new * s.potential, p_new * s.pressure
+
+    @staticmethod
+    def _condition(rho: Tensor, nu: Tensor) -> Tensor:
+        """[B, 2] normalised (rho, ln nu*) in [-1, 1] over the paper's fluid range."""
+        rho_n = (rho.reshape(-1) - RHO_MID) / RHO_HALF
+        nu_n = (torch.log(nu.reshape(-1)) - LOG_NU_MID) / LOG_NU_HALF
+        return torch.stack([rho_n, nu_n], dim=1).to(rho.dtype)
+
+    @staticmethod
+    def _bounded(x: Tensor, bound: float) -> Tensor:
+        """x -> bound tanh(x / bound) with the per-sample spatial mean removed, [B, 1, r, c]."""
+        y = bound * torch.tanh(x / bound)
+        return y - y.mean(dim=(-2, -1), keepdim=True)
+
+
+class HydroNetFluid:
+    """``FluidModel`` backed by a trained ``HydroNet`` (eval mode: BatchNorm uses running stats).
+
+    Differentiable w.r.t. the state, the boundary and the network weights; batched over B; runs on
+    the device of the inputs (the model must be there too). ``bf16=True`` runs the U-Net trunk under
+    bfloat16 autocast (the bounded update and the unit conversions stay in float32).
+    """
+
+    def __init__(self, model: HydroNet, grid: Grid, bf16: bool = False):
+        self.model = model.eval()
+        self.grid = grid
+        self.bf16 = bf16
+
+    def initial_state(self, batch: int, device=None, dtype=torch.float32) -> FluidState:
+        """Fluid at rest: a = 0 [B,1,H+1,W+1], p = 0 [B,1,H,W]."""
+        g = self.grid
+        return FluidState(
+            a=torch.zeros(batch, 1, g.H + 1, g.W + 1, device=device, dtype=dtype),
+            p=torch.zeros(batch, 1, g.H, g.W, device=device, dtype=dtype),
+        )
+
+    def step(self, state: FluidState, boundary: Boundary, params: FluidParams) -> FluidState:
+        """(a_t, p_t, b, v_d) -> (a_t+1, p_t+1), one network evaluation."""
+        dev = state.a.device.type
+        with torch.autocast(dev, dtype=torch.bfloat16, enabled=self.bf16):
+            a, p = self.model(state.a, state.p, boundary.mask, boundary.velocity,
+                              params.rho, params.mu, self.grid.dx, params.h)
+        return FluidState(a=a, p=p)

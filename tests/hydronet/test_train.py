@@ -1,0 +1,171 @@
+"""Training: exact resume, Ctrl-C, best model, loss decrease, config parsing, DDP (gloo)."""
+
+import os
+import socket
+from dataclasses import replace
+
+import pytest
+import torch
+
+from fishsim.fluid.base import FluidState
+from fishsim.fluid.hydronet import train as T
+from fishsim.fluid.hydronet.loss import hydronet_loss
+from fishsim.fluid.hydronet.pool import ScenePool
+from fishsim.fluid.hydronet.unet import HydroNet, HydroNetFluid
+
+
+@pytest.fixture
+def cfg(tmp_path, tiny_net, tiny_pool):
+    return T.TrainConfig(out_dir=str(tmp_path / "run"), iterations=6, batch=3, net=tiny_net, pool=tiny_pool,
+                         bf16=False, channels_last=False, compile_loss=False, log_every=1, ckpt_every=3, ckpt_minutes=1e6,
+                         val_every=3, val_scenes=2, val_steps=4, progress=False, seed=3)
+
+
+def _weights(path):
+    return torch.load(path, weights_only=False)["model"]
+
+
+@pytest.mark.parametrize("fast", [False, True])
+def test_resume_continues_exactly(cfg, tmp_path, fast):
+    """6 iterations in one go == 3 iterations, stop, resume for 3 more (weights, pool, losses);
+    also with the CPU training settings (bf16 autocast, channels_last)."""
+    cfg = replace(cfg, bf16=fast, channels_last=fast)
+    straight = T.run(cfg)
+    half = replace(cfg, out_dir=str(tmp_path / "resumed"), iterations=3)
+    T.run(half)
+    resumed = T.run(replace(half, iterations=6, resume=True))
+    assert resumed["iteration"] == straight["iteration"] == 6
+    assert resumed["loss"] == straight["loss"]
+    w1, w2 = _weights(tmp_path / "run" / "ckpt.pt"), _weights(tmp_path / "resumed" / "ckpt.pt")
+    for k in w1:
+        assert torch.equal(w1[k], w2[k]), k
+    p1 = torch.load(tmp_path / "run" / "ckpt.pt", weights_only=False)["pool"]
+    p2 = torch.load(tmp_path / "resumed" / "ckpt.pt", weights_only=False)["pool"]
+    assert torch.equal(p1["a"], p2["a"]) and p1["rng"] == p2["rng"]
+    lines = (tmp_path / "resumed" / "log.csv").read_text().splitlines()
+    assert len(lines) == 1 + 6  # header + one row per iteration, no duplicates
+
+
+def test_keyboard_interrupt_saves_and_exits(cfg, monkeypatch):
+    """Ctrl-C inside the loop: a checkpoint at the last finished iteration, clean return."""
+    real = T.train_step
+
+    def step(run, c, net):
+        if run.iteration == 2:
+            raise KeyboardInterrupt
+        return real(run, c, net)
+
+    monkeypatch.setattr(T, "train_step", step)
+    out = T.run(cfg)
+    assert out["interrupted"] and out["iteration"] == 2
+    assert torch.load(os.path.join(cfg.out_dir, "ckpt.pt"), weights_only=False)["iteration"] == 2
+
+
+def test_sigterm_saves_and_exits(cfg, tmp_path):
+    """``kill PID`` of a background run (SIGINT ignored by the shell): checkpoint and clean exit."""
+    import subprocess
+    import sys
+    import time
+
+    code = (f"import signal; signal.signal(signal.SIGINT, signal.SIG_IGN)\n"
+            f"from fishsim.fluid.hydronet.train import main\n"
+            f"main(['out_dir={tmp_path / 'bg'}', 'iterations=100000', 'batch=2', 'net.hidden=4', 'net.depth=2',"
+            f" 'pool.size=4', 'pool.H=16', 'pool.W=32', 'pool.fish_length=0.04,0.05', 'pool.obstacle_cells=2,3',"
+            f" 'val_every=1000000', 'threads=1', 'compile_loss=false'])\n")
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    log = tmp_path / "bg" / "log.csv"
+    deadline = time.time() + 60
+    while time.time() < deadline and (not log.exists() or len(log.read_text().splitlines()) < 3):
+        time.sleep(0.2)
+    proc.terminate()
+    out, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 0, out.decode()[-2000:]
+    assert b"'interrupted': True" in out
+    assert torch.load(tmp_path / "bg" / "ckpt.pt", weights_only=False)["iteration"] >= 2
+
+
+def test_best_model_loads_as_fluid_model(cfg):
+    """best.pt holds the lowest validation loss and loads into a working HydroNetFluid."""
+    out = T.run(cfg)
+    best = torch.load(os.path.join(cfg.out_dir, "best.pt"), weights_only=False)
+    assert best["val"] == out["best_val"] <= out["last_val"]
+    fluid = HydroNetFluid(T.load_hydronet(os.path.join(cfg.out_dir, "best.pt")), cfg.pool.grid)
+    _, state, boundary, params = ScenePool(cfg.pool, 2, seed=5).ask(2)
+    new = fluid.step(state, boundary, params)
+    assert torch.isfinite(new.a).all() and new.p.shape == state.p.shape
+    assert os.path.exists(os.path.join(cfg.out_dir, "log.csv")) and os.path.isdir(os.path.join(cfg.out_dir, "tb"))
+
+
+def test_training_lowers_the_loss_on_a_fixed_scene(cfg):
+    """40 Adam steps on pool rollouts lower the loss of a fixed held-out batch (train-mode BN)."""
+    torch.manual_seed(0)
+    c = replace(cfg, batch=4, lr=3e-3)
+    run, net = T.build(c, 0, 1, torch.device("cpu"))
+    _, state, boundary, params = ScenePool(c.pool, 4, seed=123).ask(4)
+    held_out = FluidState(state.a, state.p)
+
+    def loss():
+        with torch.no_grad():
+            new = FluidState(*run.model(held_out.a, held_out.p, boundary.mask, boundary.velocity, params.rho,
+                                        params.mu, c.pool.dx, params.h))
+        return hydronet_loss(held_out, new, boundary, params, c.pool.grid).objective.item()
+
+    before = loss()
+    for _ in range(40):
+        T.train_step(run, c, net)
+    assert loss() < before - 1.0  # log-loss: the residual shrinks by e^1 or more
+
+
+def test_init_from_loads_weights_only(cfg, tmp_path):
+    """init_from: a new run (other crop size) starts from trained weights, counters at zero."""
+    T.run(replace(cfg, iterations=3))
+    bigger = replace(cfg.pool, H=32, W=64)
+    c2 = replace(cfg, out_dir=str(tmp_path / "ft"), pool=bigger, iterations=0,
+                 init_from=os.path.join(cfg.out_dir, "best.pt"))
+    out = T.run(c2)
+    assert out["iteration"] == 0
+    w1, w2 = _weights(os.path.join(cfg.out_dir, "best.pt")), _weights(tmp_path / "ft" / "ckpt.pt")
+    assert all(torch.equal(w1[k], w2[k]) for k in w1)
+
+
+def test_config_from_args():
+    c = T.config_from_args(["net.hidden=8", "pool.H=32", "pool.rho=10,50", "bf16=false", "lr=0.0005"])
+    assert c.net.hidden == 8 and c.pool.H == 32 and c.pool.rho == (10.0, 50.0) and not c.bf16 and c.lr == 5e-4
+    with pytest.raises(SystemExit):
+        T.config_from_args(["nonsense=1"])
+    d = T.train_config({"batch": 4, "net": {"hidden": 8}, "pool": {"H": 32, "mu": [1.25e-4, 1e-3]}})
+    assert d.batch == 4 and d.net.hidden == 8 and d.net.depth == 4 and d.pool.mu == (1.25e-4, 1e-3)
+    with pytest.raises(ValueError):
+        T.train_config({"pool": {"nonsense": 1}})
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _ddp_worker(rank: int, world: int, port: int, cfg: T.TrainConfig) -> None:
+    os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), RANK=str(rank), WORLD_SIZE=str(world),
+                      LOCAL_RANK=str(rank))
+    torch.set_num_threads(1)
+    T.run(cfg)
+
+
+def test_ddp_gloo_two_processes(cfg, tmp_path):
+    """torch DDP on CPU (gloo), 2 processes, 3 iterations: each rank steps its own pool, the
+    averaged gradients keep the weights identical on both ranks, and they did change."""
+    import torch.multiprocessing as mp
+
+    c = replace(cfg, iterations=3, ckpt_every=3, val_every=100)
+    mp.spawn(_ddp_worker, args=(2, _free_port(), c), nprocs=2, join=True)
+    ck = torch.load(tmp_path / "run" / "ckpt.pt", weights_only=False)
+    r1 = torch.load(tmp_path / "run" / "ckpt_rank1.pt", weights_only=False)
+    assert ck["iteration"] == r1["iteration"] == 3
+    assert not torch.equal(ck["pool"]["a"], r1["pool"]["a"])  # different scenes per rank
+    names = [n for n, _ in HydroNet(c.net).named_parameters()]
+    for n in names:
+        torch.testing.assert_close(ck["model"][n], r1["model"][n], rtol=1e-6, atol=1e-7)
+    torch.manual_seed(c.seed)
+    fresh = HydroNet(c.net).state_dict()
+    assert any(not torch.equal(ck["model"][n], fresh[n]) for n in names)

@@ -1,0 +1,134 @@
+"""HydroNet network: architecture, FluidModel contract, bounds, mean removal, conditioning."""
+
+import pytest
+import torch
+
+from fishsim.fluid.base import Boundary, FluidModel, FluidParams, FluidState
+from fishsim.fluid.grid import closed_tank
+from fishsim.fluid.hydronet.unet import HydroNet, HydroNetFluid, NetConfig, UNet, network_inputs, to_canvas
+
+from .conftest import paper_params
+
+
+def _random_inputs(grid, batch=2, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    state = FluidState(1e-4 * torch.randn(batch, 1, grid.H + 1, grid.W + 1, generator=g),
+                       torch.randn(batch, 1, grid.H, grid.W, generator=g))
+    tank = closed_tank(grid, 2, 3, batch)
+    boundary = Boundary(tank.mask, 0.1 * torch.randn(batch, 2, grid.H, grid.W, generator=g) * tank.mask)
+    return state, boundary
+
+
+def test_wandel_unet2_parameter_count():
+    """Wandel's UNet2 with hidden size 20 has 1,691,322 parameters (13 inputs, 2 outputs)."""
+    assert sum(p.numel() for p in UNet(13, 2, 20, 4).parameters()) == 1_691_322
+
+
+@pytest.mark.parametrize("shape", [(16, 32), (17, 45), (100 // 4, 300 // 4)])
+def test_unet_any_size(shape):
+    """Fully convolutional: odd sizes come back at their own size."""
+    x = torch.randn(1, 13, *shape)
+    assert UNet(13, 2, 4, 4)(x).shape == (1, 2, *shape)
+
+
+def test_canvas_layout(grid):
+    """Centre fields go to the top-left H x W block of the vertex canvas; the mask is replicated."""
+    b = torch.rand(1, 1, grid.H, grid.W)
+    assert torch.equal(to_canvas(b, grid.H + 1, grid.W + 1)[..., : grid.H, : grid.W], b)
+    canvas = to_canvas(b, grid.H + 1, grid.W + 1, mode="replicate")
+    assert torch.equal(canvas[..., -1, :-1], b[..., -1, :])
+    a = torch.zeros(1, 1, grid.H + 1, grid.W + 1)
+    v = (torch.zeros(1, 1, grid.H, grid.W + 1), torch.zeros(1, 1, grid.H + 1, grid.W))
+    x = network_inputs(a, b[:, :, :, :], b, torch.zeros(1, 2, grid.H, grid.W), v, torch.zeros(1, 2))
+    assert x.shape == (1, 15, grid.H + 1, grid.W + 1)
+
+
+def test_fluid_model_contract(grid, tiny_net):
+    """HydroNetFluid is a FluidModel: rest state, shapes, dtype, inputs not mutated."""
+    fluid = HydroNetFluid(HydroNet(tiny_net), grid)
+    assert isinstance(fluid, FluidModel)
+    rest = fluid.initial_state(3)
+    assert rest.a.shape == (3, 1, grid.H + 1, grid.W + 1) and rest.p.shape == (3, 1, grid.H, grid.W)
+    assert not rest.a.any() and not rest.p.any()
+    state, boundary = _random_inputs(grid, 3)
+    copies = [t.clone() for t in (state.a, state.p, boundary.mask, boundary.velocity)]
+    new = fluid.step(state, boundary, paper_params(3))
+    assert new.a.shape == state.a.shape and new.p.shape == state.p.shape and new.a.dtype == torch.float32
+    for t, c in zip((state.a, state.p, boundary.mask, boundary.velocity), copies):
+        assert torch.equal(t, c)
+    assert not fluid.model.training
+
+
+def test_step_is_differentiable(grid, tiny_net):
+    """Gradients reach the state, the boundary velocity and the weights."""
+    fluid = HydroNetFluid(HydroNet(tiny_net), grid)
+    state, boundary = _random_inputs(grid)
+    a = state.a.clone().requires_grad_()
+    vd = boundary.velocity.clone().requires_grad_()
+    new = fluid.step(FluidState(a, state.p), Boundary(boundary.mask, vd), paper_params(2))
+    (new.a.square().sum() + new.p.square().sum()).backward()
+    assert a.grad.abs().sum() > 0 and vd.grad.abs().sum() > 0
+    assert fluid.model.unet.outc.weight.grad.abs().sum() > 0
+
+
+def test_bounded_outputs_and_mean_removal(grid, tiny_net):
+    """a, p never leave A tanh(.) - mean (|x| <= 2 A in physical units) and are mean free."""
+    model = HydroNet(tiny_net)
+    with torch.no_grad():
+        model.unet.outc.bias.fill_(1e6)
+    state, boundary = _random_inputs(grid)
+    params = paper_params(2)
+    new = HydroNetFluid(model, grid).step(state, boundary, params)
+    a_star, p_star = grid.dx**2 / params.h, 50.0 * (grid.dx / params.h) ** 2
+    assert new.a.abs().max() <= 2 * tiny_net.bound_a * a_star * (1 + 1e-5)
+    assert new.p.abs().max() <= 2 * tiny_net.bound_p * p_star * (1 + 1e-5)
+    for x, scale in ((new.a, a_star), (new.p, p_star)):
+        assert x.mean(dim=(-2, -1)).abs().max() < 1e-5 * scale
+
+
+def test_residual_update_is_identity_for_zero_output(grid, tiny_net):
+    """With a zero output layer, the step returns A tanh(a / A) - mean: a small state is kept."""
+    model = HydroNet(tiny_net)
+    with torch.no_grad():
+        model.unet.outc.weight.zero_()
+        model.unet.outc.bias.zero_()
+    state, boundary = _random_inputs(grid)
+    new = HydroNetFluid(model, grid).step(state, boundary, paper_params(2))
+    a0 = state.a - state.a.mean(dim=(-2, -1), keepdim=True)
+    torch.testing.assert_close(new.a, a0, rtol=1e-4, atol=1e-9)
+
+
+def test_conditioning_changes_the_step(grid):
+    """condition=True: 15 input channels, and (rho, mu) change the output."""
+    model = HydroNet(NetConfig(hidden=4, depth=2, condition=True)).eval()
+    assert model.unet.inc[0].in_channels == 15
+    state, boundary = _random_inputs(grid, 1)
+    fluid = HydroNetFluid(model, grid)
+    a1 = fluid.step(state, boundary, paper_params(1, 50.0, 1.25e-4)).a
+    a2 = fluid.step(state, boundary, paper_params(1, 10.0, 1e-3)).a
+    assert not torch.allclose(a1, a2)
+
+
+def test_bf16_close_to_fp32(grid, tiny_net):
+    """bfloat16 autocast of the trunk changes the step by a small fraction of its update."""
+    fluid = HydroNetFluid(HydroNet(tiny_net), grid)
+    state, boundary = _random_inputs(grid)
+    params = paper_params(2)
+    ref = fluid.step(state, boundary, params)
+    fluid.bf16 = True
+    low = fluid.step(state, boundary, params)
+    change = (ref.a - state.a).abs().max()
+    assert (low.a - ref.a).abs().max() < 0.05 * change
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_cuda_matches_cpu(grid, tiny_net):
+    model = HydroNet(tiny_net).eval()
+    state, boundary = _random_inputs(grid)
+    params = paper_params(2)
+    ref = HydroNetFluid(model, grid).step(state, boundary, params)
+    out = HydroNetFluid(model.cuda(), grid).step(
+        FluidState(state.a.cuda(), state.p.cuda()), Boundary(boundary.mask.cuda(), boundary.velocity.cuda()),
+        FluidParams(params.rho.cuda(), params.mu.cuda(), params.h))
+    torch.testing.assert_close(out.a.cpu(), ref.a, rtol=1e-3, atol=1e-8)
