@@ -163,3 +163,26 @@ def test_random_fluid_per_scene_for_conditioning(tiny_pool):
     assert params.rho.min() >= 10 and params.rho.max() <= 50 and params.rho.std() > 1
     assert params.mu.min() >= 1.25e-4 * (1 - 1e-6) and params.mu.max() <= 1e-3 * (1 + 1e-6)
     assert params.mu.max() / params.mu.min() > 1.5
+
+
+def test_boundary_velocity_follows_the_coupling_contract(tiny_pool):
+    """Training boundaries carry the body's own velocity, not b times it (``Boundary`` contract),
+    exactly as ``fishsim.coupling.solid_to_fluid`` hands them to the fluid in a simulation: a
+    translating cylinder has v_d = U in its soft edge cells too, and the pool's fish equals the
+    coupling layer on the same surface."""
+    from fishsim.coupling import CouplingConfig, solid_to_fluid
+    from fishsim.fluid.hydronet.pool import fish_boundaries, rigid_boundary
+
+    grid = tiny_pool.grid
+    body = Rigid("cylinder", (0.01, 0.01), _motion(rate=(3.0, 0.0), radius=(0.01, 0.0), phase=(0.0, 0.0)))
+    bd = rigid_boundary(body, grid.cell_centres(), 5e-6)
+    edge = (bd.mask > 0.05) & (bd.mask < 0.95)
+    assert edge.sum() > 4
+    u = body.motion.vel[0]
+    assert u > 0.01 and torch.allclose(bd.velocity[:, 0:1][edge], torch.tensor(u, dtype=torch.float32))
+    fish = Fish(0.07, 0.004, 4.0, 2 * math.pi / 0.07, 0.3, 0.0, _motion(centre=(0.06, 0.03)))
+    (pool_bd,) = fish_boundaries([fish], [0.1], [5e-7], grid, "cpu")
+    q, qdot = (torch.as_tensor(z, dtype=torch.float32)[None] for z in fish_surface(fish, 0.1))
+    layer = solid_to_fluid(q, qdot, torch.arange(q.shape[1]), grid, CouplingConfig(k_nearest=q.shape[1]))
+    torch.testing.assert_close(pool_bd.mask, layer.mask, atol=1e-5, rtol=0)
+    torch.testing.assert_close(pool_bd.velocity, layer.velocity, atol=1e-5, rtol=0)

@@ -7,7 +7,8 @@ bodies, described by plain frozen dataclasses and advanced analytically:
   smoothly inside the tank (``Motion``: each coordinate oscillates with a random, slowly varying
   rate, so accelerations are continuous and nothing bounces); positions are continuous; the
   soft mask comes from the continuous signed distance s: b = sigmoid(sign(s) s^2 / sigma), the
-  coupling's form (``fishsim.coupling.mask``) with d = s^2; v_d = (rigid velocity) b.
+  coupling's form (``fishsim.coupling.mask``) with d = s^2; v_d = the rigid velocity field, not
+  multiplied by b (the ``Boundary`` contract, exactly what the coupling hands the fluid).
 * ``Fish``: our fish mesh's surface polyline (``fishsim.mesh.make_fish_mesh``), scaled to a random
   length, bent by the travelling wave (paper App. B envelope, X = 0 at the tail)
 
@@ -315,11 +316,12 @@ def rigid_distance(body: Rigid, x: Tensor) -> Tensor:
 
 
 def rigid_boundary(body: Rigid, x: Tensor, sigma: float) -> Boundary:
-    """b [1,1,H,W] and v_d = (v + omega x (x - c)) b [1,2,H,W] of a rigid body."""
+    """b [1,1,H,W] and the body's own velocity field v_d = v + omega x (x - c) [1,2,H,W] (the
+    ``Boundary`` contract: not multiplied by b, exactly what the coupling hands the fluid)."""
     b = mask_from_distance(rigid_distance(body, x), sigma)
     (cx, cy, _), (vx, vy, om) = body.motion.pose, body.motion.vel
     u = torch.stack([vx - om * (x[..., 1] - cy), vy + om * (x[..., 0] - cx)])
-    return Boundary(mask=b[None, None], velocity=(u * b)[None])
+    return Boundary(mask=b[None, None], velocity=u[None])
 
 
 @lru_cache(maxsize=1)
@@ -375,7 +377,7 @@ def fish_boundaries(fish: list[Fish], times: list[float], sigma: list[float], gr
         qdot = torch.as_tensor(np.stack([z[1] for z in qq]), dtype=torch.float32, device=device)
         band = surface_band(q, grid, band_margin(sig, grid.dx))
         b = soft_mask(q, grid, sigma=sig, band=band)
-        v = boundary_velocity(q, qdot, b, grid, band=band)
+        v = boundary_velocity(q, qdot, b, grid, band=band, weighted=False)  # as the coupling does
         for n, k in enumerate(ids):
             out[k] = Boundary(mask=b[n : n + 1], velocity=v[n : n + 1])
     return out
