@@ -85,9 +85,9 @@ def training(iterations: int = 20) -> dict:
         for _ in range(iterations):
             T.train_step(run, cfg, net)
         dt = (time.perf_counter() - t0) / iterations
-    return {"config": f"{cfg.pool.H}x{cfg.pool.W} crop, batch {cfg.batch}, hidden {cfg.net.hidden}, "
+    return {"config": f"{cfg.pool.H}x{cfg.pool.W} crop, batch {cfg.batch_size}, hidden {cfg.net.hidden}, "
                       f"bf16 {cfg.bf16}, channels_last {cfg.channels_last}",
-            "ms_per_iteration": 1e3 * dt, "it_per_s": 1 / dt, "samples_per_s": cfg.batch / dt}
+            "ms_per_iteration": 1e3 * dt, "it_per_s": 1 / dt, "samples_per_s": cfg.batch_size / dt}
 
 
 def run() -> dict:

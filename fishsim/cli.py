@@ -24,14 +24,14 @@ OVERRIDES = typer.Argument(None, help="Config overrides, key=value (e.g. fish.ed
 SHOW = typer.Option(False, "--show-config", help="Print the resolved config as YAML and exit.")
 
 
-def describe(schema: type, prefix: str = "") -> str:
-    """Help text listing a command's config groups and keys with their defaults, one paragraph
-    per group (the groups are the sub-folders of ``fishsim/conf``)."""
+def describe(defaults, prefix: str = "") -> str:
+    """Help text listing a command's config groups and keys with their defaults (``defaults``: the
+    command's default config instance), one paragraph per group."""
     keys, groups = [], []
-    for f in dataclasses.fields(schema):
-        default = f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
+    for f in dataclasses.fields(defaults):
+        default = getattr(defaults, f.name)
         if dataclasses.is_dataclass(default):
-            groups.append(f"{prefix}{f.name}: " + describe(type(default), prefix + f.name + "."))
+            groups.append(f"{prefix}{f.name}: " + describe(default, prefix + f.name + "."))
         else:
             keys.append(f"{prefix}{f.name}={default}")
     if prefix:
@@ -74,7 +74,7 @@ def _positional(args: Optional[List[str]], keys: tuple[str, ...]) -> List[str]:
 def _command(name: str, summary: str, positional: tuple[str, ...] = ()) -> Callable:
     """Register ``fishsim <name>`` with help text generated from its structured config; bare
     arguments fill the config keys named in ``positional``."""
-    epilog = "Config (group.key=default):\n\n" + describe(ROOTS[name])
+    epilog = "Config (group.key=default):\n\n" + describe(ROOTS[name]())
 
     def decorate(run_factory: Callable[[], Callable]) -> Callable:
         def command(overrides: Optional[List[str]] = OVERRIDES, show_config: bool = SHOW) -> None:
@@ -94,9 +94,16 @@ def _mesh() -> Callable:
     return run
 
 
-@_command("simulate", "Simulate B fish swimming (fluid=numerical | none); write an HDF5 trajectory.")
+@_command("simulate", "Simulate B fish swimming (fluid=hydronet | numerical | none); write an HDF5 trajectory.")
 def _simulate() -> Callable:
     from fishsim.commands.simulate import run
+
+    return run
+
+
+@_command("train-hydronet", "Train the HydroNet fluid surrogate on randomised scenes; checkpoints, logs, resume.")
+def _train_hydronet() -> Callable:
+    from fishsim.commands.train_hydronet import run
 
     return run
 

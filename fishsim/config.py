@@ -14,11 +14,12 @@ from dataclasses import dataclass, field
 from importlib import resources
 from typing import Any, Optional
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from fishsim.coupling.layer import CouplingConfig
 from fishsim.errors import ConfigError
+from fishsim.fluid.hydronet.train import TrainConfig
 from fishsim.render.config import RenderConfig
 from fishsim.solid.controller import DEFAULT_C
 from fishsim.solid.model import PDOptions, SolidMaterial
@@ -131,12 +132,14 @@ class BatchConfig:
 class FluidConfig:
     """The fluid and its tank (PHYSICS.md section 4).
 
-    model: none (vacuum) | numerical (the reference solver).
+    model: none (vacuum) | numerical (the reference solver) | hydronet (the trained U-Net).
     rho: density, kg/m^3 (per unit area in 2D), in [10, 50]; mu: dynamic viscosity, Pa s.
     H, W, dx: tank cells (rows along y, columns along x) and cell size (m).
     wall_y, wall_x: thickness of the solid wall bands in cells (bottom/top, left/right).
     inflow: x-velocity (m/s) imposed in the left/right bands (0: closed tank).
     refinement: numerical solver only, internal grid dx / r and sub-steps h / r.
+    model_file: hydronet only, a trained model (best.pt); null: the shipped fishsim/assets/hydronet.pt.
+    bf16: hydronet only, run the U-Net trunk in bfloat16 (faster on CPUs with AMX and on GPUs).
     """
 
     model: str = "numerical"
@@ -149,9 +152,12 @@ class FluidConfig:
     wall_x: int = 5
     inflow: float = 0.0
     refinement: int = 1
+    model_file: Optional[str] = None
+    bf16: bool = False
 
     def validate(self) -> None:
-        _require(self.model in ("none", "numerical"), f"fluid.model must be none or numerical (got '{self.model}')")
+        _require(self.model in ("none", "numerical", "hydronet"),
+                 f"fluid.model must be none, numerical or hydronet (got '{self.model}')")
         _positive(**{"fluid.rho": self.rho, "fluid.mu": self.mu, "fluid.dx": self.dx})
         _require(self.H >= 16 and self.W >= 16, f"fluid grid must be at least 16 x 16 cells (got {self.H} x {self.W})")
         _require(0 <= self.wall_y < self.H // 4 and 0 <= self.wall_x < self.W // 4,
@@ -165,7 +171,7 @@ class SimulateConfig:
 
     frames: number of frames of h seconds.  origin: (x, y) in m of the fish's material origin
     (the tail tip) in the tank.  fluid_stride: store the fluid fields every k frames.
-    vtk / vtk_stride: also write ParaView frames.  flush_every: HDF5 flush period (frames).
+    vtk / vtk_stride: also write ParaView frames every vtk_stride frames (a multiple of fluid_stride).  flush_every: HDF5 flush period (frames).
     device: cpu | cuda.
     """
 
@@ -193,6 +199,9 @@ class SimulateConfig:
         _positive(h=self.h)
         _require(self.fluid_stride >= 1 and self.vtk_stride >= 1 and self.flush_every >= 1,
                  "fluid_stride, vtk_stride and flush_every must be >= 1")
+        _require(not self.vtk or self.vtk_stride % self.fluid_stride == 0,
+                 f"vtk_stride ({self.vtk_stride}) must be a multiple of fluid_stride ({self.fluid_stride}) "
+                 "so that every ParaView fluid frame was stored")
         _require(self.device in ("cpu", "cuda") or self.device.startswith("cuda:"),
                  f"device must be cpu or cuda (got '{self.device}')")
         if self.fluid.model != "none":
@@ -202,7 +211,8 @@ class SimulateConfig:
                      f"origin={list(self.origin)} puts the fish outside the {Lx:.3f} x {Ly:.3f} m tank")
 
 
-ROOTS: dict[str, type] = {"mesh": MeshCommandConfig, "simulate": SimulateConfig, "render": RenderConfig}
+ROOTS: dict[str, type] = {"mesh": MeshCommandConfig, "simulate": SimulateConfig, "render": RenderConfig,
+                         "train-hydronet": TrainConfig}
 
 
 def config_dir() -> str:
@@ -225,7 +235,7 @@ def load_config(command: str, overrides: list[str] | None = None) -> Any:
     try:
         with initialize_config_dir(config_dir=config_dir(), version_base="1.3"):
             raw = compose(config_name=command, overrides=overrides)
-    except (HydraException, OmegaConfBaseException) as err:
+    except (HydraException, OmegaConfBaseException, ValueError) as err:  # ValueError: bad group override
         raise ConfigError(_one_line(err)) from None
     return to_dataclass(command, raw)
 
@@ -243,14 +253,16 @@ def to_dataclass(command: str, raw: Any) -> Any:
     return cfg
 
 
-def _writable(node: DictConfig) -> None:
-    """Frozen dataclasses (the modules' own parameter classes) make read-only nodes; lift that so
-    overrides can be merged in (the dataclass constructors still validate the result)."""
+def _writable(node: DictConfig | ListConfig) -> None:
+    """Frozen dataclasses (the modules' own parameter classes) make read-only nodes, tuples
+    included; lift that so overrides can be merged in (the dataclass constructors still validate
+    the result)."""
     node._set_flag("readonly", False)
-    for key in node.keys():
+    keys = node.keys() if isinstance(node, DictConfig) else range(len(node))
+    for key in keys:
         child = node._get_node(key)
         child._set_flag("readonly", False)
-        if isinstance(child, DictConfig):
+        if isinstance(child, (DictConfig, ListConfig)):
             _writable(child)
 
 

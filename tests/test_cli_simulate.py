@@ -60,3 +60,49 @@ def test_simulate_bad_config_exit_code_2(tmp_path):
     result = runner.invoke(app, ["simulate", "origin=[0.7,0.1]", f"out_dir={tmp_path}"])
     assert result.exit_code == 2
     assert "outside" in result.output and "Traceback" not in result.output
+
+
+def _tiny_hydronet(path):
+    """An (untrained) HydroNet saved the way train-hydronet saves best.pt."""
+    import torch
+
+    from fishsim.fluid.hydronet import HydroNet, NetConfig
+    from fishsim.fluid.hydronet.train import atomic_save
+
+    torch.manual_seed(0)
+    net = HydroNet(NetConfig(hidden=4, depth=2))
+    atomic_save({"model": net.state_dict(), "net": {"hidden": 4, "depth": 2, "bound_a": 400.0,
+                 "bound_p": 64.0, "condition": False}, "iteration": 0, "val": 0.0}, path)
+    return path
+
+
+def test_simulate_with_a_hydronet_model_file(tmp_path):
+    model = _tiny_hydronet(tmp_path / "net.pt")
+    result = runner.invoke(app, ["simulate", *SMALL, "fluid=hydronet", f"fluid.model_file={model}", "frames=3",
+                                 "fluid_stride=1", f"out_dir={tmp_path}"])
+    assert result.exit_code == 0, result.output
+    tr = read_trajectory(tmp_path / "trajectory.h5")
+    assert tr.complete and tr["fluid/p"].shape == (3, 1, 40, 120) and np.isfinite(tr["fluid/p"]).all()
+    assert np.abs(tr["fluid/p"][-1]).max() > 0 and np.abs(tr["solid/f_ext"][-1]).max() > 0
+
+
+def test_simulate_missing_or_corrupt_hydronet_exit_code_2(tmp_path):
+    (tmp_path / "junk.pt").write_bytes(b"not a model")
+    for path, words in ((tmp_path / "absent.pt", "not found"), (tmp_path / "junk.pt", "not a readable HydroNet")):
+        result = runner.invoke(app, ["simulate", *SMALL, "fluid=hydronet", f"fluid.model_file={path}", "frames=2",
+                                     f"out_dir={tmp_path / 'out'}"])
+        assert result.exit_code == 2 and words in result.output and "fishsim train-hydronet" in result.output
+
+
+def test_simulate_vtk_writes_fish_and_fluid_series(tmp_path):
+    """vtk=true with the default strides (fluid stored at frames 4, 9, ..., fish exported at 0, 5,
+    ...): both ParaView series are non-empty, one fluid file per exported fish frame."""
+    import xml.etree.ElementTree as ET
+
+    result = runner.invoke(app, ["simulate", *SMALL, "frames=10", "vtk=true", f"out_dir={tmp_path}"])
+    assert result.exit_code == 0, result.output
+    for name, expected in (("fish", 2), ("fluid", 2)):
+        pvd = ET.parse(tmp_path / "paraview" / f"{name}.pvd").getroot()
+        files = [d.get("file") for d in pvd.iter("DataSet")]
+        assert len(files) == expected, (name, files)
+        assert all((tmp_path / "paraview" / f).exists() for f in files)

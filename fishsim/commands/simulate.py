@@ -42,7 +42,7 @@ def build_episode(cfg: SimulateConfig) -> Episode:
         raise ConfigError("device=cuda but torch sees no CUDA device (install a CUDA build of torch: see README)")
     mesh = build_fish_mesh(cfg.fish)
     solid = SolidModel(mesh, cfg.solid.material, h=cfg.h, options=cfg.solid.pd)
-    fluid = make_fluid(cfg.fluid)
+    fluid = make_fluid(cfg.fluid, device)
     walls = make_tank(cfg.fluid, device) if fluid is not None else None
     swimmer = Swimmer(solid, fluid, cfg.coupling, walls)
     params = batch_params(cfg, mesh.length, device)
@@ -175,7 +175,8 @@ def _write_vtk(path, out_dir, stride: int):
     from fishsim.render.data import load_render_data
 
     data = load_render_data(path)
-    written = write_vtk_series(data, out_dir / "paraview", frames=range(0, data.n_frames, stride))
+    # the fluid is stored after frames t with (t + 1) % fluid_stride == 0; export on that cadence
+    written = write_vtk_series(data, out_dir / "paraview", frames=range(stride - 1, data.n_frames, stride))
     return written["fish"]
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Optional
 
 import torch
@@ -15,14 +16,25 @@ def make_grid(cfg) -> Grid:
     return Grid(H=cfg.H, W=cfg.W, dx=cfg.dx)
 
 
-def make_fluid(cfg) -> Optional[FluidModel]:
-    """The ``FluidModel`` of a ``FluidConfig`` (None for ``model=none``, the vacuum)."""
+SHIPPED_HYDRONET = Path(__file__).resolve().parents[1] / "assets" / "hydronet.pt"
+
+
+def make_fluid(cfg, device=None) -> Optional[FluidModel]:
+    """The ``FluidModel`` of a ``FluidConfig`` (None for ``model=none``, the vacuum) on ``device``.
+
+    hydronet: the model in ``cfg.model_file`` or, when unset, the shipped one; a missing or
+    corrupt file raises InputFileError saying how to train one."""
     if cfg.model == "none":
         return None
     if cfg.model == "numerical":
         from fishsim.fluid.numerical import NumericalFluid
 
         return NumericalFluid(make_grid(cfg), refinement=cfg.refinement)
+    if cfg.model == "hydronet":
+        from fishsim.fluid.hydronet import HydroNetFluid, load_hydronet
+
+        model = load_hydronet(cfg.model_file or SHIPPED_HYDRONET, device=device or "cpu")
+        return HydroNetFluid(model, make_grid(cfg), bf16=cfg.bf16)
     raise ValueError(f"unknown fluid model {cfg.model!r}")
 
 

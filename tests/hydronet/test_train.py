@@ -16,7 +16,7 @@ from fishsim.fluid.hydronet.unet import HydroNet, HydroNetFluid
 
 @pytest.fixture
 def cfg(tmp_path, tiny_net, tiny_pool):
-    return T.TrainConfig(out_dir=str(tmp_path / "run"), iterations=6, batch=3, net=tiny_net, pool=tiny_pool,
+    return T.TrainConfig(out_dir=str(tmp_path / "run"), iterations=6, batch_size=3, net=tiny_net, pool=tiny_pool,
                          bf16=False, channels_last=False, compile_loss=False, log_every=1, ckpt_every=3, ckpt_minutes=1e6,
                          val_every=3, val_scenes=2, val_steps=4, progress=False, seed=3)
 
@@ -67,12 +67,12 @@ def test_sigterm_saves_and_exits(cfg, tmp_path):
     import sys
     import time
 
-    code = (f"import signal; signal.signal(signal.SIGINT, signal.SIG_IGN)\n"
-            f"from fishsim.fluid.hydronet.train import main\n"
-            f"main(['out_dir={tmp_path / 'bg'}', 'iterations=100000', 'batch=2', 'net.hidden=4', 'net.depth=2',"
-            f" 'pool.size=4', 'pool.H=16', 'pool.W=32', 'pool.fish_length=0.04,0.05', 'pool.obstacle_cells=2,3',"
-            f" 'val_every=1000000', 'threads=1', 'compile_loss=false'])\n")
-    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    code = ("import signal, sys; signal.signal(signal.SIGINT, signal.SIG_IGN)\n"
+            "from fishsim.cli import main; sys.argv[0] = 'fishsim'; main()\n")
+    args = [f"out_dir={tmp_path / 'bg'}", "iterations=100000", "batch_size=2", "net.hidden=4", "net.depth=2",
+            "pool.size=4", "pool.H=16", "pool.W=32", "pool.fish_length=[0.04,0.05]", "pool.obstacle_cells=[2,3]",
+            "val_every=1000000", "threads=1", "compile_loss=false", "progress=false"]
+    proc = subprocess.Popen([sys.executable, "-c", code, "train-hydronet", *args], stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
     log = tmp_path / "bg" / "log.csv"
     deadline = time.time() + 60
     while time.time() < deadline and (not log.exists() or len(log.read_text().splitlines()) < 3):
@@ -80,7 +80,7 @@ def test_sigterm_saves_and_exits(cfg, tmp_path):
     proc.terminate()
     out, _ = proc.communicate(timeout=60)
     assert proc.returncode == 0, out.decode()[-2000:]
-    assert b"'interrupted': True" in out
+    assert b"interrupted, checkpoint saved" in out
     assert torch.load(tmp_path / "bg" / "ckpt.pt", weights_only=False)["iteration"] >= 2
 
 
@@ -99,7 +99,7 @@ def test_best_model_loads_as_fluid_model(cfg):
 def test_training_lowers_the_loss_on_a_fixed_scene(cfg):
     """40 Adam steps on pool rollouts lower the loss of a fixed held-out batch (train-mode BN)."""
     torch.manual_seed(0)
-    c = replace(cfg, batch=4, lr=3e-3)
+    c = replace(cfg, batch_size=4, lr=3e-3)
     run, net = T.build(c, 0, 1, torch.device("cpu"))
     _, state, boundary, params = ScenePool(c.pool, 4, seed=123).ask(4)
     held_out = FluidState(state.a, state.p)
@@ -128,13 +128,20 @@ def test_init_from_loads_weights_only(cfg, tmp_path):
     assert all(torch.equal(w1[k], w2[k]) for k in w1)
 
 
-def test_config_from_args():
-    c = T.config_from_args(["net.hidden=8", "pool.H=32", "pool.rho=10,50", "bf16=false", "lr=0.0005"])
+def test_cli_config_composes_and_validates():
+    """`fishsim train-hydronet` overrides reach the TrainConfig (ranges as tuples); bad values fail."""
+    from fishsim.config import load_config
+    from fishsim.errors import ConfigError
+
+    c = T.train_config(load_config("train-hydronet", ["net.hidden=8", "pool.H=32", "pool.rho=[10,50]",
+                                                      "net.condition=true", "bf16=false", "lr=0.0005"]))
     assert c.net.hidden == 8 and c.pool.H == 32 and c.pool.rho == (10.0, 50.0) and not c.bf16 and c.lr == 5e-4
-    with pytest.raises(SystemExit):
-        T.config_from_args(["nonsense=1"])
-    d = T.train_config({"batch": 4, "net": {"hidden": 8}, "pool": {"H": 32, "mu": [1.25e-4, 1e-3]}})
-    assert d.batch == 4 and d.net.hidden == 8 and d.net.depth == 4 and d.pool.mu == (1.25e-4, 1e-3)
+    assert c.net.condition and c == T.train_config(c)
+    for bad in (["nonsense=1"], ["pool.rho=[10,50]"], ["lr=-1"], ["pool.size=4", "batch_size=8"], ["pool.mu=[1e-3,1e-4]"]):
+        with pytest.raises(ConfigError):
+            load_config("train-hydronet", bad)
+    d = T.train_config({"batch_size": 4, "net": {"hidden": 8}, "pool": {"H": 32, "mu": [1.25e-4, 1e-3]}})
+    assert d.batch_size == 4 and d.net.hidden == 8 and d.net.depth == 4 and d.pool.mu == (1.25e-4, 1e-3)
     with pytest.raises(ValueError):
         T.train_config({"pool": {"nonsense": 1}})
 

@@ -8,9 +8,10 @@ Outputs under ``out_dir``: ``ckpt.pt`` (latest: model, optimiser, pool, RNG, cou
 atomically, every ``ckpt_every`` iterations or ``ckpt_minutes``, and on Ctrl-C), ``best.pt`` (the
 model with the lowest validation loss: a fixed set of scenes rolled out from rest in eval mode),
 ``log.csv`` and TensorBoard events in ``tb/``. ``resume=True`` continues exactly where ``ckpt.pt``
-stopped. Ctrl-C or ``kill PID`` (SIGTERM) saves ``ckpt.pt`` and exits cleanly. Command line: ``python -m fishsim.fluid.hydronet key=value ...`` (keys of TrainConfig,
-dotted for groups: ``net.hidden=16 pool.H=64``). Multi-GPU/CPU: ``torchrun --nproc_per_node N -m
-fishsim.fluid.hydronet ...`` (DistributedDataParallel; each rank its own pool, ``ckpt_rank{r}.pt``).
+stopped. Ctrl-C or ``kill PID`` (SIGTERM) saves ``ckpt.pt`` and exits cleanly. Command line:
+``fishsim train-hydronet key=value ...`` (keys of TrainConfig, dotted for groups: ``net.hidden=16
+pool.H=64``). Multi-GPU/CPU: ``torchrun --nproc_per_node N -m fishsim train-hydronet ...``
+(DistributedDataParallel; each rank its own pool, ``ckpt_rank{r}.pt``).
 """
 
 from __future__ import annotations
@@ -20,7 +21,6 @@ import csv
 import math
 import os
 import signal
-import sys
 import threading
 import time
 from dataclasses import asdict, dataclass, field, fields, is_dataclass, replace
@@ -42,7 +42,7 @@ class TrainConfig:
     """Everything a training run needs (plain values; mirrors the Hydra config).
 
     net, pool: network and scene-pool settings (``pool.rho``/``pool.mu`` are the fluid ranges).
-    iterations: total optimiser steps; batch: scenes per step (per rank); lr: Adam step size.
+    iterations: total optimiser steps; batch_size: scenes per step (per rank); lr: Adam step size.
     beta, gamma: loss weights; advection: "koren" | "central" scheme of the loss's residual.
     device: "cpu" | "cuda"; threads: torch CPU threads (0: default).
     bf16: bfloat16 autocast for the U-Net trunk; channels_last: NHWC memory layout;
@@ -56,7 +56,7 @@ class TrainConfig:
 
     out_dir: str = "runs/hydronet"
     iterations: int = 200_000
-    batch: int = 16
+    batch_size: int = 16
     lr: float = 1e-3
     beta: float = 1.0
     gamma: float = 20.0
@@ -80,6 +80,32 @@ class TrainConfig:
     resume: bool = False
     init_from: str = ""
     progress: bool = True
+
+    def validate(self) -> None:
+        """Reject impossible values with one line (ConfigError) before any work starts."""
+        _check(self.iterations >= 1 and self.batch_size >= 1, "iterations and batch_size must be >= 1")
+        _check(self.lr > 0 and self.beta > 0 and self.gamma >= 0, "lr and beta must be > 0, gamma >= 0")
+        _check(self.advection in ("koren", "central"), f"advection must be koren or central, got {self.advection!r}")
+        _check(self.device in ("cpu", "cuda") or self.device.startswith("cuda:"),
+               f"device must be cpu or cuda, got {self.device!r}")
+        _check(self.net.hidden >= 1 and self.net.depth >= 1, "net.hidden and net.depth must be >= 1")
+        p = self.pool
+        _check(p.size >= self.batch_size, f"pool.size ({p.size}) must be >= batch_size ({self.batch_size})")
+        _check(p.H >= 16 and p.W >= 16, f"pool.H x pool.W must be at least 16 x 16 (got {p.H} x {p.W})")
+        _check(p.dx > 0 and p.h > 0 and p.max_speed > 0, "pool.dx, pool.h and pool.max_speed must be > 0")
+        for name in ("rho", "mu", "sigma", "fish_length", "fish_freq", "fish_amp", "fish_wavelength",
+                     "obstacle_cells", "wall"):
+            lo, hi = getattr(p, name)
+            _check(0 < lo <= hi, f"pool.{name} must be a range 0 < low <= high, got [{lo}, {hi}]")
+        _check(self.net.condition or (p.rho[0] == p.rho[1] and p.mu[0] == p.mu[1]),
+               "a fluid range (pool.rho / pool.mu low < high) needs net.condition=true")
+
+
+def _check(ok: bool, message: str) -> None:
+    if not ok:
+        from fishsim.errors import ConfigError
+
+        raise ConfigError(message)
 
 
 @dataclass
@@ -114,7 +140,7 @@ def make_loss_fn(cfg: TrainConfig):
 
 def train_step(run: Run, cfg: TrainConfig, net: nn.Module) -> LossTerms:
     """ask -> step -> loss -> Adam -> tell; returns the detached loss terms of the batch."""
-    idx, state, boundary, params = run.pool.ask(cfg.batch)
+    idx, state, boundary, params = run.pool.ask(cfg.batch_size)
     with torch.autocast(run.pool.device.type, dtype=torch.bfloat16, enabled=cfg.bf16):
         a, p = net(state.a, state.p, boundary.mask, boundary.velocity, params.rho, params.mu,
                    run.pool.grid.dx, params.h)
@@ -204,10 +230,21 @@ def save_best(model: HydroNet, run: Run, out: Path) -> None:
 
 
 def load_hydronet(path: str | Path, device="cpu") -> HydroNet:
-    """A trained HydroNet (eval mode) from best.pt or ckpt.pt; wrap it in ``HydroNetFluid``."""
-    sd = torch.load(path, map_location=device, weights_only=False)
-    model = HydroNet(NetConfig(**sd["net"])).to(device)
-    model.load_state_dict(sd["model"])
+    """A trained HydroNet (eval mode) from best.pt or ckpt.pt; wrap it in ``HydroNetFluid``.
+
+    Raises InputFileError (one line, how to fix) for a missing, unreadable or foreign file."""
+    from fishsim.errors import InputFileError
+
+    path = Path(path)
+    hint = "train one with `fishsim train-hydronet` or pass fluid.model_file=PATH to a best.pt"
+    if not path.is_file():
+        raise InputFileError(f"HydroNet model file {path} not found; {hint}")
+    try:
+        sd = torch.load(path, map_location=device, weights_only=False)
+        model = HydroNet(NetConfig(**sd["net"])).to(device)
+        model.load_state_dict(sd["model"])
+    except Exception as err:  # noqa: BLE001 - any failure here means the file is not a HydroNet
+        raise InputFileError(f"{path} is not a readable HydroNet model ({type(err).__name__}); {hint}") from None
     return model.eval()
 
 
@@ -247,7 +284,7 @@ class Logger:
         dt = time.perf_counter() - self.t0
         rate = (run.iteration - self.i0) / max(dt, 1e-9)
         row = [run.iteration, round(run.elapsed, 1), terms.objective.item(), terms.momentum.mean().item(),
-               terms.boundary.mean().item(), run.last_val, rate, rate * self.cfg.batch]
+               terms.boundary.mean().item(), run.last_val, rate, rate * self.cfg.batch_size]
         self.csv.writerow(row)
         self.csv_file.flush()
         for name, value in zip(self.COLUMNS[2:], row[2:]):
@@ -291,7 +328,7 @@ def build(cfg: TrainConfig, rank: int, world: int, device: torch.device) -> tupl
     if cfg.channels_last:
         model = model.to(memory_format=torch.channels_last)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
-    pool = ScenePool(cfg.pool, cfg.batch, seed=cfg.seed * 1000 + rank, device=device)
+    pool = ScenePool(cfg.pool, cfg.batch_size, seed=cfg.seed * 1000 + rank, device=device)
     net: nn.Module = model
     if world > 1:
         net = nn.parallel.DistributedDataParallel(model, device_ids=[device.index] if device.type == "cuda" else None)
@@ -390,30 +427,10 @@ def run(cfg: TrainConfig | dict) -> dict:
     rate = (run_.iteration - start) / max(time.perf_counter() - t0, 1e-9)
     return {"iteration": run_.iteration, "interrupted": interrupted, "best_val": run_.best_val,
             "last_val": run_.last_val, "loss": terms.objective.item() if terms is not None else math.nan,
-            "it_per_s": rate, "samples_per_s": rate * cfg.batch * world, "out_dir": str(out), "rank": rank}
+            "it_per_s": rate, "samples_per_s": rate * cfg.batch_size * world, "out_dir": str(out), "rank": rank}
 
 
 # ------------------------------------------------------------------------ command line
-
-
-def _set(obj, key: str, text: str):
-    """A copy of dataclass ``obj`` with dotted ``key`` set from ``text`` (type from the field)."""
-    head, _, rest = key.partition(".")
-    names = {f.name: f for f in fields(obj)}
-    if head not in names:
-        raise SystemExit(f"unknown config key {key!r}; known: {sorted(names)}")
-    current = getattr(obj, head)
-    if rest:
-        return replace(obj, **{head: _set(current, rest, text)})
-    if isinstance(current, bool):
-        value = text.lower() in ("1", "true", "yes", "on")
-    elif isinstance(current, tuple):
-        value = tuple(type(current[0])(v) for v in text.strip("()[]").split(","))
-    elif is_dataclass(current):
-        raise SystemExit(f"{key!r} is a group; set its fields, e.g. {key}.{fields(current)[0].name}=...")
-    else:
-        value = type(current)(text)
-    return replace(obj, **{head: value})
 
 
 def _from_dict(cls, d: dict):
@@ -431,24 +448,6 @@ def _from_dict(cls, d: dict):
 
 
 def train_config(d: dict | TrainConfig) -> TrainConfig:
-    """A TrainConfig from a plain dict (e.g. ``OmegaConf.to_container`` of the Hydra config)."""
-    return d if isinstance(d, TrainConfig) else _from_dict(TrainConfig, d)
-
-
-def config_from_args(args: list[str]) -> TrainConfig:
-    """TrainConfig from ``key=value`` arguments, e.g. ``net.hidden=16 pool.H=64 resume=true``."""
-    cfg = TrainConfig()
-    for arg in args:
-        key, sep, text = arg.partition("=")
-        if not sep:
-            raise SystemExit(f"expected key=value, got {arg!r}")
-        cfg = _set(cfg, key, text)
-    return cfg
-
-
-def main(argv: list[str] | None = None) -> dict:
-    """``python -m fishsim.fluid.hydronet key=value ...`` (also under torchrun)."""
-    summary = run(config_from_args(sys.argv[1:] if argv is None else argv))
-    if summary["rank"] == 0:
-        print(summary, flush=True)
-    return summary
+    """A TrainConfig from a plain dict (e.g. ``OmegaConf.to_container`` of the Hydra config) or
+    from a TrainConfig whose ranges came back from OmegaConf as lists (made tuples again)."""
+    return _from_dict(TrainConfig, asdict(d) if isinstance(d, TrainConfig) else d)
