@@ -108,6 +108,13 @@ def _train_hydronet() -> Callable:
     return run
 
 
+@_command("validate", "Compare against the numerical reference (suite=hydronet: HydroNet on held-out scenes).")
+def _validate() -> Callable:
+    from fishsim.commands.validate import run
+
+    return run
+
+
 @_command("render", "Render a trajectory (or a folder of them): PNG frames, MP4, comparisons, ParaView.",
           positional=("path", "compare"))
 def _render() -> Callable:

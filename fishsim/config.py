@@ -20,6 +20,7 @@ from omegaconf.errors import OmegaConfBaseException
 from fishsim.coupling.layer import CouplingConfig
 from fishsim.errors import ConfigError
 from fishsim.fluid.hydronet.train import TrainConfig
+from fishsim.commands.validate import ValidateConfig
 from fishsim.render.config import RenderConfig
 from fishsim.solid.controller import DEFAULT_C
 from fishsim.solid.model import PDOptions, SolidMaterial
@@ -212,7 +213,7 @@ class SimulateConfig:
 
 
 ROOTS: dict[str, type] = {"mesh": MeshCommandConfig, "simulate": SimulateConfig, "render": RenderConfig,
-                         "train-hydronet": TrainConfig}
+                         "train-hydronet": TrainConfig, "validate": ValidateConfig}
 
 
 def config_dir() -> str:

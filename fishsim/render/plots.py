@@ -78,3 +78,26 @@ def plot_validation(frequencies: Sequence[float], values: Mapping[str, Sequence[
     ax.grid(alpha=0.3)
     ax.legend()
     return save_png_svg(fig, path)
+
+
+def plot_fluid_comparison(final: Mapping, path: str | Path, labels: Sequence[str] = ("HydroNet", "numerical"),
+                          field: str = "vorticity") -> list[Path]:
+    """One row per scene: ``field`` of the two models side by side on shared colour limits
+    (99th percentile of |field| over the fluid of the reference), the body in grey.
+
+    final: ``fishsim.fluid.hydronet.evaluate.Evaluation.final`` (names, mask [B,H,W], net/ref
+    fields [B,H,W] or [B,H+1,W+1])."""
+    names, mask = final["names"], final["mask"]
+    fig = Figure(figsize=(10, 1.9 * len(names)), layout="constrained")
+    FigureCanvasAgg(fig)
+    for n, name in enumerate(names):
+        ref = final["ref"][field][n]
+        lim = float(np.percentile(np.abs(ref[: mask.shape[1], : mask.shape[2]][mask[n] < 0.5]), 99)) or 1.0
+        for col, (key, label) in enumerate(zip(("net", "ref"), labels)):
+            ax = fig.add_subplot(len(names), 2, 2 * n + col + 1)
+            im = ax.imshow(final[key][field][n], origin="lower", cmap="RdBu_r", vmin=-lim, vmax=lim)
+            ax.imshow(np.ma.masked_less(mask[n], 0.5), origin="lower", cmap="Greys", vmin=0, vmax=1.5, alpha=0.8)
+            ax.set_title(f"{name}: {label}", fontsize=8)
+            ax.set_xticks([]), ax.set_yticks([])
+        fig.colorbar(im, ax=ax, shrink=0.8, label=field)
+    return save_png_svg(fig, path)

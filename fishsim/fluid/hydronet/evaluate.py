@@ -1,0 +1,198 @@
+"""HydroNet against the numerical solver on held-out scenes (issue: "evaluation").
+
+Scenes on the paper's tank (100 x 300 cells, dx = 2.5 mm, h = 0.01 s, closed, walls 3/5 cells),
+none of them drawn by the training pool:
+
+* ``cylinder_U``: a disc of radius ``radius`` (default 1 cm = 8 cells across) towed along x at
+  U m/s from x = 0.1 m, started impulsively;
+* ``fish_f``: a 0.2 m fish at the tank centre beating at f Hz with the pool's prescribed
+  kinematics (carangiform envelope, one wavelength per body, tail amplitude ``fish_amp`` L).
+
+Protocol, per scene (all batched): the numerical solver runs ``warmup`` steps from rest; from that
+common state S_0
+
+* one step of each model -> relative errors of v and of the mean-free p on fluid cells;
+* ``steps`` steps of each model (each on its own rollout) -> the same errors at the end, the mean
+  IMEX residual L_p of each model's own steps (grid units, ``loss.momentum_loss``), max |div v|,
+  and the IBM pressure force on the body (coupling defaults) every step: mean drag/thrust.
+
+Relative errors: e_v = |v_net - v_num| / |v_num| over faces weighted by the fluid face mask
+(1 - b); e_p likewise over cells weighted by 1 - b, both pressures made mean free over the fluid.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from fishsim.coupling.ibm import ibm_force
+from fishsim.coupling.mask import SIGMA
+from fishsim.fluid.base import Boundary, FluidModel, FluidParams, FluidState, Grid
+from fishsim.fluid.grid import closed_tank, curl, divergence, union, vorticity
+from fishsim.fluid.hydronet.loss import momentum_loss
+from fishsim.fluid.hydronet.pool import Fish, Motion, fish_boundaries, fish_surface, mask_from_distance
+from fishsim.fluid.residual import fluid_face_masks
+
+
+@dataclass(frozen=True)
+class EvalConfig:
+    """Held-out scenes and protocol (SI units; see the module docstring)."""
+
+    speeds: list[float] = field(default_factory=lambda: [0.1, 0.2, 0.3])
+    frequencies: list[float] = field(default_factory=lambda: [3.0, 5.0, 7.0])
+    radius: float = 0.01
+    fish_amp: float = 0.06
+    warmup: int = 50
+    steps: int = 100
+    rho: float = 50.0
+    mu: float = 1.25e-4
+    h: float = 0.01
+    H: int = 100
+    W: int = 300
+    dx: float = 2.5e-3
+    wall_y: int = 3
+    wall_x: int = 5
+
+
+class Scenes:
+    """The held-out scenes' boundaries and body surfaces at step k (time k h)."""
+
+    def __init__(self, cfg: EvalConfig, device=None):
+        self.cfg, self.grid, self.device = cfg, Grid(cfg.H, cfg.W, cfg.dx), device
+        self.names = [f"cylinder_{u:g}" for u in cfg.speeds] + [f"fish_{f:g}Hz" for f in cfg.frequencies]
+        still = Motion((cfg.W * cfg.dx / 2, cfg.H * cfg.dx / 2), (0.0, 0.0), (0.0, 0.0), (0.0, 0.0), (0.0, 0.0),
+                       0.0, 0.0, 0.0, 0.0, 0.0, 0.0, (0.1, 0.03))
+        self.fish = [Fish(0.2, cfg.fish_amp * 0.2, f, 2 * math.pi / 0.2, 0.0, 0.2, still) for f in cfg.frequencies]
+        self.tank = closed_tank(self.grid, cfg.wall_y, cfg.wall_x, 1, device)
+        n = 64
+        th = torch.arange(n, dtype=torch.float32, device=device) * (2 * math.pi / n)
+        self.circle = cfg.radius * torch.stack([torch.cos(th), torch.sin(th)], -1)  # ccw [n, 2]
+
+    def centre(self, u: float, k: int) -> tuple[float, float]:
+        return 0.1 + u * k * self.cfg.h, self.cfg.H * self.cfg.dx / 2
+
+    def boundary(self, k: int) -> Boundary:
+        """b, v_d [B, ., H, W] of every scene at step k (walls included)."""
+        x = self.grid.cell_centres(device=self.device)
+        parts = []
+        for u in self.cfg.speeds:
+            cx, cy = self.centre(u, k)
+            s = self.cfg.radius - torch.sqrt((x[..., 0] - cx) ** 2 + (x[..., 1] - cy) ** 2)
+            b = mask_from_distance(s, SIGMA)[None, None]
+            v = torch.zeros(1, 2, self.grid.H, self.grid.W, device=self.device)
+            v[:, 0] = u
+            parts.append(Boundary(b, v))
+        t = k * self.cfg.h
+        parts += fish_boundaries(self.fish, [t] * len(self.fish), [SIGMA] * len(self.fish), self.grid, self.device)
+        parts = [union(self.tank, p) for p in parts]
+        return Boundary(torch.cat([p.mask for p in parts]), torch.cat([p.velocity for p in parts]))
+
+    def surfaces(self, k: int) -> list[Tensor]:
+        """Each body's ccw surface polyline [1, S, 2] at step k."""
+        out = [(self.circle + torch.tensor(self.centre(u, k), device=self.device))[None] for u in self.cfg.speeds]
+        t = k * self.cfg.h
+        out += [torch.as_tensor(fish_surface(f, t)[0], dtype=torch.float32, device=self.device)[None]
+                for f in self.fish]
+        return out
+
+
+def relative_errors(net: FluidState, ref: FluidState, mask: Tensor, dx: float) -> tuple[Tensor, Tensor]:
+    """(e_v, e_p) [B]: fluid-weighted relative L2 errors of v and of the mean-free p."""
+    wv = fluid_face_masks(mask)
+    vn, vr = curl(net.a, dx), curl(ref.a, dx)
+    num = sum((w * (a - b) ** 2).flatten(1).sum(1) for a, b, w in zip(vn, vr, wv))
+    den = sum((w * b**2).flatten(1).sum(1) for b, w in zip(vr, wv))
+    wp = 1 - mask
+    def free(p):
+        return p - (wp * p).flatten(1).sum(1).view(-1, 1, 1, 1) / wp.flatten(1).sum(1).view(-1, 1, 1, 1)
+    pn, pr = free(net.p), free(ref.p)
+    e_p = ((wp * (pn - pr) ** 2).flatten(1).sum(1) / (wp * pr**2).flatten(1).sum(1)).sqrt()
+    return (num / den).sqrt(), e_p
+
+
+def body_forces(scenes: Scenes, state: FluidState, boundary: Boundary, k: int) -> Tensor:
+    """Total IBM pressure force on each body [B, 2] (N per unit depth; coupling defaults)."""
+    out = []
+    for n, qs in enumerate(scenes.surfaces(k)):
+        f = ibm_force(qs, state.p[n : n + 1], boundary.mask[n : n + 1], scenes.grid)
+        out.append(f.sum(1))
+    return torch.cat(out)
+
+
+@dataclass
+class Evaluation:
+    """metrics: {scene: {metric: value}}; final: the last rollout states' pressure and vorticity
+    [B, H, W] of "net" and "ref" and the mask, for pictures."""
+
+    metrics: dict
+    final: dict
+
+
+@torch.no_grad()
+def evaluate(net: FluidModel, reference: FluidModel, cfg: EvalConfig = EvalConfig(), device=None,
+             progress=None) -> Evaluation:
+    """Every metric of the module docstring, per scene, and the final fields.
+
+    ``progress``: optional callable(step_done, steps_total) for a progress bar."""
+    scenes = Scenes(cfg, device)
+    B, grid = len(scenes.names), scenes.grid
+    params = FluidParams(torch.full((B,), cfg.rho, device=device), torch.full((B,), cfg.mu, device=device), cfg.h)
+    total, done = cfg.warmup + 1 + 2 * cfg.steps, 0
+    s0 = reference.initial_state(B, device=device)
+    for k in range(cfg.warmup):
+        s0 = reference.step(s0, scenes.boundary(k + 1), params)
+        done += 1
+        if progress:
+            progress(done, total)
+    bd = scenes.boundary(cfg.warmup + 1)
+    one_v, one_p = relative_errors(net.step(s0, bd, params), reference.step(s0, bd, params), bd.mask, grid.dx)
+    runs = {}
+    for name, model in (("net", net), ("ref", reference)):
+        s, forces, residual, div = s0, [], [], []
+        for k in range(cfg.warmup + 1, cfg.warmup + 1 + cfg.steps):
+            bd = scenes.boundary(k)
+            new = model.step(s, bd, params)
+            forces.append(body_forces(scenes, new, bd, k))
+            residual.append(momentum_loss(s, new, bd, params, grid))
+            div.append(divergence(curl(new.a, grid.dx), grid.dx).abs().flatten(1).amax(1))
+            s = new
+            done += 1
+            if progress:
+                progress(done, total)
+        runs[name] = {"state": s, "force": torch.stack(forces).mean(0), "residual": torch.stack(residual).mean(0),
+                      "div": torch.stack(div).amax(0)}
+    last = scenes.boundary(cfg.warmup + cfg.steps)
+    roll_v, roll_p = relative_errors(runs["net"]["state"], runs["ref"]["state"], last.mask, grid.dx)
+    out = {}
+    for n, name in enumerate(scenes.names):
+        fn, fr = runs["net"]["force"][n], runs["ref"]["force"][n]
+        out[name] = {
+            "one_step_error_v": one_v[n].item(), "one_step_error_p": one_p[n].item(),
+            f"rollout{cfg.steps}_error_v": roll_v[n].item(), f"rollout{cfg.steps}_error_p": roll_p[n].item(),
+            "residual_Lp_net": runs["net"]["residual"][n].item(), "residual_Lp_ref": runs["ref"]["residual"][n].item(),
+            "max_div_net": runs["net"]["div"][n].item(), "max_div_ref": runs["ref"]["div"][n].item(),
+            "force_x_net": fn[0].item(), "force_x_ref": fr[0].item(),
+            "force_y_net": fn[1].item(), "force_y_ref": fr[1].item(),
+        }
+        if name.startswith("cylinder"):
+            out[name]["drag_ratio"] = fn[0].item() / fr[0].item()
+    final = {"mask": last.mask[:, 0].cpu().numpy(), "names": scenes.names}
+    for name in ("net", "ref"):
+        st = runs[name]["state"]
+        final[name] = {"p": st.p[:, 0].cpu().numpy(),
+                       "vorticity": vorticity(curl(st.a, grid.dx), grid.dx)[:, 0].cpu().numpy()}
+    return Evaluation(out, final)
+
+
+def summarise(results: dict) -> dict:
+    """Means over the scenes of each error and the worst drag mismatch (for metadata and notes)."""
+    keys = [k for k in next(iter(results.values())) if "error" in k]
+    summary = {f"mean_{k}": float(np.mean([r[k] for r in results.values()])) for k in keys}
+    ratios = [r["drag_ratio"] for r in results.values() if "drag_ratio" in r]
+    if ratios:
+        summary["worst_drag_error"] = float(max(abs(x - 1) for x in ratios))
+    return summary

@@ -1,0 +1,62 @@
+"""HydroNet evaluation against the numerical solver (fishsim validate suite=hydronet)."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from fishsim.cli import app
+from fishsim.fluid.base import Grid
+from fishsim.fluid.hydronet.evaluate import EvalConfig, Scenes, evaluate, summarise
+from fishsim.fluid.numerical import NumericalFluid
+
+SMALL = EvalConfig(speeds=[0.2], frequencies=[5.0], warmup=3, steps=3, H=40, W=120, dx=5e-3, wall_y=2, wall_x=3)
+SMALL_ARGS = ["scenes.speeds=[0.2]", "scenes.frequencies=[5]", "scenes.warmup=3", "scenes.steps=3", "scenes.H=40",
+              "scenes.W=120", "scenes.dx=5e-3", "scenes.wall_y=2", "scenes.wall_x=3"]
+
+
+def test_reference_against_itself_has_zero_error_and_equal_forces():
+    """The metrics compare matching states: the numerical solver judged against itself scores 0."""
+    grid = Grid(SMALL.H, SMALL.W, SMALL.dx)
+    out = evaluate(NumericalFluid(grid), NumericalFluid(grid), SMALL)
+    for m in out.metrics.values():
+        for key, value in m.items():
+            if "error" in key:
+                assert value == pytest.approx(0.0, abs=1e-6), key
+        assert m["force_x_net"] == pytest.approx(m["force_x_ref"])
+    cyl = out.metrics["cylinder_0.2"]
+    assert cyl["drag_ratio"] == pytest.approx(1.0) and cyl["force_x_ref"] < 0  # drag opposes the tow
+    assert summarise(out.metrics)["worst_drag_error"] == pytest.approx(0.0, abs=1e-6)
+
+
+def test_scenes_move_as_prescribed():
+    """The cylinder advances U h per step; the fish stays centred and beats (surface moves)."""
+    sc = Scenes(SMALL)
+    c0, c1 = sc.surfaces(0)[0].mean(1), sc.surfaces(10)[0].mean(1)
+    torch.testing.assert_close(c1 - c0, torch.tensor([[0.2 * 10 * SMALL.h, 0.0]]), atol=1e-6, rtol=0)
+    f0, f1 = sc.surfaces(40)[1], sc.surfaces(45)[1]
+    assert abs(f0[..., 0].mean().item() - SMALL.W * SMALL.dx / 2) < 0.01
+    assert (f1 - f0).abs().max() > 1e-3
+    bd = sc.boundary(10)
+    assert bd.mask.shape == (2, 1, SMALL.H, SMALL.W) and math.isclose(bd.mask.max().item(), 1.0, abs_tol=1e-6)
+
+
+def test_validate_command_writes_metrics_and_picture(tmp_path):
+    from tests.test_cli_simulate import _tiny_hydronet
+
+    model = _tiny_hydronet(tmp_path / "net.pt")
+    result = CliRunner().invoke(app, ["validate", f"model_file={model}", *SMALL_ARGS, f"out_dir={tmp_path}"])
+    assert result.exit_code == 0, result.output
+    data = json.loads((tmp_path / "metrics.json").read_text())
+    assert set(data["metrics"]) == {"cylinder_0.2", "fish_5Hz"}
+    values = [v for m in data["metrics"].values() for v in m.values()]
+    assert np.isfinite(values).all() and data["summary"]["mean_one_step_error_v"] > 0
+    assert (tmp_path / "comparison.png").stat().st_size > 10_000
+
+
+def test_validate_missing_model_exit_code_2(tmp_path):
+    result = CliRunner().invoke(app, ["validate", f"model_file={tmp_path / 'none.pt'}", f"out_dir={tmp_path}"])
+    assert result.exit_code == 2 and "fishsim train-hydronet" in result.output
