@@ -65,9 +65,9 @@ def test_show_config_prints_yaml():
 def test_only_built_commands_are_listed():
     result = runner.invoke(app, ["--help"])
     assert "mesh" in result.output
-    assert "train-hydronet" in result.output
-    for missing in ("optimize", "validate"):
-        assert missing not in result.output
+    for built in ("mesh", "simulate", "render", "train-hydronet", "validate"):
+        assert built in result.output
+    assert "optimize" not in result.output
 
 
 def test_shipped_yaml_defaults_equal_the_code_defaults():
@@ -79,3 +79,6 @@ def test_shipped_yaml_defaults_equal_the_code_defaults():
     assert load_config("simulate") == SimulateConfig()
     assert load_config("mesh") == MeshCommandConfig()
     assert train_config(load_config("train-hydronet")) == TrainConfig()
+    from fishsim.commands.validate import ValidateConfig
+
+    assert load_config("validate") == ValidateConfig()
