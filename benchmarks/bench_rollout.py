@@ -17,7 +17,7 @@ from fishsim.config import load_config
 from fishsim.rollout import SwimParams, rollout
 
 FRAMES = int(os.environ.get("FISHSIM_BENCH_FRAMES", "300"))
-FLUIDS = ["numerical"]
+FLUIDS = ["hydronet", "numerical"]
 
 
 def _reset_peak() -> None:
@@ -70,7 +70,9 @@ def episode_timing(fluid: str, batch: int, frames: int) -> dict:
     t0 = time.perf_counter()
     metrics["head_x"][-1].sum().backward()
     backward = time.perf_counter() - t0
+    tail = metrics["tail_y"][-20:, 0].detach()  # the last 0.2 s of fish 0
     return {"frames": frames, "batch": batch, "warmup_s": warmup, "forward_s": forward,
+            "tail_peak_to_peak_m": float(tail.max() - tail.min()),
             "forward_solid_s": split["solid"], "forward_fluid_s": split["fluid"],
             "forward_coupling_s": split["coupling"], "backward_s": backward,
             "forward_per_fish_s": forward / batch, "backward_per_fish_s": backward / batch,

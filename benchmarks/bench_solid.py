@@ -1,5 +1,6 @@
 """Solid (projective dynamics) timings on the default fish: forward / backward ms per step at
-B = 1 and B = 16, PD iterations per step. `run() -> dict` for the `make bench` driver;
+B = 1 and B = 16, PD iterations per step, mesh size and minimum angle, and the tail excursion the
+default controller amplitude was calibrated to (5 Hz, vacuum). `run() -> dict` for the `make bench` driver;
 `python benchmarks/bench_solid.py` prints the dict as JSON.
 
 Scenario: the default controller in vacuum (5 Hz; B = 16 spreads 3-7 Hz over the batch), timed
@@ -15,7 +16,7 @@ import time
 import numpy as np
 import torch
 
-from fishsim.mesh import make_fish_mesh
+from fishsim.mesh import make_fish_mesh, mesh_quality
 from fishsim.solid import SolidModel, pd_step, rest_state
 from fishsim.solid.controller import WaveController
 from fishsim.solid.model import SolverStats
@@ -64,6 +65,21 @@ def _time_backward(model, ctrl, q, qdot, start: int, steps: int) -> tuple[float,
     return 1e3 * elapsed / steps, model.stats.backward_iterations_total / steps
 
 
+def tail_excursion(model: SolidModel, frequency: float = 5.0, t_end: float = 1.2, window: float = 0.2) -> float:
+    """The calibration check of controller.DEFAULT_C: peak-to-peak lateral excursion (m) of the
+    tail tip (X = 0) over the last ``window`` s of a ``t_end`` s stroke in vacuum."""
+    ctrl = WaveController.default(model.mesh.length, 1, frequency)
+    q, qdot = rest_state(model, 1)
+    tail, ys = int(np.argmin(model.mesh.points[:, 0])), []
+    n = round(t_end / model.h)
+    with torch.no_grad():
+        for k in range(n):
+            q, qdot = pd_step(model, q, qdot, ctrl.contraction(model, k * model.h))
+            if (k + 1) * model.h > t_end - window:
+                ys.append(float(q[0, tail, 1]))
+    return max(ys) - min(ys)
+
+
 def run(steps: int = 20, warmup: int = 40, repeats: int = 3) -> dict:
     """Benchmark dict: mesh size, ms/step forward and backward at B = 1 and 16 (best of
     `repeats`, the machine is shared), iterations per step."""
@@ -71,7 +87,9 @@ def run(steps: int = 20, warmup: int = 40, repeats: int = 3) -> dict:
     mesh = make_fish_mesh()
     model = SolidModel(mesh)
     out = {"nodes": model.n_nodes, "elements": mesh.n_elements, "actuated": model.n_muscles,
-           "atol_N": model.options.atol, "backward_rtol": model.options.backward_rtol}
+           "min_angle_deg": round(mesh_quality(mesh)["min_angle"], 2),
+           "atol_N": model.options.atol, "backward_rtol": model.options.backward_rtol,
+           "tail_peak_to_peak_5Hz_vacuum_m": round(tail_excursion(model), 5)}
     for B in (1, 16):
         ctrl = _controller(B, mesh.length)
         q, qdot = _warm_state(model, ctrl, warmup)

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import torch
 
-SUITES = ["bench_solid", "bench_fluid", "bench_coupling", "bench_hydronet", "bench_rollout", "bench_render"]
+SUITES = ["bench_solid", "bench_fluid", "bench_hydronet", "bench_rollout", "bench_render"]
 HERE = Path(__file__).parent
 
 
@@ -53,10 +53,7 @@ def _flatten(d: dict, prefix: str = ""):
 def main(names: list[str]) -> None:
     results = {"machine": machine(), "suites": {}}
     for name in names or SUITES:
-        try:
-            module = importlib.import_module(f"benchmarks.{name}")
-        except ModuleNotFoundError:
-            continue
+        module = importlib.import_module(f"benchmarks.{name}")
         print(f"== {name}", flush=True)
         t0 = time.perf_counter()
         results["suites"][name] = module.run()
