@@ -106,3 +106,29 @@ def test_simulate_vtk_writes_fish_and_fluid_series(tmp_path):
         files = [d.get("file") for d in pvd.iter("DataSet")]
         assert len(files) == expected, (name, files)
         assert all((tmp_path / "paraview" / f).exists() for f in files)
+
+
+def test_render_a_real_simulation(tmp_path):
+    """`fishsim render` on `fishsim simulate` output: an MP4 with one frame per frame, and the
+    fish drawn along its surface polyline (pixels under the outline nodes) where the trajectory
+    says it is in the last frame."""
+    import imageio.v2 as imageio
+
+    from fishsim.render.config import RenderConfig
+    from fishsim.render.data import load_render_data
+    from fishsim.render.scene import FrameFigure
+    from tests.render.test_scene import _is_fish, _pixels
+
+    assert runner.invoke(app, ["simulate", *SMALL, "frames=8", f"out_dir={tmp_path}"]).exit_code == 0
+    result = runner.invoke(app, ["render", str(tmp_path / "trajectory.h5"), f"out_dir={tmp_path / 'r'}"])
+    assert result.exit_code == 0, result.output
+    assert imageio.get_reader(next((tmp_path / "r").glob("*.mp4"))).count_frames() == 8
+    data = load_render_data(tmp_path / "trajectory.h5")
+    fig = FrameFigure([data], RenderConfig(path=str(tmp_path / "trajectory.h5"), width=1920, arrows=False))
+    fig.update(7)
+    q, rgb = data.q[7], fig.rgb()
+    centroid = q[data.triangles].mean(1)                    # each outline node's adjacent elements
+    inward = np.stack([centroid[(data.triangles == k).any(1)].mean(0) for k in data.surface]) - q[data.surface]
+    just_in, just_out = q[data.surface] + 0.6 * inward, q[data.surface] - 1.5 * inward
+    assert _is_fish(_pixels(fig, rgb, just_in)).mean() > 0.9
+    assert _is_fish(_pixels(fig, rgb, just_out)).mean() < 0.2
