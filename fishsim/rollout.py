@@ -136,12 +136,14 @@ class Swimmer:
             boundary = self.boundary(state)
             t0 = clock.add("coupling", t0, dev)
             fluid = self.fluid.step(state.fluid, boundary, params.fluid)
+            require_finite(fluid_vector_potential_a=fluid.a, fluid_pressure_p=fluid.p)
             t0 = clock.add("fluid", t0, dev)
             f_ext = fluid_to_solid(state.q, fluid.p, boundary, self.surface, self.fluid.grid,
                                    self.coupling, step=t + 1)
             t0 = clock.add("coupling", t0, dev)
         contraction = params.controller.contraction(self.solid, (t + 1) * self.h)
         q, qdot = pd_step(self.solid, state.q, state.qdot, contraction, f_ext, params.E)
+        require_finite(solid_positions_q=q, solid_velocities_qdot=qdot)
         clock.add("solid", t0, dev)
         return SwimState(q, qdot, fluid), FrameOutput(f_ext, contraction, boundary)
 
@@ -176,16 +178,14 @@ def frame_metrics(swimmer: Swimmer, state: SwimState, out: FrameOutput) -> dict[
     return dict(zip(METRICS, values))
 
 
-def check_finite(state: SwimState, t: int) -> None:
-    """Raise SimulationBlowUp naming the frame and the quantity if anything went non-finite."""
-    checks = {"solid positions q": state.q, "solid velocities qdot": state.qdot}
-    if state.fluid is not None:
-        checks.update({"fluid vector potential a": state.fluid.a, "fluid pressure p": state.fluid.p})
-    for name, x in checks.items():
+def require_finite(**fields: Tensor) -> None:
+    """Raise SimulationBlowUp naming the first non-finite quantity (keyword names use _ for
+    spaces: fluid_pressure_p -> "fluid pressure p"); the rollout adds the frame number."""
+    for name, x in fields.items():
         if not bool(torch.isfinite(x.detach()).all()):  # detached: isfinite would save x for autograd
             raise SimulationBlowUp(
-                f"simulation blew up at frame {t + 1}: non-finite {name} (try a smaller controller "
-                "amplitude, a longer coupling.n_burn_in, or fluid=numerical to check the surrogate)")
+                f"non-finite {name.replace('_', ' ')} (try a smaller controller amplitude, a longer "
+                "coupling.n_burn_in, or fluid=numerical to check the surrogate)")
 
 
 # ------------------------------------------------------------------------------------------------
@@ -222,10 +222,12 @@ def rollout(swimmer: Swimmer, state: SwimState, params: SwimParams, n_frames: in
     def run_frames(t0: int, count: int, *tensors: Tensor):
         s, rows = _unflatten(tensors), []
         for t in range(t0, t0 + count):
-            s, out = swimmer.frame(s, params, t)
+            try:
+                s, out = swimmer.frame(s, params, t)
+            except SimulationBlowUp as err:
+                raise SimulationBlowUp(f"simulation blew up at frame {t + 1}: {err}") from None
             m = frame_metrics(swimmer, s, out)
             if t > recorded[0]:
-                check_finite(s, t)
                 if on_frame is not None:
                     on_frame(t, s, out, m)
                 recorded[0] = t

@@ -60,6 +60,8 @@ def test_simulate_bad_config_exit_code_2(tmp_path):
     result = runner.invoke(app, ["simulate", "origin=[0.7,0.1]", f"out_dir={tmp_path}"])
     assert result.exit_code == 2
     assert "outside" in result.output and "Traceback" not in result.output
+    result = runner.invoke(app, ["simulate", *SMALL, "controller.amplitude=1000", f"out_dir={tmp_path}"])
+    assert result.exit_code == 2 and "(a muscle would vanish); use amplitude <" in result.output
 
 
 def _tiny_hydronet(path):
@@ -132,3 +134,28 @@ def test_render_a_real_simulation(tmp_path):
     just_in, just_out = q[data.surface] + 0.6 * inward, q[data.surface] - 1.5 * inward
     assert _is_fish(_pixels(fig, rgb, just_in)).mean() > 0.9
     assert _is_fish(_pixels(fig, rgb, just_out)).mean() < 0.2
+
+
+def test_simulate_blow_up_exit_code_2_and_partial_file_kept(tmp_path, monkeypatch):
+    """A fluid that goes non-finite at frame 4: one line naming the frame and the quantity, exit
+    code 2, and the frames before it kept in a readable file marked incomplete with the reason."""
+    import torch
+
+    from fishsim.fluid.base import FluidState
+    from fishsim.fluid.numerical import NumericalFluid
+
+    real, calls = NumericalFluid.step, {"n": 0}
+
+    def failing(self, state, boundary, params):
+        calls["n"] += 1
+        new = real(self, state, boundary, params)
+        return FluidState(new.a, new.p * torch.nan) if calls["n"] == 4 else new
+
+    monkeypatch.setattr(NumericalFluid, "step", failing)
+    result = runner.invoke(app, ["simulate", *SMALL, "frames=10", "flush_every=1", f"out_dir={tmp_path}"])
+    assert result.exit_code == 2
+    err = [line for line in result.output.splitlines() if line.startswith("error:")]
+    assert len(err) == 1 and "frame 4" in err[0] and "fluid pressure p" in err[0] and "incomplete" in err[0]
+    tr = read_trajectory(tmp_path / "trajectory.h5")
+    assert not tr.complete and tr.n_frames == 3 and "blew up" in tr.attrs["message"]
+    assert np.isfinite(tr["solid/q"][:3]).all()

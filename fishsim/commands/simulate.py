@@ -46,6 +46,12 @@ def build_episode(cfg: SimulateConfig) -> Episode:
     walls = make_tank(cfg.fluid, device) if fluid is not None else None
     swimmer = Swimmer(solid, fluid, cfg.coupling, walls)
     params = batch_params(cfg, mesh.length, device)
+    peak = params.controller.peak_contraction(solid)
+    if bool((peak >= 1).any()):
+        worst = float(peak.max())
+        raise ConfigError(f"controller amplitude C = {float(params.controller.C.max()):g} 1/m contracts a muscle by "
+                          f"{worst:.2f} >= 1 (a muscle would vanish); use amplitude < "
+                          f"{float(params.controller.C.max()) / worst:.4g}")
     return Episode(swimmer, params, tuple(cfg.origin), device)
 
 

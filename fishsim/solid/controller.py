@@ -73,6 +73,11 @@ class WaveController:
         full = lambda v: torch.full((batch,), float(v), dtype=dtype, device=device)
         return WaveController(full(C), full(2 * math.pi * frequency), full(2 * math.pi / length))
 
+    def peak_contraction(self, model: SolidModel) -> torch.Tensor:
+        """Largest contraction [B] any muscle of `model` can reach: max over muscles of C v(X)."""
+        X = torch.as_tensor(model.fem.centroid_X[model.muscles], dtype=self.C.dtype, device=self.C.device)
+        return (self.C[:, None] * envelope(X, model.mesh.length)[None, :]).amax(1)
+
     def contraction(self, model: SolidModel, t) -> torch.Tensor:
         """Muscle contraction [B, n_act] of `model`'s muscles at time t (s); X of a muscle is its
         element centroid's material X."""
