@@ -229,6 +229,21 @@ def save_best(model: HydroNet, run: Run, out: Path) -> None:
                  "val": run.best_val}, out / "best.pt")
 
 
+def export_model(checkpoint: str | Path, dest: str | Path, metadata: dict) -> Path:
+    """Ship a trained model: the weights and net config of ``checkpoint`` (best.pt or ckpt.pt,
+    no optimiser or pool) to ``dest`` and ``metadata`` (config, command, losses, evaluation) to
+    ``dest`` with suffix .json. Returns ``dest``; ``load_hydronet(dest)`` reads it back."""
+    import json
+
+    sd = torch.load(checkpoint, map_location="cpu", weights_only=False)
+    dest = Path(dest)
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    atomic_save({"model": sd["model"], "net": sd["net"], "iteration": sd["iteration"],
+                 "val": sd.get("val", sd.get("best_val"))}, dest)
+    dest.with_suffix(".json").write_text(json.dumps(metadata, indent=2, default=str) + "\n")
+    return dest
+
+
 def load_hydronet(path: str | Path, device="cpu") -> HydroNet:
     """A trained HydroNet (eval mode) from best.pt or ckpt.pt; wrap it in ``HydroNetFluid``.
 
