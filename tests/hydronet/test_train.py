@@ -46,6 +46,22 @@ def test_resume_continues_exactly(cfg, tmp_path, fast):
     assert len(lines) == 1 + 6  # header + one row per iteration, no duplicates
 
 
+def test_compact_checkpoint_resumes_model_and_optimiser(cfg, tmp_path):
+    """A pool-less checkpoint (the one committed between sittings) is ~3x smaller and resumes
+    the counters, weights and Adam state; training then goes on."""
+    T.run(replace(cfg, iterations=3))
+    full = tmp_path / "run" / "ckpt.pt"
+    moved = T.compact_checkpoint(full, tmp_path / "next" / "ckpt.pt")
+    assert moved.stat().st_size < full.stat().st_size and "pool" not in torch.load(moved, weights_only=False)
+    c2 = replace(cfg, out_dir=str(tmp_path / "next"), iterations=3, resume=True)
+    run, _ = T.build(c2, 0, 1, torch.device("cpu"))
+    T.load_checkpoint(run, tmp_path / "next", 0)
+    saved = torch.load(full, weights_only=False)
+    assert run.iteration == 3 and run.opt.state_dict()["state"][0]["step"] == saved["optimizer"]["state"][0]["step"]
+    assert all(torch.equal(v, saved["model"][k]) for k, v in run.model.state_dict().items())
+    assert T.run(replace(c2, iterations=5))["iteration"] == 5
+
+
 def test_keyboard_interrupt_saves_and_exits(cfg, monkeypatch):
     """Ctrl-C inside the loop: a checkpoint at the last finished iteration, clean return."""
     real = T.train_step

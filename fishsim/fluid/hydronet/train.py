@@ -210,7 +210,8 @@ def save_checkpoint(run: Run, cfg: TrainConfig, out: Path, rank: int) -> None:
 
 def load_checkpoint(run: Run, out: Path, rank: int, lr: float | None = None) -> None:
     """Restore ``run`` from ckpt.pt (and ckpt_rank{r}.pt for rank r > 0); ``lr`` replaces the
-    saved learning rate."""
+    saved learning rate. A compact checkpoint (``compact_checkpoint``: no pool) keeps the freshly
+    drawn pool: everything else continues exactly."""
     main = torch.load(out / "ckpt.pt", map_location="cpu", weights_only=False)
     own = main if rank == 0 else torch.load(out / f"ckpt_rank{rank}.pt", map_location="cpu", weights_only=False)
     model = run.model.module if hasattr(run.model, "module") else run.model
@@ -218,10 +219,23 @@ def load_checkpoint(run: Run, out: Path, rank: int, lr: float | None = None) -> 
     run.opt.load_state_dict(main["optimizer"])
     for group in run.opt.param_groups:  # the configured lr wins: resume with a smaller one to anneal
         group["lr"] = main["config"]["lr"] if lr is None else lr
-    run.pool.load_state_dict(own["pool"])
+    if "pool" in own:
+        run.pool.load_state_dict(own["pool"])
     torch.set_rng_state(own["torch_rng"])
     run.iteration, run.best_val = main["iteration"], main["best_val"]
     run.last_val, run.elapsed = main["last_val"], main["elapsed"]
+
+
+def compact_checkpoint(src: str | Path, dest: str | Path) -> Path:
+    """ckpt.pt without its scene pool (model, optimiser, counters, RNG: ~3x smaller), small
+    enough to commit so that training continues in a later sitting: copy it to
+    ``<out_dir>/ckpt.pt`` and run with ``resume=true`` (the pool is redrawn)."""
+    sd = torch.load(src, map_location="cpu", weights_only=False)
+    sd.pop("pool", None)
+    dest = Path(dest)
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    atomic_save(sd, dest)
+    return dest
 
 
 def save_best(model: HydroNet, run: Run, out: Path) -> None:
