@@ -8,16 +8,24 @@ with wall bands; rho = 50, mu = 0.125 mPa s.  The flow is warmed up for ``warmup
 (no grad) before timing, so the sub-step counts are those of a developed flow.  float32, CPU
 threads as torch is configured.  Backward: gradient of the final kinetic energy w.r.t. the wave
 amplitude (through mask velocity) after one step.
+
+``validation()`` (part of ``run()``, also callable alone) re-measures the validation figures of
+tests/fluid (fishsim.fluid.cases) at stated resolutions, with their wall times: the Taylor-Green
+decay-rate error, the lid-driven cavity vs Ghia et al. (64 x 64), and the Re = 100 cylinder
+(Strouhal number, mean C_D, C_L amplitude) at the CI-reduced size and at a larger one.
 """
+
 
 from __future__ import annotations
 
 import json
 import math
 import time
+from contextlib import contextmanager
 
 import torch
 
+from fishsim.fluid import cases
 from fishsim.fluid import grid as G
 from fishsim.fluid.base import Boundary, FluidParams, Grid
 from fishsim.fluid.numerical import NumericalFluid
@@ -90,6 +98,72 @@ def bench_case(refinement: int, batch: int, warmup: int = 30, repeats: int = 3, 
     }
 
 
+@contextmanager
+def _threads(n: int):
+    before = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
+# The Re = 100 cylinder: the CI-reduced size of tests/fluid/test_validation.py and a larger one
+# (about 4 min single-threaded on the 2-core CPU next to a busy process).
+CYLINDER_CI = {"cells_per_d": 10, "length": 16.0, "width": 8.0, "x_centre": 5.0, "t_end": 120.0, "window": 50.0,
+               "h": 0.1}
+CYLINDER_LARGE = {"cells_per_d": 16, "length": 20.0, "width": 12.0, "x_centre": 5.0, "t_end": 150.0, "window": 60.0,
+                  "h": 0.1}
+
+
+def _cylinder(kw: dict) -> dict:
+    t0 = time.perf_counter()
+    st, cd, cl = cases.cylinder_wake(**kw)
+    n = kw["cells_per_d"]
+    return {
+        "resolution": f"{n} cells/D, {kw['length']:g} D x {kw['width']:g} D "
+        f"({round(kw['width'] * n)}x{round(kw['length'] * n)}), h = {kw['h']:g} D/U, "
+        f"t = {kw['t_end']:g} D/U, last {kw['window']:g}",
+        "strouhal": st,
+        "mean_cd": cd,
+        "cl_amplitude": cl,
+        "wall_s": time.perf_counter() - t0,
+    }
+
+
+def validation(large: bool = True) -> dict:
+    """Validation figures of the numerical fluid (fishsim.fluid.cases; references in
+    VALIDATION.md), each with its resolution and wall time [s], single-threaded (as the tests
+    run; torch's intra-op threads only contend with other work at these sizes), float64 except
+    the cylinder (float32):
+
+    * Taylor-Green (the test's size: 32 x 32 on [0, pi]^2, h = 0.02, 50 steps) at Re = U pi / nu
+      = 0.6 and 314: energy decay rate and its relative error vs the discrete-Laplacian rate.
+    * Lid-driven cavity Re = 100, 64 x 64, t = 12: max |u - u_Ghia| (lid-speed units).
+    * Cylinder Re = 100: St, mean C_D, C_L amplitude (penalization force within 1.5 D) at the
+      CI-reduced size and, with ``large``, at ``CYLINDER_LARGE``.
+    """
+    out = {"threads": 1}
+    with _threads(1):
+        for U, nu in ((0.01, 0.05), (1.0, 0.01)):
+            t0 = time.perf_counter()
+            tg = cases.taylor_green(32, U, nu, 0.02, 50)
+            out[f"taylor_green_Re{U * math.pi / nu:.3g}"] = {
+                "resolution": "32x32 on [0, pi]^2, h = 0.02, 50 steps",
+                "rate": tg.rate,
+                "rel_error": tg.rel_error,
+                "wall_s": time.perf_counter() - t0,
+            }
+        t0 = time.perf_counter()
+        err = cases.lid_driven_cavity(N=64, steps=1200).max_error
+        out["ghia_re100"] = {"resolution": "64x64, h = 0.01, t = 12", "max_abs_error": err,
+                             "wall_s": time.perf_counter() - t0}
+        out["cylinder_re100_ci"] = _cylinder(CYLINDER_CI)
+        if large:
+            out["cylinder_re100_large"] = _cylinder(CYLINDER_LARGE)
+    return out
+
+
 def run(full: bool = False) -> dict:
     """All cases; the r = 2, B = 16 backward (about 100 s per step and several GB on the 2-core
     CPU) only with ``full``."""
@@ -97,6 +171,7 @@ def run(full: bool = False) -> dict:
     for r in (1, 2):
         for batch in (1, 16):
             out[f"r{r}_B{batch}"] = bench_case(r, batch, backward=full or r * batch < 32)
+    out["validation"] = validation()
     return out
 
 

@@ -17,10 +17,11 @@ from fishsim.io.trajectory import read_trajectory
 runner = CliRunner()
 SMALL = ["fish.edge_length=5e-3", "fluid.H=40", "fluid.W=120", "fluid.dx=5e-3", "origin=[0.15,0.1]",
          "fluid.wall_x=3", "fluid.wall_y=2"]
+NUMERICAL = [*SMALL, "fluid=numerical"]  # the reference solver: deterministic, no model file
 
 
 def test_simulate_writes_valid_trajectory(tmp_path):
-    result = runner.invoke(app, ["simulate", *SMALL, "frames=6", "fluid_stride=2", f"out_dir={tmp_path}",
+    result = runner.invoke(app, ["simulate", *NUMERICAL, "frames=6", "fluid_stride=2", f"out_dir={tmp_path}",
                                  "batch.frequency=[4,6]"])
     assert result.exit_code == 0, result.output
     tr = read_trajectory(tmp_path / "trajectory.h5")
@@ -39,7 +40,7 @@ def test_simulate_writes_valid_trajectory(tmp_path):
 
 
 def test_simulate_killed_leaves_incomplete_readable_file(tmp_path):
-    args = ["simulate", *SMALL, "frames=2000", "flush_every=1", f"out_dir={tmp_path}"]
+    args = ["simulate", *NUMERICAL, "frames=2000", "flush_every=1", f"out_dir={tmp_path}"]
     proc = subprocess.Popen([sys.executable, "-m", "fishsim.cli", *args],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     path = tmp_path / "trajectory.h5"
@@ -60,7 +61,7 @@ def test_simulate_bad_config_exit_code_2(tmp_path):
     result = runner.invoke(app, ["simulate", "origin=[0.7,0.1]", f"out_dir={tmp_path}"])
     assert result.exit_code == 2
     assert "outside" in result.output and "Traceback" not in result.output
-    result = runner.invoke(app, ["simulate", *SMALL, "controller.amplitude=1000", f"out_dir={tmp_path}"])
+    result = runner.invoke(app, ["simulate", *NUMERICAL, "controller.amplitude=1000", f"out_dir={tmp_path}"])
     assert result.exit_code == 2 and "(a muscle would vanish); use amplitude <" in result.output
 
 
@@ -101,7 +102,7 @@ def test_simulate_vtk_writes_fish_and_fluid_series(tmp_path):
     ...): both ParaView series are non-empty, one fluid file per exported fish frame."""
     import xml.etree.ElementTree as ET
 
-    result = runner.invoke(app, ["simulate", *SMALL, "frames=10", "vtk=true", f"out_dir={tmp_path}"])
+    result = runner.invoke(app, ["simulate", *NUMERICAL, "frames=10", "vtk=true", f"out_dir={tmp_path}"])
     assert result.exit_code == 0, result.output
     for name, expected in (("fish", 2), ("fluid", 2)):
         pvd = ET.parse(tmp_path / "paraview" / f"{name}.pvd").getroot()
@@ -121,7 +122,7 @@ def test_render_a_real_simulation(tmp_path):
     from fishsim.render.scene import FrameFigure
     from tests.render.test_scene import _is_fish, _pixels
 
-    assert runner.invoke(app, ["simulate", *SMALL, "frames=8", f"out_dir={tmp_path}"]).exit_code == 0
+    assert runner.invoke(app, ["simulate", *NUMERICAL, "frames=8", f"out_dir={tmp_path}"]).exit_code == 0
     result = runner.invoke(app, ["render", str(tmp_path / "trajectory.h5"), f"out_dir={tmp_path / 'r'}"])
     assert result.exit_code == 0, result.output
     assert imageio.get_reader(next((tmp_path / "r").glob("*.mp4"))).count_frames() == 8
@@ -152,7 +153,7 @@ def test_simulate_blow_up_exit_code_2_and_partial_file_kept(tmp_path, monkeypatc
         return FluidState(new.a, new.p * torch.nan) if calls["n"] == 4 else new
 
     monkeypatch.setattr(NumericalFluid, "step", failing)
-    result = runner.invoke(app, ["simulate", *SMALL, "frames=10", "flush_every=1", f"out_dir={tmp_path}"])
+    result = runner.invoke(app, ["simulate", *NUMERICAL, "frames=10", "flush_every=1", f"out_dir={tmp_path}"])
     assert result.exit_code == 2
     err = [line for line in result.output.splitlines() if line.startswith("error:")]
     assert len(err) == 1 and "frame 4" in err[0] and "fluid pressure p" in err[0] and "incomplete" in err[0]

@@ -77,7 +77,7 @@ def test_distance_gradient_matches_finite_differences(fluid, tiny_model):
 
 
 def _episode(overrides, frames):
-    cfg = load_config("simulate", SMALL + list(overrides))
+    cfg = load_config("simulate", SMALL + ["fluid=numerical", *overrides])
     ep = build_episode(cfg)
     state = ep.swimmer.initial_state(ep.params, ep.origin)
     with torch.no_grad():
@@ -106,7 +106,7 @@ def test_fish_swims_forward_and_beats_at_the_controller_frequency():
     averaged over each stroke period, advances every period (the fish swims head first), and the
     tail's lateral motion peaks at the controller frequency."""
     args = ["fish.edge_length=5e-3", "fluid.H=40", "fluid.W=150", "fluid.dx=5e-3", "origin=[0.25,0.1]",
-            "fluid.wall_x=2", "fluid.wall_y=2"]
+            "fluid.wall_x=2", "fluid.wall_y=2", "fluid=numerical"]
     ep = build_episode(load_config("simulate", args))
     with torch.no_grad():
         _, m = rollout(ep.swimmer, ep.swimmer.initial_state(ep.params, ep.origin), ep.params, 100)

@@ -9,6 +9,7 @@ import torch
 from fishsim.errors import SimulationBlowUp
 from fishsim.fluid import grid as G
 from fishsim.fluid.base import Boundary, FluidModel, FluidParams, FluidState, Grid
+from fishsim.fluid.cases import taylor_green
 from fishsim.fluid.dct import dct, idct, solve_neumann_poisson
 from fishsim.fluid.numerical import NumericalFluid, RefinedState, project
 from fishsim.fluid.residual import fluid_face_masks, momentum_residual
@@ -67,33 +68,10 @@ def test_poisson_solve_and_projection_at_round_off():
     assert G.divergence((fx, fy), 0.1).abs().max() < 1e-5 * G.divergence(u, 0.1).abs().max()
 
 
-def _taylor_green(N, U, nu, h, steps):
-    """Energy decay rate of the Taylor-Green mode vx = U sin(x) cos(y), vy = -U cos(x) sin(y) on the
-    box [0, pi]^2 with free-slip walls (the mode satisfies them) vs the discrete-Laplacian rate."""
-    dx = math.pi / N
-    g = Grid(N, N, dx)
-    i = torch.arange(N + 1, dtype=D) * dx
-    y, x = torch.meshgrid(i, i, indexing="ij")
-    a = (U * torch.sin(x) * torch.sin(y))[None, None]
-    m = NumericalFluid(g, walls=G.FREE_SLIP)
-    s = FluidState(a, torch.zeros(1, 1, N, N, dtype=D))
-    bd = Boundary(torch.zeros(1, 1, N, N, dtype=D), torch.zeros(1, 2, N, N, dtype=D))
-    pr = FluidParams(torch.tensor([1.0], dtype=D), torch.tensor([nu], dtype=D), h)
-
-    def energy(s):
-        return sum((c**2).sum() for c in G.curl(s.a, dx)).item()
-
-    e0 = energy(s)
-    for _ in range(steps):
-        s = m.step(s, bd, pr)
-    rate = -math.log(energy(s) / e0) / (h * steps)
-    return rate / (2 * nu * (8 / dx**2) * math.sin(dx / 2) ** 2) - 1
-
-
 @pytest.mark.parametrize("U, nu", [(0.01, 0.05), (1.0, 0.01)])  # Re = U pi / nu = 0.6 and 314
 def test_taylor_green_energy_decay_rate(U, nu):
     # measured: 4e-6 and 3e-3 relative error
-    assert abs(_taylor_green(32, U, nu, 0.02, 50)) < 0.02
+    assert abs(taylor_green(32, U, nu, 0.02, 50).rel_error) < 0.02
 
 
 @pytest.mark.parametrize("scheme", ["koren", "central"])
