@@ -1,0 +1,226 @@
+"""Validation cases of the numerical fluid (PHYSICS.md section 6; reference data in VALIDATION.md).
+
+Drivers shared by the tests (tests/fluid) and the benchmark (benchmarks/bench_fluid.py), each
+returning the measured numbers:
+
+* ``taylor_green``: decay rate of the Taylor-Green mode vs the discrete-Laplacian rate.
+* ``lid_driven_cavity``: centreline velocity of the Re = 100 cavity vs Ghia, Ghia & Shin 1982.
+* ``cylinder_wake``: Strouhal number, mean drag and lift amplitude of the Re = 100 cylinder.
+
+and the helpers they and the rigid-body tests use: ``disc_mask``, ``moving`` (rigid translation
+velocity), ``disc_polyline`` (the disc's ccw surface for the IBM), ``control_volume_force``
+(momentum balance of a box of fluid), ``mask_pressure_force`` (pressure force on a soft body).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from fishsim.fluid import grid as G
+from fishsim.fluid.base import Boundary, FluidParams, FluidState, Grid
+from fishsim.fluid.numerical import NumericalFluid
+
+# Ghia, Ghia & Shin 1982, J. Comput. Phys. 48:387, Table I: u on the vertical centreline, Re = 100.
+GHIA_RE100 = [
+    (1.0000, 1.00000), (0.9766, 0.84123), (0.9688, 0.78871), (0.9609, 0.73722), (0.9531, 0.68717),
+    (0.8516, 0.23151), (0.7344, 0.00332), (0.6172, -0.13641), (0.5000, -0.20581), (0.4531, -0.21090),
+    (0.2813, -0.15662), (0.1719, -0.10150), (0.1016, -0.06434), (0.0703, -0.04775), (0.0625, -0.04192),
+    (0.0547, -0.03717), (0.0000, 0.00000),
+]  # fmt: skip
+
+
+# ----------------------------------------------------------------------------------------------
+# Helpers
+# ----------------------------------------------------------------------------------------------
+
+
+def disc_mask(g: Grid, x0: float, y0: float, radius: float, dtype=torch.float64) -> Tensor:
+    """Soft disc mask [1, 1, H, W] centred at (x0, y0) [m]: b = 1/2 on the circle of ``radius``
+    [m], a linear ramp over one cell (b = clamp(1/2 - (r - radius) / dx, 0, 1))."""
+    c = g.cell_centres(dtype=torch.float64)
+    r = ((c[..., 0] - x0) ** 2 + (c[..., 1] - y0) ** 2).sqrt()
+    return (0.5 - (r - radius) / g.dx).clamp(0, 1)[None, None].to(dtype)
+
+
+def moving(mask: Tensor, vx, vy) -> Tensor:
+    """Boundary velocity [B, 2, H, W] of a body translating at (vx, vy) [m/s] inside ``mask``."""
+    return torch.cat([vx * mask, vy * mask], 1)
+
+
+def disc_polyline(x0: float, y0: float, radius: float, nodes: int, dtype=torch.float64) -> Tensor:
+    """The disc's surface as the closed counter-clockwise polyline [1, nodes, 2] (x, y) in m."""
+    t = torch.arange(nodes, dtype=torch.float64) * (2 * math.pi / nodes)
+    return torch.stack([x0 + radius * t.cos(), y0 + radius * t.sin()], -1)[None].to(dtype)
+
+
+def control_volume_force(v0, v1, p, rho, mu, h, dx, rows, cols) -> Tensor:
+    """Force on whatever is inside the cell block rows x cols (N/m, [B, 2]) from the momentum
+    balance of the fluid in it: F = -dM/dt - sum_sides (rho v (v.n) + p n - mu dv/dn) ds,
+    with cell-centred velocities, side values as the mean of the two cells across the side.
+
+    v0, v1: face velocities (``Faces``) at the start and end of the step [m/s]; p: pressure of
+    the step [B, 1, H, W] (Pa); rho (kg/m^3), mu (Pa s), h (s), dx (m); rows = (i0, i1), cols =
+    (j0, j1): the half-open cell ranges of the box, at least one cell away from the grid edge."""
+    c0, c1 = G.faces_to_centres(v0), G.faces_to_centres(v1)
+    (i0, i1), (j0, j1) = rows, cols
+    M = [rho * c[..., i0:i1, j0:j1].sum((-2, -1)) * dx**2 for c in (c0, c1)]
+    vb = 0.5 * (c0 + c1)
+    sides = [  # (inside cells, outside cells, outward normal)
+        ((slice(i0, i1), j0), (slice(i0, i1), j0 - 1), (-1.0, 0.0)),
+        ((slice(i0, i1), j1 - 1), (slice(i0, i1), j1), (1.0, 0.0)),
+        ((i0, slice(j0, j1)), (i0 - 1, slice(j0, j1)), (0.0, -1.0)),
+        ((i1 - 1, slice(j0, j1)), (i1, slice(j0, j1)), (0.0, 1.0)),
+    ]
+    flux = 0.0
+    for inside, outside, n in sides:
+        vi, vo = vb[(..., *inside)], vb[(..., *outside)]
+        ps = 0.5 * (p[(..., 0, *inside)] + p[(..., 0, *outside)])
+        vs = 0.5 * (vi + vo)
+        nn = torch.tensor(n, dtype=vb.dtype)[None, :, None]
+        un = (vs * nn).sum(1, keepdim=True)
+        flux = flux + ((rho * vs * un + ps[:, None] * nn - mu * (vo - vi) / dx) * dx).sum(-1)
+    return -(M[1] - M[0]) / h - flux
+
+
+def mask_pressure_force(p: Tensor, mask: Tensor, dx: float) -> Tensor:
+    """Pressure force on the soft body ``mask`` [B, 1, H, W], [B, 2] N/m (per unit depth):
+    F_p = -sum_faces b_f (grad p)_f dx^2, with the solver's face gradient (``grid.gradient``) and
+    face masks (``grid.face_masks``); by the divergence theorem the integral of -p n over the
+    body's surface, smeared over its one-cell ramp.  p: [B, 1, H, W] Pa; dx: m."""
+    gx, gy = G.gradient(p, dx)
+    bx, by = G.face_masks(mask.to(p.dtype))
+    return -torch.stack([(bx * gx).sum((-3, -2, -1)), (by * gy).sum((-3, -2, -1))], -1) * dx**2
+
+
+# ----------------------------------------------------------------------------------------------
+# Taylor-Green decay
+# ----------------------------------------------------------------------------------------------
+
+
+class TaylorGreen(NamedTuple):
+    rate: float  # measured kinetic-energy decay rate, 1/s
+    discrete_rate: float  # 2 nu (8 / dx^2) sin^2(dx / 2), 1/s
+    rel_error: float  # rate / discrete_rate - 1
+
+
+def taylor_green(N: int = 32, U: float = 1.0, nu: float = 0.01, h: float = 0.02, steps: int = 50,
+                 dtype=torch.float64) -> TaylorGreen:
+    """Decay of the Taylor-Green mode vx = U sin(x) cos(y), vy = -U cos(x) sin(y) (k = 1).
+
+    Box [0, pi]^2 in N x N cells (dx = pi / N) with free-slip walls (the mode satisfies them),
+    rho = 1, kinematic viscosity ``nu``, no body; ``steps`` steps of h.  The kinetic energy
+    E = sum v^2 over the faces decays as exp(-rate t); the discrete 5-point Laplacian gives
+    rate = 2 nu (8 / dx^2) sin^2(dx / 2) (-> 4 nu as dx -> 0).  Units: lengths and times of the
+    box (m, s when read as SI); the mode's Reynolds number is U pi / nu.
+    """
+    dx = math.pi / N
+    g = Grid(N, N, dx)
+    i = torch.arange(N + 1, dtype=dtype) * dx
+    y, x = torch.meshgrid(i, i, indexing="ij")
+    a = (U * torch.sin(x) * torch.sin(y))[None, None]
+    m = NumericalFluid(g, walls=G.FREE_SLIP)
+    s = FluidState(a, torch.zeros(1, 1, N, N, dtype=dtype))
+    bd = Boundary(torch.zeros(1, 1, N, N, dtype=dtype), torch.zeros(1, 2, N, N, dtype=dtype))
+    pr = FluidParams(torch.tensor([1.0], dtype=dtype), torch.tensor([nu], dtype=dtype), h)
+
+    def energy(s):
+        return sum((c**2).sum() for c in G.curl(s.a, dx)).item()
+
+    e0 = energy(s)
+    for _ in range(steps):
+        s = m.step(s, bd, pr)
+    rate = -math.log(energy(s) / e0) / (h * steps)
+    expected = 2 * nu * (8 / dx**2) * math.sin(dx / 2) ** 2
+    return TaylorGreen(rate, expected, rate / expected - 1)
+
+
+# ----------------------------------------------------------------------------------------------
+# Lid-driven cavity (Ghia et al. 1982)
+# ----------------------------------------------------------------------------------------------
+
+
+class Cavity(NamedTuple):
+    max_error: float  # max |u - u_Ghia| over Table I, in lid-speed units
+    y: np.ndarray  # heights of the centreline samples (walls included), lid heights
+    u: np.ndarray  # u / U_lid there
+
+
+def lid_driven_cavity(N: int = 64, steps: int = 1200, h: float = 0.01, dtype=torch.float64) -> Cavity:
+    """Lid-driven cavity at Re = 100 vs Ghia, Ghia & Shin 1982, Table I.
+
+    Unit square in N x N cells, lid u = 1 at y = 1 as a moving no-slip wall (ghost values), the
+    other walls no-slip at rest, rho = 1, nu = 0.01, from rest for ``steps`` steps of h (default
+    t = 12: steady to 1e-3).  u on the vertical faces of the centreline x = 0.5 (N even), extended
+    by the wall values 0 and 1, interpolated linearly to Ghia's heights.  Units: lid speed, side.
+    """
+    g = Grid(N, N, 1.0 / N)
+    m = NumericalFluid(g, walls=G.WallBC(u_top=1.0))
+    s = m.initial_state(1, dtype=dtype)
+    bd = Boundary(torch.zeros(1, 1, N, N, dtype=dtype), torch.zeros(1, 2, N, N, dtype=dtype))
+    pr = FluidParams(torch.tensor([1.0], dtype=dtype), torch.tensor([0.01], dtype=dtype), h)
+    for _ in range(steps):
+        s = m.step(s, bd, pr)
+    u = G.curl(s.a, g.dx)[0][0, 0, :, N // 2].double().numpy()  # vertical faces on x = 0.5
+    y = np.concatenate([[0.0], (np.arange(N) + 0.5) * g.dx, [1.0]])
+    u = np.concatenate([[0.0], u, [1.0]])
+    err = max(abs(np.interp(yk, y, u) - uk) for yk, uk in GHIA_RE100)
+    return Cavity(float(err), y, u)
+
+
+# ----------------------------------------------------------------------------------------------
+# Cylinder wake
+# ----------------------------------------------------------------------------------------------
+
+
+class CylinderWake(NamedTuple):
+    strouhal: float  # f D / U
+    drag: float  # mean C_D = F_x / (rho U^2 D / 2)
+    lift_amplitude: float  # (max C_L - min C_L) / 2
+
+
+def cylinder_wake(
+    cells_per_d=20, length=20.0, width=16.0, x_centre=5.0, t_end=180.0, window=60.0, h=0.05, dtype=torch.float32
+) -> CylinderWake:
+    """Flow past a fixed circular cylinder at Re = U D / nu = 100 (U = D = 1, nu = 0.01, rho = 1).
+
+    Domain [0, length] x [0, width] in D (``cells_per_d`` cells per D), cylinder centre
+    (x_centre, width/2), soft disc mask (``disc_mask``); inflow and outflow bands (4 columns,
+    v_x = U) on the short sides, free-slip walls top and bottom; uniform flow at t = 0, symmetry
+    broken by spinning the cylinder (omega = 0.5 U/D) for t < 3; steps of h up to t_end (in D/U).
+    Force: the penalization force (``StepDiagnostics.force``) summed over the cells within 1.5 D
+    of the centre, per unit depth, made dimensionless by rho U^2 D / 2.  Returns (St, mean C_D,
+    C_L amplitude) over the last ``window`` time units; St from upward zero crossings of C_L.
+    """
+    U, Dc, nu = 1.0, 1.0, 0.01
+    dx = Dc / cells_per_d
+    g = Grid(round(width / dx), round(length / dx), dx)
+    xc, yc = x_centre, width / 2
+    c = g.cell_centres(dtype=torch.float64)
+    r = ((c[..., 0] - xc) ** 2 + (c[..., 1] - yc) ** 2).sqrt()
+    body = disc_mask(g, xc, yc, Dc / 2, dtype)
+    region = (r < 1.5 * Dc).to(dtype)[None, None]
+    spin = torch.stack([-(c[..., 1] - yc), c[..., 0] - xc])[None].to(dtype) * body * 0.5
+    inflow = G.channel(g, U, thickness_y=0, thickness_x=4, dtype=dtype)
+    spinning, fixed = G.union(inflow, Boundary(body, spin)), G.union(inflow, Boundary(body, 0 * spin))
+    m = NumericalFluid(g, walls=G.FREE_SLIP)
+    y = (torch.arange(g.H + 1, dtype=dtype) * dx)[None, None, :, None]
+    a0 = (U * y).expand(1, 1, g.H + 1, g.W + 1)
+    s = FluidState(a0 - a0.mean(), torch.zeros(1, 1, g.H, g.W, dtype=dtype))
+    pr = FluidParams(torch.tensor([1.0], dtype=dtype), torch.tensor([nu], dtype=dtype), h)
+    t, cl, cd = [], [], []
+    for k in range(round(t_end / h)):
+        s, diag = m.step_with_diagnostics(s, spinning if k * h < 3.0 else fixed, pr)
+        f = diag.force(1.0, region)[0] / (0.5 * U**2 * Dc)
+        t.append((k + 1) * h), cd.append(f[0].item()), cl.append(f[1].item())
+    t, cd, cl = np.array(t), np.array(cd), np.array(cl)
+    keep = t > t_end - window
+    t, cd, cl = t[keep], cd[keep], cl[keep] - cl[keep].mean()
+    up = np.where((cl[:-1] < 0) & (cl[1:] >= 0))[0]
+    t_up = t[up] - cl[up] * h / (cl[up + 1] - cl[up])
+    st = (len(t_up) - 1) / (t_up[-1] - t_up[0]) * Dc / U
+    return CylinderWake(float(st), float(cd.mean()), float((cl.max() - cl.min()) / 2))
