@@ -109,10 +109,11 @@ def _threads(n: int):
 
 
 # The Re = 100 cylinder: the CI-reduced size of tests/fluid/test_validation.py and a larger one
-# (about 4 min single-threaded on the 2-core CPU next to a busy process).
+# (20 cells per D, 20 D x 16 D: 3.5 min single-threaded on the 2-core CPU next to a busy process;
+# 16 cells per D on 20 D x 12 D took 2 min).
 CYLINDER_CI = {"cells_per_d": 10, "length": 16.0, "width": 8.0, "x_centre": 5.0, "t_end": 120.0, "window": 50.0,
                "h": 0.1}
-CYLINDER_LARGE = {"cells_per_d": 16, "length": 20.0, "width": 12.0, "x_centre": 5.0, "t_end": 150.0, "window": 60.0,
+CYLINDER_LARGE = {"cells_per_d": 20, "length": 20.0, "width": 16.0, "x_centre": 5.0, "t_end": 150.0, "window": 60.0,
                   "h": 0.1}
 
 
