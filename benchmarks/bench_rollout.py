@@ -5,7 +5,6 @@ B = 16 (time per fish and frame, over ``FISHSIM_BENCH_FRAMES_B16`` = 30 frames),
 
 from __future__ import annotations
 
-import math
 import os
 import time
 import warnings

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import sys
-from typing import Callable, List, Optional
+from collections.abc import Callable
 
 import typer
 
@@ -39,7 +39,7 @@ def describe(defaults, prefix: str = "") -> str:
     return "\n\n".join(["top level: " + "  ".join(keys)] + groups)
 
 
-def _execute(command: str, overrides: Optional[List[str]], show: bool, run: Callable) -> None:
+def _execute(command: str, overrides: list[str] | None, show: bool, run: Callable) -> None:
     """Compose, validate and run; user errors become one line on stderr and exit code 2."""
     try:
         cfg = load_config(command, overrides)
@@ -60,7 +60,7 @@ def _root() -> None:
     """fishsim: a fast, differentiable simulator of soft swimming robots."""
 
 
-def _positional(args: Optional[List[str]], keys: tuple[str, ...]) -> List[str]:
+def _positional(args: list[str] | None, keys: tuple[str, ...]) -> list[str]:
     """Bare arguments (no '=') become ``key=value`` for ``keys`` in order (e.g. render's paths)."""
     out, free = [], list(keys)
     for arg in args or []:
@@ -77,7 +77,7 @@ def _command(name: str, summary: str, positional: tuple[str, ...] = ()) -> Calla
     epilog = "Config (group.key=default):\n\n" + describe(ROOTS[name]())
 
     def decorate(run_factory: Callable[[], Callable]) -> Callable:
-        def command(overrides: Optional[List[str]] = OVERRIDES, show_config: bool = SHOW) -> None:
+        def command(overrides: list[str] | None = OVERRIDES, show_config: bool = SHOW) -> None:
             _execute(name, _positional(overrides, positional), show_config, run_factory())
 
         command.__doc__ = summary

@@ -12,15 +12,15 @@ import math
 import re
 from dataclasses import dataclass, field
 from importlib import resources
-from typing import Any, Optional
+from typing import Any
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
+from fishsim.commands.validate import ValidateConfig
 from fishsim.coupling.layer import CouplingConfig
 from fishsim.errors import ConfigError
 from fishsim.fluid.hydronet.train import TrainConfig
-from fishsim.commands.validate import ValidateConfig
 from fishsim.render.config import RenderConfig
 from fishsim.solid.controller import DEFAULT_C
 from fishsim.solid.model import PDOptions, SolidMaterial
@@ -47,8 +47,8 @@ class FishConfig:
     min_angle: float = 30.0
     actuator_spacing: float = 4.0e-3
     actuator_x_range: list[float] = field(default_factory=lambda: [0.05, 0.95])
-    tail_tip_width: Optional[float] = None
-    mesh_file: Optional[str] = None
+    tail_tip_width: float | None = None
+    mesh_file: str | None = None
 
     def validate(self) -> None:
         _positive(**{"fish.length": self.length, "fish.edge_length": self.edge_length,
@@ -70,7 +70,7 @@ class MeshCommandConfig:
     fish: FishConfig = field(default_factory=FishConfig)
     output: str = "fish.vtu"
     preview: bool = True
-    out_dir: Optional[str] = None
+    out_dir: str | None = None
 
     def validate(self) -> None:
         self.fish.validate()
@@ -94,7 +94,7 @@ class ControllerConfig:
 
     frequency: float = 5.0
     amplitude: float = DEFAULT_C
-    wave_number: Optional[float] = None
+    wave_number: float | None = None
     t_a: float = 0.2
 
     def validate(self) -> None:
@@ -153,7 +153,7 @@ class FluidConfig:
     wall_x: int = 5
     inflow: float = 0.0
     refinement: int = 1
-    model_file: Optional[str] = None
+    model_file: str | None = None
     bf16: bool = False
 
     def validate(self) -> None:
@@ -191,7 +191,7 @@ class SimulateConfig:
     flush_every: int = 10
     device: str = "cpu"
     output: str = "trajectory.h5"
-    out_dir: Optional[str] = None
+    out_dir: str | None = None
 
     def validate(self) -> None:
         for part in (self.fish, self.controller, self.batch, self.fluid):

@@ -16,8 +16,8 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable, Optional
 
 import numpy as np
 import torch
@@ -42,7 +42,7 @@ class SwimState:
 
     q: Tensor
     qdot: Tensor
-    fluid: Optional[FluidState] = None
+    fluid: FluidState | None = None
 
 
 @dataclass(frozen=True)
@@ -56,7 +56,7 @@ class SwimParams:
 
     controller: WaveController
     E: Tensor
-    fluid: Optional[FluidParams] = None
+    fluid: FluidParams | None = None
 
 
 @dataclass
@@ -69,7 +69,7 @@ class FrameOutput:
 
     f_ext: Tensor
     contraction: Tensor
-    boundary: Optional[Boundary] = None
+    boundary: Boundary | None = None
 
 
 @dataclass
@@ -94,8 +94,8 @@ class Swimmer:
     fluid_dtype: dtype of the fluid fields (float32 for HydroNet and the numerical solver).
     """
 
-    def __init__(self, solid: SolidModel, fluid: Optional[FluidModel], coupling: CouplingConfig,
-                 walls: Optional[Boundary] = None, fluid_dtype: torch.dtype = torch.float32):
+    def __init__(self, solid: SolidModel, fluid: FluidModel | None, coupling: CouplingConfig,
+                 walls: Boundary | None = None, fluid_dtype: torch.dtype = torch.float32):
         self.solid, self.fluid, self.coupling = solid, fluid, coupling
         self.walls, self.fluid_dtype = walls, fluid_dtype
         self.surface = torch.as_tensor(solid.mesh.surface, dtype=torch.long)
@@ -205,7 +205,7 @@ def _unflatten(tensors: tuple[Tensor, ...]) -> SwimState:
 
 
 def rollout(swimmer: Swimmer, state: SwimState, params: SwimParams, n_frames: int,
-            segment: int = 0, on_frame: Optional[Callable[[int, SwimState, FrameOutput, dict], None]] = None,
+            segment: int = 0, on_frame: Callable[[int, SwimState, FrameOutput, dict], None] | None = None,
             start: int = 0) -> tuple[SwimState, dict[str, Tensor]]:
     """Run ``n_frames`` frames from frame ``start``; return the final state and the per-frame
     metrics stacked to [n_frames, B] (differentiable w.r.t. the initial state and ``params``).

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from fishsim.config import load_config
 from fishsim.commands.simulate import batch_params, build_episode
+from fishsim.config import load_config
 from fishsim.fluid.numerical import NumericalFluid
 from fishsim.rollout import Swimmer, rollout
 

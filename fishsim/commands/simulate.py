@@ -20,7 +20,7 @@ from fishsim.fluid.factory import fluid_params, make_fluid, make_tank
 from fishsim.fluid.grid import curl, faces_to_centres
 from fishsim.io.outdir import make_out_dir, resolve_output
 from fishsim.io.trajectory import TrajectoryWriter, trajectory_series
-from fishsim.rollout import METRICS, SwimParams, Swimmer, rollout
+from fishsim.rollout import METRICS, Swimmer, SwimParams, rollout
 from fishsim.solid import SolidModel
 from fishsim.solid.controller import WaveController
 

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 from rich.console import Console
 
-from fishsim.fluid.hydronet.train import TrainConfig, run as train
+from fishsim.fluid.hydronet.train import TrainConfig
+from fishsim.fluid.hydronet.train import run as train
 
 
 def run(cfg: TrainConfig) -> dict:

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import json
 from dataclasses import asdict, dataclass, field
-from typing import Optional
 
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
@@ -28,11 +27,11 @@ class ValidateConfig:
     bf16: run it in bfloat16. device: cpu | cuda. scenes: the held-out scenes and protocol."""
 
     suite: str = "hydronet"
-    model_file: Optional[str] = None
+    model_file: str | None = None
     bf16: bool = False
     device: str = "cpu"
     scenes: EvalConfig = field(default_factory=EvalConfig)
-    out_dir: Optional[str] = None
+    out_dir: str | None = None
 
     def validate(self) -> None:
         if self.suite not in SUITES:

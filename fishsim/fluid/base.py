@@ -109,3 +109,11 @@ class FluidModel(Protocol):
     def step(self, state: FluidState, boundary: Boundary, params: FluidParams) -> FluidState:
         """Return the state one time step ``params.h`` later."""
         ...
+
+
+def rest_state(grid: Grid, batch: int, device=None, dtype=torch.float32) -> FluidState:
+    """Fluid at rest on ``grid``: a = 0 [B, 1, H+1, W+1], p = 0 [B, 1, H, W]."""
+    return FluidState(
+        a=torch.zeros(batch, 1, grid.H + 1, grid.W + 1, device=device, dtype=dtype),
+        p=torch.zeros(batch, 1, grid.H, grid.W, device=device, dtype=dtype),
+    )

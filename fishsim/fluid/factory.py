@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Optional
 
 import torch
 
@@ -19,7 +18,7 @@ def make_grid(cfg) -> Grid:
 SHIPPED_HYDRONET = Path(__file__).resolve().parents[1] / "assets" / "hydronet.pt"
 
 
-def make_fluid(cfg, device=None) -> Optional[FluidModel]:
+def make_fluid(cfg, device=None) -> FluidModel | None:
     """The ``FluidModel`` of a ``FluidConfig`` (None for ``model=none``, the vacuum) on ``device``.
 
     hydronet: the model in ``cfg.model_file`` or, when unset, the shipped one; a missing or

@@ -37,7 +37,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from fishsim.errors import SimulationBlowUp
-from fishsim.fluid.base import Boundary, FluidParams, FluidState, Grid
+from fishsim.fluid.base import Boundary, FluidParams, FluidState, Grid, rest_state
 from fishsim.fluid.dct import neumann_eigenvalues, solve_neumann_poisson
 from fishsim.fluid.grid import (
     NO_SLIP,
@@ -214,11 +214,7 @@ class NumericalFluid:
 
     def initial_state(self, batch: int, device=None, dtype=torch.float32) -> FluidState:
         """Fluid at rest: a = 0, p = 0 on the r = 1 grid."""
-        g = self.grid
-        return FluidState(
-            a=torch.zeros(batch, 1, g.H + 1, g.W + 1, device=device, dtype=dtype),
-            p=torch.zeros(batch, 1, g.H, g.W, device=device, dtype=dtype),
-        )
+        return rest_state(self.grid, batch, device, dtype)
 
     def step(self, state: FluidState, boundary: Boundary, params: FluidParams) -> FluidState:
         """(a_t, p_t, b_t, v_d,t) -> (a_t+1, p_t+1); p_t is not needed by a projection method."""

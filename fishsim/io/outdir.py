@@ -4,10 +4,9 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Optional
 
 
-def make_out_dir(command: str, out_dir: Optional[str]) -> Path:
+def make_out_dir(command: str, out_dir: str | None) -> Path:
     """Create and return the output folder (``out_dir`` if given)."""
     path = Path(out_dir) if out_dir else Path("outputs") / command / time.strftime("%Y-%m-%d_%H-%M-%S")
     path.mkdir(parents=True, exist_ok=True)

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional
 
 import h5py
 import numpy as np
@@ -77,7 +76,7 @@ class TrajectoryWriter:
         if self._frames % self.flush_every == 0:
             self.file.flush()
 
-    def close(self, complete: bool, message: str = "", attrs: Optional[dict] = None) -> None:
+    def close(self, complete: bool, message: str = "", attrs: dict | None = None) -> None:
         """Flush, close, and record whether the run finished (``complete``), why not, and any
         extra file attributes (grid size, summary numbers)."""
         self.file.flush()
@@ -139,7 +138,7 @@ def _flushed_frames(data: dict[str, np.ndarray]) -> int:
 
 
 def trajectory_series(n_nodes: int, batch: int, n_act: int, metrics: list[str],
-                      fluid_shape: Optional[tuple[int, int]] = None) -> dict[str, tuple[tuple, str]]:
+                      fluid_shape: tuple[int, int] | None = None) -> dict[str, tuple[tuple, str]]:
     """The per-frame series a simulation writes (see the module docstring)."""
     series: dict[str, tuple[tuple, str]] = {
         "solid/q": ((batch, n_nodes, 2), "f8"),

@@ -8,14 +8,6 @@ from fishsim.fluid.hydronet.pool import PoolConfig
 from fishsim.fluid.hydronet.unet import NetConfig
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
-
-
 @pytest.fixture
 def grid() -> Grid:
     return Grid(16, 32, 2.5e-3)

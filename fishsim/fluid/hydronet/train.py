@@ -23,7 +23,7 @@ import os
 import signal
 import threading
 import time
-from dataclasses import asdict, dataclass, field, fields, is_dataclass, replace
+from dataclasses import asdict, dataclass, field, fields, is_dataclass
 from pathlib import Path
 
 import numpy as np
@@ -31,7 +31,7 @@ import torch
 import torch.distributed as dist
 from torch import nn
 
-from fishsim.fluid.base import Boundary, FluidParams, FluidState
+from fishsim.fluid.base import Boundary, FluidParams, FluidState, rest_state
 from fishsim.fluid.hydronet.loss import LossConfig, LossTerms, hydronet_loss
 from fishsim.fluid.hydronet.pool import PoolConfig, ScenePool, advance, random_scene, scene_boundaries
 from fishsim.fluid.hydronet.unet import HydroNet, NetConfig
@@ -166,8 +166,7 @@ def validate(model: HydroNet, cfg: TrainConfig, seed: int = 12345) -> float:
     grid, dev = cfg.pool.grid, next(model.parameters()).device
     params = FluidParams(torch.tensor([s.rho for s in scenes], device=dev, dtype=torch.float32),
                          torch.tensor([s.mu for s in scenes], device=dev, dtype=torch.float32), cfg.pool.h)
-    state = FluidState(torch.zeros(len(scenes), 1, grid.H + 1, grid.W + 1, device=dev, dtype=torch.float32),
-                       torch.zeros(len(scenes), 1, grid.H, grid.W, device=dev, dtype=torch.float32))
+    state = rest_state(grid, len(scenes), dev)
     was_training, losses = model.training, []
     model.eval()
     for k in range(cfg.val_steps):

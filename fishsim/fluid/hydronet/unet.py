@@ -38,7 +38,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from fishsim.fluid.base import Boundary, FluidParams, FluidState, Grid
+from fishsim.fluid.base import Boundary, FluidParams, FluidState, Grid, rest_state
 from fishsim.fluid.grid import curl
 from fishsim.fluid.hydronet.scales import scales_of
 
@@ -200,11 +200,7 @@ class HydroNetFluid:
 
     def initial_state(self, batch: int, device=None, dtype=torch.float32) -> FluidState:
         """Fluid at rest: a = 0 [B,1,H+1,W+1], p = 0 [B,1,H,W]."""
-        g = self.grid
-        return FluidState(
-            a=torch.zeros(batch, 1, g.H + 1, g.W + 1, device=device, dtype=dtype),
-            p=torch.zeros(batch, 1, g.H, g.W, device=device, dtype=dtype),
-        )
+        return rest_state(self.grid, batch, device, dtype)
 
     def step(self, state: FluidState, boundary: Boundary, params: FluidParams) -> FluidState:
         """(a_t, p_t, b, v_d) -> (a_t+1, p_t+1), one network evaluation."""
