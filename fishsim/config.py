@@ -143,7 +143,7 @@ class FluidConfig:
     bf16: hydronet only, run the U-Net trunk in bfloat16 (faster on CPUs with AMX and on GPUs).
     """
 
-    model: str = "numerical"
+    model: str = "hydronet"
     rho: float = 50.0
     mu: float = 1.25e-4
     H: int = 100
