@@ -51,14 +51,22 @@ def _flatten(d: dict, prefix: str = ""):
 
 
 def main(names: list[str]) -> None:
+    """Run the named suites (default: all). Naming suites updates just those in an existing
+    results.json. Every suite starts at the machine's default torch thread count (one suite
+    changing it does not leak into the next)."""
+    path = HERE / "results.json"
     results = {"machine": machine(), "suites": {}}
+    if names and path.exists():
+        results["suites"] = json.loads(path.read_text())["suites"]
+    threads = torch.get_num_threads()
     for name in names or SUITES:
         module = importlib.import_module(f"benchmarks.{name}")
         print(f"== {name}", flush=True)
+        torch.set_num_threads(threads)
         t0 = time.perf_counter()
         results["suites"][name] = module.run()
         print(json.dumps(results["suites"][name], indent=1), f"({time.perf_counter() - t0:.0f} s)", flush=True)
-    (HERE / "results.json").write_text(json.dumps(results, indent=1))
+    path.write_text(json.dumps(results, indent=1))
     (HERE / "results.md").write_text(to_markdown(results))
     print(f"wrote {HERE / 'results.json'} and {HERE / 'results.md'}")
 
