@@ -13,6 +13,7 @@ import torch
 
 from fishsim.commands.simulate import build_episode
 from fishsim.config import load_config
+from fishsim.errors import SimulationBlowUp
 from fishsim.rollout import SwimParams, rollout
 
 FRAMES = int(os.environ.get("FISHSIM_BENCH_FRAMES", "300"))
@@ -91,12 +92,21 @@ def distance_sweep(fluid: str, frequencies=(3.0, 4.0, 5.0, 6.0, 7.0), frames: in
     return {f"{f:g} Hz": dist for f, dist in zip(frequencies, d)}
 
 
+def _recorded(fn, *args):
+    """fn(*args), or what went wrong if the simulation blew up (a result worth reporting)."""
+    try:
+        return fn(*args)
+    except SimulationBlowUp as err:
+        return {"blew_up": str(err)}
+
+
 def run() -> dict:
     warnings.simplefilter("ignore", RuntimeWarning)
     out = {}
     for fluid in FLUIDS:
-        out[fluid] = {"B=1": episode_timing(fluid, 1, FRAMES), "B=16": episode_timing(fluid, 16, FRAMES_B16),
-                      "distance_1.2s_m": distance_sweep(fluid)}
+        out[fluid] = {"B=1": _recorded(episode_timing, fluid, 1, FRAMES),
+                      "B=16": _recorded(episode_timing, fluid, 16, FRAMES_B16),
+                      "distance_1.2s_m": _recorded(distance_sweep, fluid)}
     return out
 
 

@@ -66,8 +66,8 @@ def main(names: list[str]) -> None:
         t0 = time.perf_counter()
         results["suites"][name] = module.run()
         print(json.dumps(results["suites"][name], indent=1), f"({time.perf_counter() - t0:.0f} s)", flush=True)
-    path.write_text(json.dumps(results, indent=1))
-    (HERE / "results.md").write_text(to_markdown(results))
+        path.write_text(json.dumps(results, indent=1))  # after every suite: a later failure keeps these
+        (HERE / "results.md").write_text(to_markdown(results))
     print(f"wrote {HERE / 'results.json'} and {HERE / 'results.md'}")
 
 
