@@ -22,7 +22,7 @@ def shipped() -> HydroNet:
 def test_metadata_describes_the_model(shipped):
     meta = json.loads(SHIPPED_HYDRONET.with_suffix(".json").read_text())
     assert meta["net"] == {k: getattr(shipped.cfg, k) for k in meta["net"]}
-    for key in ("command", "train_config", "iterations", "wall_time_s", "final_losses", "evaluation"):
+    for key in ("commands", "train_config", "iterations", "wall_time_s", "final_losses", "evaluation"):
         assert key in meta, key
     assert SHIPPED_HYDRONET.stat().st_size < 20e6
 

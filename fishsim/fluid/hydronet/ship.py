@@ -3,7 +3,8 @@
 * ``fishsim/assets/hydronet.pt``: the weights of RUN_DIR/best.pt (``export_model``), the model
   ``fishsim simulate fluid=hydronet`` uses by default;
 * ``fishsim/assets/hydronet.json``: its metadata: net and training config, the commands that
-  produced it (LINEAGE.json: earlier runs it was initialised from), iterations, wall time, the
+  produced it (LINEAGE.json: every training command in order, with the iterations and wall time
+  of runs before RUN_DIR, which it was initialised from), iterations, wall time, the
   final training losses (log.csv), and the evaluation against the numerical solver
   (VALIDATE_DIR/metrics.json, written by ``fishsim validate model_file=RUN_DIR/best.pt``);
 * ``training/hydronet/ckpt.pt`` + ``log.csv``: the compact checkpoint to continue training from
@@ -49,7 +50,7 @@ def ship(run_dir: Path, validate_dir: Path, lineage: list) -> dict:
         "net": best["net"],
         "train_config": ckpt["config"],
         "lineage": lineage,
-        "command": f"fishsim train-hydronet out_dir={run_dir}" + (" init_from=<previous run>/ckpt.pt" if lineage else ""),
+        "commands": [r["command"] for r in lineage],
         "iterations": int(best["iteration"]) + earlier,
         "iterations_this_run_at_best": int(best["iteration"]),
         "iterations_this_run_total": int(ckpt["iteration"]),
@@ -63,7 +64,7 @@ def ship(run_dir: Path, validate_dir: Path, lineage: list) -> dict:
         "date": time.strftime("%Y-%m-%d"),
         "continue": f"mkdir -p runs/hydronet && cp {TRAINING}/ckpt.pt runs/hydronet/ && "
                     "fishsim train-hydronet out_dir=runs/hydronet resume=true",
-        "shipped_by": f"python -m fishsim.fluid.hydronet.ship {run_dir} {validate_dir} <lineage.json>",
+        "shipped_by": f"python -m fishsim.fluid.hydronet.ship {run_dir} {validate_dir} runs/lineage.json",
     }
     export_model(run_dir / "best.pt", SHIPPED_HYDRONET, meta)
     compact_checkpoint(run_dir / "ckpt.pt", TRAINING / "ckpt.pt")
