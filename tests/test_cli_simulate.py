@@ -72,10 +72,11 @@ def _tiny_hydronet(path):
     from fishsim.fluid.hydronet import HydroNet, NetConfig
     from fishsim.fluid.hydronet.train import atomic_save
 
+    from dataclasses import asdict
+
     torch.manual_seed(0)
     net = HydroNet(NetConfig(hidden=4, depth=2))
-    atomic_save({"model": net.state_dict(), "net": {"hidden": 4, "depth": 2, "bound_a": 400.0,
-                 "bound_p": 64.0, "condition": False}, "iteration": 0, "val": 0.0}, path)
+    atomic_save({"model": net.state_dict(), "net": asdict(net.cfg), "iteration": 0, "val": 0.0}, path)
     return path
 
 

@@ -8,6 +8,7 @@ vorticity of both models side by side (comparison.png/.svg).
 from __future__ import annotations
 
 import json
+import re
 from dataclasses import asdict, dataclass, field
 
 from rich.console import Console
@@ -84,7 +85,7 @@ def _print(metrics: dict, summary: dict) -> None:
     for label in COLUMNS.values():
         table.add_column(label, justify="right")
     for name, m in metrics.items():
-        m = {k.replace(f"rollout{k.split('_')[0][7:]}_", "rollout_"): v for k, v in m.items()}
+        m = {re.sub(r"^rollout\d+_", "rollout_", k): v for k, v in m.items()}
         table.add_row(name, *(f"{m[k]:.3g}" for k in COLUMNS))
     Console(width=max(Console().width, 150)).print(table)
     Console().print("  ".join(f"{k} {v:.3g}" for k, v in summary.items()))
