@@ -25,6 +25,7 @@ from torch import Tensor
 from torch.utils.checkpoint import checkpoint
 
 from fishsim.coupling import CouplingConfig, fluid_to_solid, solid_to_fluid
+from fishsim.coupling.added_mass import stabilising_force
 from fishsim.errors import SimulationBlowUp
 from fishsim.fluid.base import Boundary, FluidModel, FluidParams, FluidState
 from fishsim.fluid.grid import union
@@ -38,11 +39,14 @@ class SwimState:
 
     q, qdot: world-frame node positions (m) and velocities (m/s), [B, N, 2], float64.
     fluid: the fluid state (None in vacuum).
+    qdot_prev: the previous frame's velocities (the added-mass stabilisation's a_t; None: qdot,
+        a start from rest).
     """
 
     q: Tensor
     qdot: Tensor
     fluid: FluidState | None = None
+    qdot_prev: Tensor | None = None
 
 
 @dataclass(frozen=True)
@@ -63,7 +67,8 @@ class SwimParams:
 class FrameOutput:
     """What one frame produced besides the new state (for outputs and objectives).
 
-    f_ext: [B, N, 2] hydrodynamic nodal forces (N per unit depth). contraction: [B, n_act].
+    f_ext: [B, N, 2] hydrodynamic nodal forces (N per unit depth; without the added-mass
+        stabilisation's M^ a_t, which is a numerical device). contraction: [B, n_act].
     boundary: the combined fish + wall boundary seen by the fluid (None in vacuum).
     """
 
@@ -89,7 +94,8 @@ class PhaseTimer:
 class Swimmer:
     """Fish (PD solid) + fluid model + coupling layer + tank walls: the coupled system.
 
-    solid: SolidModel of the fish mesh.  fluid: a FluidModel or None (vacuum).
+    solid: SolidModel of the fish mesh; in a fluid, built with ``added_mass_ratio=`` the
+        coupling's (fishsim.coupling.added_mass), whose force M^ a_t the frame adds to f_ext.  fluid: a FluidModel or None (vacuum).
     coupling: CouplingConfig.  walls: the tank's Boundary [1, ., H, W] (mask 1 in the walls).
     fluid_dtype: dtype of the fluid fields (float32 for HydroNet and the numerical solver).
     """
@@ -99,6 +105,7 @@ class Swimmer:
         self.solid, self.fluid, self.coupling = solid, fluid, coupling
         self.walls, self.fluid_dtype = walls, fluid_dtype
         self.surface = torch.as_tensor(solid.mesh.surface, dtype=torch.long)
+        self.added_mass = torch.as_tensor(solid.added_mass)
         self.timer = PhaseTimer()
 
     @property
@@ -114,7 +121,8 @@ class Swimmer:
         fluid = None
         if self.fluid is not None:
             fluid = self.fluid.initial_state(B, device=q.device, dtype=self.fluid_dtype)
-        return SwimState(q=q, qdot=torch.zeros_like(q), fluid=fluid)
+        qdot = torch.zeros_like(q)
+        return SwimState(q=q, qdot=qdot, fluid=fluid, qdot_prev=None if fluid is None else qdot)
 
     def boundary(self, state: SwimState) -> Boundary:
         """Step 1: the fish's soft mask and velocity, united with the tank walls."""
@@ -125,6 +133,12 @@ class Swimmer:
         B = state.q.shape[0]
         walls = Boundary(self.walls.mask.expand(B, -1, -1, -1), self.walls.velocity.expand(B, -1, -1, -1))
         return union(fish, walls)
+
+    def added_mass_force(self, state: SwimState) -> Tensor | float:
+        """M^ a_t, the added-mass stabilisation's share of the force (0 without an estimate)."""
+        if state.qdot_prev is None or not self.solid.added_mass.any():
+            return 0.0
+        return stabilising_force(self.added_mass.to(state.q), state.qdot, state.qdot_prev, self.h)
 
     def frame(self, state: SwimState, params: SwimParams, t: int) -> tuple[SwimState, FrameOutput]:
         """Advance one frame (module docstring); ``t`` is the index of the frame being left."""
@@ -142,10 +156,11 @@ class Swimmer:
                                    self.coupling, step=t + 1)
             t0 = clock.add("coupling", t0, dev)
         contraction = params.controller.contraction(self.solid, (t + 1) * self.h)
-        q, qdot = pd_step(self.solid, state.q, state.qdot, contraction, f_ext, params.E)
+        q, qdot = pd_step(self.solid, state.q, state.qdot, contraction, f_ext + self.added_mass_force(state),
+                          params.E)
         require_finite(solid_positions_q=q, solid_velocities_qdot=qdot)
         clock.add("solid", t0, dev)
-        return SwimState(q, qdot, fluid), FrameOutput(f_ext, contraction, boundary)
+        return SwimState(q, qdot, fluid, state.qdot), FrameOutput(f_ext, contraction, boundary)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -194,14 +209,17 @@ def require_finite(**fields: Tensor) -> None:
 
 
 def _flatten(state: SwimState) -> tuple[Tensor, ...]:
-    return (state.q, state.qdot) if state.fluid is None else (state.q, state.qdot, state.fluid.a, state.fluid.p)
+    if state.fluid is None:
+        return state.q, state.qdot
+    qdot_prev = state.qdot if state.qdot_prev is None else state.qdot_prev
+    return state.q, state.qdot, qdot_prev, state.fluid.a, state.fluid.p
 
 
 def _unflatten(tensors: tuple[Tensor, ...]) -> SwimState:
     if len(tensors) == 2:
         return SwimState(*tensors)
-    q, qdot, a, p = tensors
-    return SwimState(q, qdot, FluidState(a=a, p=p))
+    q, qdot, qdot_prev, a, p = tensors
+    return SwimState(q, qdot, FluidState(a=a, p=p), qdot_prev)
 
 
 def rollout(swimmer: Swimmer, state: SwimState, params: SwimParams, n_frames: int,

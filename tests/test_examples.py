@@ -21,7 +21,7 @@ def test_gradient_example_matches_finite_differences():
     """The example's d(distance)/d(frequency) agrees with central differences of its distance."""
     main = _load("gradient_of_distance").main
     out = main(SMALL)
-    f0, eps = 5.0, 0.05
+    f0, eps = 5.0, 0.02  # measured: FD 1.9337e-5 vs AD 1.9338e-5 m/Hz; eps = 0.05 lands on float32 noise (2 % off)
     hi = main(SMALL + [f"controller.frequency={f0 + eps}"])["distance_m"][0]
     lo = main(SMALL + [f"controller.frequency={f0 - eps}"])["distance_m"][0]
     assert out["d_distance_d_frequency_m_per_Hz"][0] == pytest.approx((hi - lo) / (2 * eps), rel=2e-2)

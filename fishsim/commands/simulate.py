@@ -41,8 +41,9 @@ def build_episode(cfg: SimulateConfig) -> Episode:
     if device.type == "cuda" and not torch.cuda.is_available():
         raise ConfigError("device=cuda but torch sees no CUDA device (install a CUDA build of torch: see README)")
     mesh = build_fish_mesh(cfg.fish)
-    solid = SolidModel(mesh, cfg.solid.material, h=cfg.h, options=cfg.solid.pd)
     fluid = make_fluid(cfg.fluid, device)
+    solid = SolidModel(mesh, cfg.solid.material, h=cfg.h, options=cfg.solid.pd,
+                       added_mass_ratio=cfg.coupling.added_mass_ratio if fluid is not None else 0.0)
     walls = make_tank(cfg.fluid, device) if fluid is not None else None
     swimmer = Swimmer(solid, fluid, cfg.coupling, walls)
     params = batch_params(cfg, mesh.length, device)

@@ -3,7 +3,7 @@
 solid -> fluid: ``soft_mask`` (b), ``boundary_velocity`` (v_d), on a band of cells around the body.
 fluid -> solid: ``ibm_force`` (pressure forces on surface nodes), ``fext_from_surface`` (modes,
 x-axis fixing, burn-in).  ``solid_to_fluid`` / ``fluid_to_solid`` do each direction in one call
-from a ``CouplingConfig``.
+from a ``CouplingConfig``.  added_mass.py: the stabilisation of the explicit coupling.
 """
 
 from fishsim.coupling.band import SurfaceBand, band_margin, surface_band

@@ -56,6 +56,9 @@ class CouplingConfig:
     fix_lateral: drop the y force ("x-axis fixed", paper Sec. 4.4).
     n_burn_in: forces are scaled by min(1, t / n_burn_in) (paper Sec. 3.4); our default 20
         steps = 0.2 s, the controller's activation ramp t_a.
+    added_mass_ratio: the added-mass stabilisation's M^ / M (fishsim.coupling.added_mass);
+        0 switches it off (plain explicit coupling, unstable for this light fish at the
+        calibrated stroke).  Stable for (M_a - M) / 2 <= M^ <= M + M_a in every mode.
     k_nearest: surface elements kept per cell; on a bent 250-node fish K = 12 reproduces the
         all-segment mask and v_d to 1e-15 (K = 8: 5e-10, K = 4: 0.1 m/s in v_d).
     """
@@ -72,6 +75,7 @@ class CouplingConfig:
     force_mode: str = PER_NODE
     fix_lateral: bool = False
     n_burn_in: int = 20
+    added_mass_ratio: float = 1.0
     k_nearest: int = 12
 
     def __post_init__(self):
@@ -81,6 +85,8 @@ class CouplingConfig:
         for name, allowed in _CHOICES.items():
             if getattr(self, name) not in allowed:
                 raise ConfigError(f"coupling.{name} must be one of {allowed}, got {getattr(self, name)!r}")
+        if not self.added_mass_ratio >= 0:
+            raise ConfigError(f"coupling.added_mass_ratio must be >= 0, got {self.added_mass_ratio}")
         if self.n_burn_in < 0 or self.k_nearest < 1:
             raise ConfigError("coupling.n_burn_in must be >= 0 and coupling.k_nearest >= 1")
 

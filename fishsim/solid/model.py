@@ -145,20 +145,29 @@ class SolidModel:
     """Mesh, material, time step and precomputed operators of the PD solid (read-only after
     construction, except for the factorisation cache `factors` and the diagnostics `stats`).
 
-    fem: FemQuantities of the mesh.  muscles: [n_act] actuated element indices.
-    muscle_weight: [n_act] k_m area (Pa m^2).  mass_h2: [N] m_i / h^2.
+    fem: FemQuantities of the mesh (fem.mass: the fish's own lumped masses).
+    added_mass: [N] added_mass_ratio * fem.mass, extra nodal mass (kg per unit depth) of the
+        integrator: the coupling's added-mass stabilisation (fishsim.coupling.added_mass).
+    mass: [N] fem.mass + added_mass, the mass of the implicit-Euler step.
+    muscles: [n_act] actuated element indices.
+    muscle_weight: [n_act] k_m area (Pa m^2).  mass_h2: [N] mass_i / h^2.
     K0: [N, N] sparse, dA/dE.  K_muscle: [N, N] sparse.
     """
 
     def __init__(self, mesh: FishMesh, material: SolidMaterial = SolidMaterial(),
-                 h: float = 0.01, options: PDOptions = PDOptions()):
+                 h: float = 0.01, options: PDOptions = PDOptions(),
+                 added_mass_ratio: float = 0.0):
         if not h > 0:
             raise ConfigError(f"time step h must be positive, got {h}")
         self.mesh, self.material, self.h, self.options = mesh, material, float(h), options
         self.fem: FemQuantities = fem_quantities(mesh, material.density)
         self.muscles = np.asarray(mesh.actuated, np.int64)
         self.muscle_weight = material.muscle_stiffness * self.fem.area[self.muscles]
-        self.mass_h2 = self.fem.mass / self.h**2
+        if not added_mass_ratio >= 0:
+            raise ConfigError(f"added_mass_ratio must be >= 0, got {added_mass_ratio}")
+        self.added_mass = added_mass_ratio * self.fem.mass
+        self.mass = self.fem.mass + self.added_mass
+        self.mass_h2 = self.mass / self.h**2
         self.K0, self.K_muscle = self._stiffness_parts()
         self.stats = SolverStats()
         self.factors: dict[float, object] = {}   # E -> factorisation (preconditioner.py)

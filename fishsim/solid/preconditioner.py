@@ -62,7 +62,7 @@ def best_fit_rotation(model: SolidModel, X: np.ndarray) -> tuple[np.ndarray, np.
     """(cos, sin) [B] of the rotation R_b minimising sum_i m_i |R (X_i - Xbar) - (x_i - xbar)|^2
     for the current positions X [N, 2B]: the angle of the conformal part of
     sum_i m_i (x_i - xbar)(X_i - Xbar)^T."""
-    m = model.fem.mass
+    m = model.mass
     rest = np.asarray(model.mesh.points)
     Xc = (rest - m @ rest / m.sum()) * m[:, None]              # mass-weighted, centred rest shape
     C = Xc.T @ X                                                 # [2 (j), 2B]: sum_i m_i X_ij x_ia

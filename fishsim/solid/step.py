@@ -33,7 +33,7 @@ def _inertial_target(model: SolidModel, q: np.ndarray, qdot: np.ndarray, f_ext: 
     """y = q + h qdot + h^2 M^-1 f_ext, all [B, N, 2] (m)."""
     h = model.h
     y = q + h * qdot
-    return y if f_ext is None else y + h * h * f_ext / model.fem.mass[None, :, None]
+    return y if f_ext is None else y + h * h * f_ext / model.mass[None, :, None]
 
 
 def forward_step(model: SolidModel, q, qdot, contraction, f_ext, E) -> tuple[np.ndarray, np.ndarray, ForwardInfo]:
@@ -57,7 +57,7 @@ def adjoint_gradients(model: SolidModel, q_next, contraction, E, grad_q_next, gr
     grad_u = -(dZ[0, model.muscles, 0] * dS0 + dZ[0, model.muscles, 1] * dS1).T
     grad_E = -(dZ * elastic.stress_per_E(model, p)).sum(axis=(0, 1, 2))
     lam = elastic.from_columns(lam)
-    mass = model.fem.mass[None, :, None]
+    mass = model.mass[None, :, None]
     return mass / h**2 * lam - grad_qdot_next / h, mass / h * lam, grad_u, lam, grad_E
 
 
