@@ -8,8 +8,9 @@ feels a pressure force -M_a a (added mass M_a), so per mode the explicit scheme 
 
 which grows by M_a / M every frame when M_a > M: the classic added-mass instability of light
 bodies.  Measured on the default fish (M = 0.23 kg/m, rho_s = 100 kg/m^3) in rho_f = 50 kg/m^3
-(``runs``-free recipe: prescribe a rigid 2.5 Hz, 5 mm oscillation, fit F = -M_a a - c v):
-heave M_a = 2.0 M with the numerical fluid, 1.6 M with HydroNet; surge 0.07 M and 0.03 M.
+(a rigid 2.5 Hz, 5 mm oscillation, least-squares fit F = -M_a a - c v of the IBM force;
+tests/test_rollout.py::test_added_mass_of_the_fish_lies_in_the_stable_window): heave
+M_a = 2.0 M with the numerical fluid, 1.6 M with HydroNet; surge 0.07 M and 0.03 M.
 Unstabilised, the lateral force alternates sign every frame and the numerical fluid's run blows
 up after ~1 s at the calibrated stroke (frame 103 at 5 Hz).
 
