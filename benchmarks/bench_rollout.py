@@ -1,13 +1,20 @@
 """The paper's Table 1 on this machine: a 300-frame episode on the 100 x 300 grid with the default
 mesh, B = 1 (warm-up, forward with its solid / fluid / coupling split, backward, peak memory) and
-B = 16 (time per fish and frame, over ``FISHSIM_BENCH_FRAMES_B16`` = 30 frames), for each fluid model; plus the distance travelled in 1.2 s at 3-7 Hz
-(the paper's Fig. 4 in preview).  ``FISHSIM_BENCH_FRAMES`` shortens the episode for a quick look."""
+B = 16 (time per fish and frame, over ``FISHSIM_BENCH_FRAMES_B16`` = 30 frames), for each fluid
+model; plus the distance travelled in 1.2 s at 3-7 Hz (the paper's Fig. 4 in preview), and the
+peak memory of a ``FISHSIM_BENCH_FRAMES_LONG`` = 500-frame HydroNet episode (checkpointed every 10
+frames).  ``FISHSIM_BENCH_FRAMES`` shortens the episode for a quick look.
+
+Each measurement runs in a fresh process: memory freed by an earlier one stays resident in the
+allocator, so a shared process would report the largest earlier peak instead of its own."""
 
 from __future__ import annotations
 
+import multiprocessing
 import os
 import time
 import warnings
+from concurrent.futures import ProcessPoolExecutor
 
 import torch
 
@@ -18,6 +25,7 @@ from fishsim.rollout import SwimParams, rollout
 
 FRAMES = int(os.environ.get("FISHSIM_BENCH_FRAMES", "300"))
 FRAMES_B16 = int(os.environ.get("FISHSIM_BENCH_FRAMES_B16", "30"))  # B = 16: per-fish cost per frame
+FRAMES_LONG = int(os.environ.get("FISHSIM_BENCH_FRAMES_LONG", "500"))  # peak memory of a long episode
 FLUIDS = ["hydronet", "numerical"]
 
 
@@ -92,21 +100,28 @@ def distance_sweep(fluid: str, frequencies=(3.0, 4.0, 5.0, 6.0, 7.0), frames: in
     return {f"{f:g} Hz": dist for f, dist in zip(frequencies, d)}
 
 
-def _recorded(fn, *args):
-    """fn(*args), or what went wrong if the simulation blew up (a result worth reporting)."""
+def _attempt(fn, *args):
+    warnings.simplefilter("ignore", RuntimeWarning)
     try:
         return fn(*args)
     except SimulationBlowUp as err:
         return {"blew_up": str(err)}
 
 
+def _recorded(fn, *args):
+    """fn(*args) in a fresh process, or what went wrong if the simulation blew up (a result worth
+    reporting)."""
+    with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as pool:
+        return pool.submit(_attempt, fn, *args).result()
+
+
 def run() -> dict:
-    warnings.simplefilter("ignore", RuntimeWarning)
     out = {}
     for fluid in FLUIDS:
         out[fluid] = {"B=1": _recorded(episode_timing, fluid, 1, FRAMES),
                       "B=16": _recorded(episode_timing, fluid, 16, FRAMES_B16),
                       "distance_1.2s_m": _recorded(distance_sweep, fluid)}
+    out["hydronet"][f"B=1, {FRAMES_LONG} frames"] = _recorded(episode_timing, "hydronet", 1, FRAMES_LONG)
     return out
 
 

@@ -93,10 +93,12 @@ class TrainConfig:
         _check(p.size >= self.batch_size, f"pool.size ({p.size}) must be >= batch_size ({self.batch_size})")
         _check(p.H >= 16 and p.W >= 16, f"pool.H x pool.W must be at least 16 x 16 (got {p.H} x {p.W})")
         _check(p.dx > 0 and p.h > 0 and p.max_speed > 0, "pool.dx, pool.h and pool.max_speed must be > 0")
-        for name in ("rho", "mu", "sigma", "fish_length", "fish_freq", "fish_amp", "fish_wavelength",
+        for name in ("rho", "mu", "sigma", "fish_length", "fish_freq", "fish_wavelength",
                      "obstacle_cells", "wall"):
             lo, hi = getattr(p, name)
             _check(0 < lo <= hi, f"pool.{name} must be a range 0 < low <= high, got [{lo}, {hi}]")
+        lo, hi = p.fish_amp  # 0: a fish that holds still (its body is still a boundary to learn)
+        _check(0 <= lo <= hi, f"pool.fish_amp must be a range 0 <= low <= high, got [{lo}, {hi}]")
         _check(self.net.condition or (p.rho[0] == p.rho[1] and p.mu[0] == p.mu[1]),
                "a fluid range (pool.rho / pool.mu low < high) needs net.condition=true")
 
