@@ -108,13 +108,14 @@ def _threads(n: int):
         torch.set_num_threads(before)
 
 
-# The Re = 100 cylinder: the CI-reduced size of tests/fluid/test_validation.py and a larger one
-# (20 cells per D, 20 D x 16 D: 3.5 min single-threaded on the 2-core CPU next to a busy process;
-# 16 cells per D on 20 D x 12 D took 2 min).
+# The Re = 100 cylinder: the CI-reduced size of tests/fluid/test_validation.py and a larger one,
+# 20 cells per D on 24 D x 32 D (blockage 1/32; 20 min single-threaded next to two busy processes).
+# Measured on the way there (20 cells per D, h = 0.05): 20 D x 16 D St 0.176, C_D 1.50;
+# 20 D x 24 D St 0.176, C_D 1.50; 24 D x 32 D (cylinder 6 D from the inflow) St 0.173, C_D 1.46.
 CYLINDER_CI = {"cells_per_d": 10, "length": 16.0, "width": 8.0, "x_centre": 5.0, "t_end": 120.0, "window": 50.0,
                "h": 0.1}
-CYLINDER_LARGE = {"cells_per_d": 20, "length": 20.0, "width": 16.0, "x_centre": 5.0, "t_end": 150.0, "window": 60.0,
-                  "h": 0.1}
+CYLINDER_LARGE = {"cells_per_d": 20, "length": 24.0, "width": 32.0, "x_centre": 6.0, "t_end": 180.0, "window": 60.0,
+                  "h": 0.05}
 
 
 def _cylinder(kw: dict) -> dict:

@@ -103,9 +103,9 @@ def pd_solve(model: SolidModel, Y: np.ndarray, X0: np.ndarray, contraction: np.n
     opts = model.options
     objective = Objective(model, Y, contraction, E)
     if opts.preconditioner == "lagged_newton":
-        precondition = LaggedNewton(model, Y, contraction, E)
+        precondition = LaggedNewton(model, X0, contraction, E)
     else:
-        precondition = Preconditioner(model, E, Y, opts.preconditioner)
+        precondition = Preconditioner(model, E, X0, opts.preconditioner)
     B = Y.shape[1] // 2
     X = X0.copy()
     phi, g = objective(X)
