@@ -112,8 +112,7 @@ def _threads(n: int):
 # 20 cells per D on 24 D x 32 D (blockage 1/32; 20 min single-threaded next to two busy processes).
 # Measured on the way there (20 cells per D, h = 0.05): 20 D x 16 D St 0.176, C_D 1.50;
 # 20 D x 24 D St 0.176, C_D 1.50; 24 D x 32 D (cylinder 6 D from the inflow) St 0.173, C_D 1.46.
-CYLINDER_CI = {"cells_per_d": 10, "length": 16.0, "width": 8.0, "x_centre": 5.0, "t_end": 120.0, "window": 50.0,
-               "h": 0.1}
+CYLINDER_CI = cases.CYLINDER_CI
 CYLINDER_LARGE = {"cells_per_d": 20, "length": 24.0, "width": 32.0, "x_centre": 6.0, "t_end": 180.0, "window": 60.0,
                   "h": 0.05}
 
@@ -124,7 +123,7 @@ def _cylinder(kw: dict) -> dict:
     n = kw["cells_per_d"]
     return {
         "resolution": f"{n} cells/D, {kw['length']:g} D x {kw['width']:g} D "
-        f"({round(kw['width'] * n)}x{round(kw['length'] * n)}), h = {kw['h']:g} D/U, "
+        f"({round(kw['width'] * n)}x{round(kw['length'] * n)}), h = {kw.get('h', 0.05):g} D/U, "
         f"t = {kw['t_end']:g} D/U, last {kw['window']:g}",
         "strouhal": st,
         "mean_cd": cd,
