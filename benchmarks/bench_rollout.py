@@ -3,7 +3,8 @@ mesh, B = 1 (warm-up, forward with its solid / fluid / coupling split, backward,
 B = 16 (time per fish and frame, over ``FISHSIM_BENCH_FRAMES_B16`` = 30 frames), for each fluid
 model; plus the distance travelled in 1.2 s at 3-7 Hz (the paper's Fig. 4 in preview), and the
 peak memory of a ``FISHSIM_BENCH_FRAMES_LONG`` = 500-frame HydroNet episode (checkpointed every 10
-frames).  ``FISHSIM_BENCH_FRAMES`` shortens the episode for a quick look.
+frames), and the HydroNet B = 1 episode with its bfloat16 trunk (``fluid.bf16=true``).
+``FISHSIM_BENCH_FRAMES`` shortens the episode for a quick look.
 
 Each measurement runs in a fresh process: memory freed by an earlier one stays resident in the
 allocator, so a shared process would report the largest earlier peak instead of its own."""
@@ -45,7 +46,7 @@ def _peak_mib() -> float:
 
 
 def _episode(fluid: str, batch: int, frequencies=None):
-    overrides = [f"fluid={fluid}"]
+    overrides = ["fluid=hydronet", "fluid.bf16=true"] if fluid == "hydronet-bf16" else [f"fluid={fluid}"]
     if frequencies is not None:
         overrides.append("batch.frequency=[" + ",".join(str(f) for f in frequencies) + "]")
     elif batch > 1:
@@ -122,6 +123,7 @@ def run() -> dict:
                       "B=16": _recorded(episode_timing, fluid, 16, FRAMES_B16),
                       "distance_1.2s_m": _recorded(distance_sweep, fluid)}
     out["hydronet"][f"B=1, {FRAMES_LONG} frames"] = _recorded(episode_timing, "hydronet", 1, FRAMES_LONG)
+    out["hydronet-bf16"] = {"B=1": _recorded(episode_timing, "hydronet-bf16", 1, FRAMES)}
     return out
 
 
