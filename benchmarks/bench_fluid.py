@@ -108,7 +108,7 @@ def _threads(n: int):
         torch.set_num_threads(before)
 
 
-# The Re = 100 cylinder: the CI-reduced size of tests/fluid/test_validation.py and a larger one,
+# The Re = 100 cylinder: the CI size of tests/fluid/test_validation.py (16 cells per D) and a larger one,
 # 20 cells per D on 24 D x 32 D (blockage 1/32; 20 min single-threaded next to two busy processes).
 # Measured on the way there (20 cells per D, h = 0.05): 20 D x 16 D St 0.176, C_D 1.50;
 # 20 D x 24 D St 0.176, C_D 1.50; 24 D x 32 D (cylinder 6 D from the inflow) St 0.173, C_D 1.46.

@@ -183,9 +183,10 @@ class CylinderWake(NamedTuple):
     lift_amplitude: float  # (max C_L - min C_L) / 2
 
 
-# The CI-sized cylinder (tests/fluid/test_validation.py, bench_fluid.validation): 10 cells per D on
-# 24 D x 32 D (blockage 1/32), cylinder 6 D from the inflow.
-CYLINDER_CI = {"cells_per_d": 10, "length": 24.0, "width": 32.0, "x_centre": 6.0, "t_end": 120.0, "window": 40.0}
+# The CI-sized cylinder (tests/fluid/test_validation.py, bench_fluid.validation): 16 cells per D on
+# 24 D x 32 D (blockage 1/32), cylinder 6 D from the inflow, h = 0.1 D/U.
+CYLINDER_CI = {"cells_per_d": 16, "length": 24.0, "width": 32.0, "x_centre": 6.0, "t_end": 120.0, "window": 40.0,
+               "h": 0.1}
 
 
 def cylinder_wake(
