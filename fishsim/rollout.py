@@ -94,8 +94,9 @@ class PhaseTimer:
 class Swimmer:
     """Fish (PD solid) + fluid model + coupling layer + tank walls: the coupled system.
 
-    solid: SolidModel of the fish mesh; in a fluid, built with ``added_mass_ratio=`` the
-        coupling's (fishsim.coupling.added_mass), whose force M^ a_t the frame adds to f_ext.  fluid: a FluidModel or None (vacuum).
+    solid: SolidModel of the fish mesh; in a fluid, built with the coupling's
+        ``added_mass_ratio`` (fishsim.coupling.added_mass), whose force M^ a_t each frame adds
+        to the fluid's.  fluid: a FluidModel or None (vacuum).
     coupling: CouplingConfig.  walls: the tank's Boundary [1, ., H, W] (mask 1 in the walls).
     fluid_dtype: dtype of the fluid fields (float32 for HydroNet and the numerical solver).
     """

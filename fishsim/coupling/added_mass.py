@@ -27,8 +27,8 @@ k h^2 / M in [1e-4, 1e5]), the spectral radius stays <= 1 for (M_a - M) / 2 <= M
 an M^ far above M + M_a (e.g. lumped on the light surface nodes, where tangential motion has no
 added mass) acts as negative damping.
 
-M^ = ratio * M node by node (``SolidModel(..., added_mass_ratio=)``; isotropic, so the PD matrices keep their per-axis structure and are
-still factorised once).  ratio = 1 sits inside the window for every measured mode of both fluids
+M^ = ratio * M node by node (``SolidModel(..., added_mass_ratio=)``; isotropic, so the PD
+matrices keep their per-axis structure and are still factorised once).  ratio = 1 sits inside the window for every measured mode of both fluids
 (heave: 0.5 <= M^/M <= 3.0 for the numerical fluid; surge: M^/M <= 1.07).
 """
 
