@@ -9,9 +9,9 @@ import torch
 
 from fishsim.commands.simulate import batch_params, build_episode
 from fishsim.config import load_config
+from fishsim.coupling import fluid_to_solid
 from fishsim.errors import SimulationBlowUp
 from fishsim.fluid.numerical import NumericalFluid
-from fishsim.coupling import fluid_to_solid
 from fishsim.rollout import Swimmer, SwimState, rollout
 
 SMALL = ["fish.edge_length=4e-3", "fluid.H=32", "fluid.W=96", "fluid.dx=6e-3", "origin=[0.2,0.096]",
@@ -88,7 +88,7 @@ def _episode(overrides, frames):
 
 
 def test_passive_fish_in_still_fluid_does_not_drift():
-    ep, s0, s1, m = _episode(["controller.amplitude=0", "origin=[0.15,0.08]"], 20)
+    _, s0, s1, m = _episode(["controller.amplitude=0", "origin=[0.15,0.08]"], 20)
     assert torch.allclose(s1.q, s0.q, atol=1e-9)
     assert m["thrust_x"].abs().max() < 1e-9 and m["force_y"].abs().max() < 1e-9
 
