@@ -106,7 +106,7 @@ class Swimmer:
         self.solid, self.fluid, self.coupling = solid, fluid, coupling
         self.walls, self.fluid_dtype = walls, fluid_dtype
         self.surface = torch.as_tensor(solid.mesh.surface, dtype=torch.long)
-        self.added_mass = torch.as_tensor(solid.added_mass)
+        self.added_mass = torch.as_tensor(solid.added_mass) if solid.added_mass.any() else None
         self.timer = PhaseTimer()
 
     @property
@@ -137,7 +137,7 @@ class Swimmer:
 
     def added_mass_force(self, state: SwimState) -> Tensor | float:
         """M^ a_t, the added-mass stabilisation's share of the force (0 without an estimate)."""
-        if state.qdot_prev is None or not self.solid.added_mass.any():
+        if state.qdot_prev is None or self.added_mass is None:
             return 0.0
         return stabilising_force(self.added_mass.to(state.q), state.qdot, state.qdot_prev, self.h)
 

@@ -29,22 +29,18 @@ def _np(t: torch.Tensor) -> np.ndarray:
     return t.detach().to("cpu", torch.float64).numpy()
 
 
-def _inertial_target(model: SolidModel, q: np.ndarray, qdot: np.ndarray, f_ext: np.ndarray) -> np.ndarray:
-    """y = q + h qdot + h^2 M^-1 f_ext, all [B, N, 2] (m)."""
-    h = model.h
-    y = q + h * qdot
-    return y if f_ext is None else y + h * h * f_ext / model.mass[None, :, None]
-
-
 def forward_step(model: SolidModel, q, qdot, contraction, f_ext, E) -> tuple[np.ndarray, np.ndarray, ForwardInfo]:
-    """numpy step: q, qdot, f_ext [B, N, 2] (or None), contraction [B, n_act], E [B] -> (q+, qdot+, info)."""
-    Y = elastic.to_columns(_inertial_target(model, q, qdot, f_ext))
-    # start from the free flight q + h qdot, not from Y: h^2 M^-1 f_ext moves single surface nodes
-    # by up to ~2 mm (an element) under the IBM's nodal forces, which the stiff body then undoes
-    X0 = Y if f_ext is None else elastic.to_columns(_inertial_target(model, q, qdot, None))
-    X, info = pd_solve(model, Y, X0, np.ascontiguousarray(contraction.T), E)
+    """numpy step: q, qdot, f_ext [B, N, 2] (or None), contraction [B, n_act], E [B] -> (q+, qdot+, info).
+
+    Target y = q + h qdot + h^2 M^-1 f_ext.  L-BFGS starts from the free flight q + h qdot, not
+    from y: h^2 M^-1 f_ext moves single surface nodes by up to ~2 mm (an element) under the IBM's
+    nodal forces, which the stiff body then undoes."""
+    h = model.h
+    free = q + h * qdot
+    y = free if f_ext is None else free + h * h * f_ext / model.mass[None, :, None]
+    X, info = pd_solve(model, elastic.to_columns(y), elastic.to_columns(free), np.ascontiguousarray(contraction.T), E)
     q_next = elastic.from_columns(X)
-    return q_next, (q_next - q) / model.h, info
+    return q_next, (q_next - q) / h, info
 
 
 def adjoint_gradients(model: SolidModel, q_next, contraction, E, grad_q_next, grad_qdot_next):
