@@ -67,12 +67,12 @@ def test_simulate_bad_config_exit_code_2(tmp_path):
 
 def _tiny_hydronet(path):
     """An (untrained) HydroNet saved the way train-hydronet saves best.pt."""
+    from dataclasses import asdict
+
     import torch
 
     from fishsim.fluid.hydronet import HydroNet, NetConfig
     from fishsim.fluid.hydronet.train import atomic_save
-
-    from dataclasses import asdict
 
     torch.manual_seed(0)
     net = HydroNet(NetConfig(hidden=4, depth=2))

@@ -78,8 +78,8 @@ def test_distance_gradient_matches_finite_differences(fluid, tiny_model):
         assert abs(g.item() - fd) <= 1e-3 * abs(fd) + 1e-14, (name, g.item(), fd)
 
 
-def _episode(overrides, frames):
-    cfg = load_config("simulate", SMALL + ["fluid=numerical", *overrides])
+def _episode(overrides, frames, base=SMALL):
+    cfg = load_config("simulate", [*base, "fluid=numerical", *overrides])
     ep = build_episode(cfg)
     state = ep.swimmer.initial_state(ep.params, ep.origin)
     with torch.no_grad():
@@ -140,11 +140,7 @@ def test_checkpointed_gradient_equals_plain_backprop():
 def _lateral_force(ratio, frames):
     """Total lateral fluid force [frames] on the default fish at 7 Hz and the calibrated stroke,
     paper tank (100 x 300, 2.5 mm), numerical fluid, with the added-mass ratio given."""
-    cfg = load_config("simulate", ["fluid=numerical", "controller.frequency=7",
-                                   f"coupling.added_mass_ratio={ratio}"])
-    ep = build_episode(cfg)
-    with torch.no_grad():
-        _, m = rollout(ep.swimmer, ep.swimmer.initial_state(ep.params, ep.origin), ep.params, frames)
+    *_, m = _episode(["controller.frequency=7", f"coupling.added_mass_ratio={ratio}"], frames, base=())
     return m["force_y"][:, 0].numpy()
 
 
