@@ -141,6 +141,9 @@ class FluidConfig:
     refinement: numerical solver only, internal grid dx / r and sub-steps h / r.
     model_file: hydronet only, a trained model (best.pt); null: the shipped fishsim/assets/hydronet.pt.
     bf16: hydronet only, run the U-Net trunk in bfloat16 (faster on CPUs with AMX and on GPUs).
+    pressure: hydronet only, "recovered" (the pressure that best satisfies the momentum equation for
+        the network's velocities, fishsim/fluid/pressure.py) or "network" (the network's own output).
+    pressure_tol: hydronet only, relative residual of the pressure recovery's PCG solve.
     """
 
     model: str = "hydronet"
@@ -155,6 +158,8 @@ class FluidConfig:
     refinement: int = 1
     model_file: str | None = None
     bf16: bool = False
+    pressure: str = "recovered"
+    pressure_tol: float = 1e-2
 
     def validate(self) -> None:
         _require(self.model in ("none", "numerical", "hydronet"),
@@ -164,6 +169,9 @@ class FluidConfig:
         _require(0 <= self.wall_y < self.H // 4 and 0 <= self.wall_x < self.W // 4,
                  "fluid.wall_y / fluid.wall_x must be >= 0 and leave room for the fluid")
         _require(self.refinement in (1, 2, 4), f"fluid.refinement must be 1, 2 or 4 (got {self.refinement})")
+        _require(self.pressure in ("recovered", "network"),
+                 f"fluid.pressure must be recovered or network (got '{self.pressure}')")
+        _require(0 < self.pressure_tol < 1, f"fluid.pressure_tol must be in (0, 1) (got {self.pressure_tol})")
 
 
 @dataclass

@@ -25,11 +25,13 @@ SUITES = ("hydronet",)
 @dataclass
 class ValidateConfig:
     """suite: hydronet (the only one so far). model_file: the HydroNet to judge (null: shipped).
-    bf16: run it in bfloat16. device: cpu | cuda. scenes: the held-out scenes and protocol."""
+    bf16: run it in bfloat16. pressure: recovered | network (``fishsim.fluid.pressure``).
+    device: cpu | cuda. scenes: the held-out scenes and protocol."""
 
     suite: str = "hydronet"
     model_file: str | None = None
     bf16: bool = False
+    pressure: str = "recovered"
     device: str = "cpu"
     scenes: EvalConfig = field(default_factory=EvalConfig)
     out_dir: str | None = None
@@ -37,6 +39,8 @@ class ValidateConfig:
     def validate(self) -> None:
         if self.suite not in SUITES:
             raise ConfigError(f"suite must be one of {SUITES} (got '{self.suite}')")
+        if self.pressure not in ("recovered", "network"):
+            raise ConfigError(f"pressure must be recovered or network (got '{self.pressure}')")
         s = self.scenes
         if not (s.warmup >= 0 and s.steps >= 1 and s.radius > 0 and s.fish_amp > 0 and s.h > 0):
             raise ConfigError("scenes.warmup >= 0, scenes.steps >= 1 and radius, fish_amp, h > 0 are required")
@@ -58,7 +62,7 @@ def run(cfg: ValidateConfig) -> dict:
     s = cfg.scenes
     grid, device = Grid(s.H, s.W, s.dx), torch.device(cfg.device)
     path = cfg.model_file or SHIPPED_HYDRONET
-    net = HydroNetFluid(load_hydronet(path, device), grid, bf16=cfg.bf16)
+    net = HydroNetFluid(load_hydronet(path, device), grid, bf16=cfg.bf16, pressure=cfg.pressure)
     columns = (TextColumn("validate hydronet"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
     with Progress(*columns, console=Console(stderr=True), transient=True) as bar:
         task = bar.add_task("steps", total=None)

@@ -21,8 +21,8 @@ SHIPPED_HYDRONET = Path(__file__).resolve().parents[1] / "assets" / "hydronet.pt
 def make_fluid(cfg, device=None) -> FluidModel | None:
     """The ``FluidModel`` of a ``FluidConfig`` (None for ``model=none``, the vacuum) on ``device``.
 
-    hydronet: the model in ``cfg.model_file`` or, when unset, the shipped one; a missing or
-    corrupt file raises InputFileError saying how to train one."""
+    hydronet: the model in ``cfg.model_file`` or, when unset, the shipped one, with the pressure
+    ``cfg.pressure``; a missing or corrupt file raises InputFileError saying how to train one."""
     if cfg.model == "none":
         return None
     if cfg.model == "numerical":
@@ -31,9 +31,11 @@ def make_fluid(cfg, device=None) -> FluidModel | None:
         return NumericalFluid(make_grid(cfg), refinement=cfg.refinement)
     if cfg.model == "hydronet":
         from fishsim.fluid.hydronet import HydroNetFluid, load_hydronet
+        from fishsim.fluid.pressure import RecoveryConfig
 
         model = load_hydronet(cfg.model_file or SHIPPED_HYDRONET, device=device or "cpu")
-        return HydroNetFluid(model, make_grid(cfg), bf16=cfg.bf16)
+        return HydroNetFluid(model, make_grid(cfg), bf16=cfg.bf16, pressure=cfg.pressure,
+                             recovery=RecoveryConfig(tol=cfg.pressure_tol))
     raise ValueError(f"unknown fluid model {cfg.model!r}")
 
 

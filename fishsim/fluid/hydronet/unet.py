@@ -41,6 +41,7 @@ from torch import Tensor, nn
 from fishsim.fluid.base import Boundary, FluidParams, FluidState, Grid, rest_state
 from fishsim.fluid.grid import curl
 from fishsim.fluid.hydronet.scales import scales_of
+from fishsim.fluid.pressure import NETWORK, RECOVERED, RecoveryConfig, recover_pressure
 
 A_IN = 32.0
 RHO_MID, RHO_HALF = 30.0, 20.0
@@ -191,21 +192,34 @@ class HydroNetFluid:
     Differentiable w.r.t. the state, the boundary and the network weights; batched over B; runs on
     the device of the inputs (the model must be there too). ``bf16=True`` runs the U-Net trunk under
     bfloat16 autocast (the bounded update and the unit conversions stay in float32).
+
+    ``pressure``: "recovered" (default) returns the pressure that best satisfies the momentum
+    equation for the network's velocities (``fishsim.fluid.pressure``, one PCG solve per step,
+    settings ``recovery``); "network" returns the network's own pressure output (the paper), which
+    lags its velocities (3x too little thrust on the fish, measured in ``pressure.py``).
     """
 
-    def __init__(self, model: HydroNet, grid: Grid, bf16: bool = False):
+    def __init__(self, model: HydroNet, grid: Grid, bf16: bool = False, pressure: str = RECOVERED,
+                 recovery: RecoveryConfig | None = None):
+        if pressure not in (RECOVERED, NETWORK):
+            raise ValueError(f"pressure must be '{RECOVERED}' or '{NETWORK}', got {pressure!r}")
         self.model = model.eval()
         self.grid = grid
         self.bf16 = bf16
+        self.pressure, self.recovery = pressure, recovery or RecoveryConfig()
 
     def initial_state(self, batch: int, device=None, dtype=torch.float32) -> FluidState:
         """Fluid at rest: a = 0 [B,1,H+1,W+1], p = 0 [B,1,H,W]."""
         return rest_state(self.grid, batch, device, dtype)
 
     def step(self, state: FluidState, boundary: Boundary, params: FluidParams) -> FluidState:
-        """(a_t, p_t, b, v_d) -> (a_t+1, p_t+1), one network evaluation."""
+        """(a_t, p_t, b, v_d) -> (a_t+1, p_t+1): one network evaluation (and the pressure recovery)."""
         dev = state.a.device.type
         with torch.autocast(dev, dtype=torch.bfloat16, enabled=self.bf16):
             a, p = self.model(state.a, state.p, boundary.mask, boundary.velocity,
                               params.rho, params.mu, self.grid.dx, params.h)
+        if self.pressure == RECOVERED:
+            dx = self.grid.dx
+            p = recover_pressure(curl(state.a, dx), curl(a, dx), boundary.mask.to(a.dtype), params.rho,
+                                 params.mu, params.h, self.grid, self.recovery)
         return FluidState(a=a, p=p)
