@@ -7,7 +7,8 @@
   below cannot.
 
 The next two are constant in time and affine in E, so each is factorised once per distinct E
-(sparse LU, SuperLU in symmetric mode; cached in model.factors) and reused every step:
+(cached in model.factors) and reused every step. Every factorisation is a banded Cholesky after
+RCM reordering (banded.py; SuperLU if a matrix is not positive definite):
 
 - 'pd': DiffPD's global matrix A(E) = M/h^2 + G^T W(E) G, the same [N, N] matrix for x and y.
 - 'rest_newton': K0(E) = M/h^2 - df_int/dq at the rest shape, [2N, 2N]. Since
@@ -21,17 +22,12 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
 from fishsim.solid import elastic
+from fishsim.solid.banded import spd_factor
 from fishsim.solid.model import SolidModel
 
 _CACHE_SIZE = 64
-
-
-def _splu(K: sp.csc_matrix):
-    return spla.splu(K.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                     options={"SymmetricMode": True})
 
 
 def pd_matrix(model: SolidModel, E: float) -> sp.csc_matrix:
@@ -54,7 +50,7 @@ def factor(model: SolidModel, E: float, kind: str):
         if len(model.factors) >= _CACHE_SIZE:
             model.factors.pop(next(iter(model.factors)))
         build = rest_newton_matrix if kind == "rest_newton" else pd_matrix
-        model.factors[key] = _splu(build(model, float(E)))
+        model.factors[key] = spd_factor(build(model, float(E)))
     return model.factors[key]
 
 
@@ -121,7 +117,7 @@ class LaggedNewton:
         if stale:
             p = elastic.project(model, elastic.deformation_gradients(model, X), contraction, E)
             for b in stale:
-                model.lagged[b] = _splu(elastic.newton_matrix(model, p, b, projected=True))
+                model.lagged[b] = spd_factor(elastic.newton_matrix(model, p, b, projected=True))
         self.factors = list(model.lagged)
         self.model = model
 

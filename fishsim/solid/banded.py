@@ -1,0 +1,55 @@
+"""Banded Cholesky factorisation of the solid's symmetric positive definite matrices.
+
+The fish is long and thin, so after a reverse Cuthill-McKee reordering its FEM matrices are
+narrow bands: the default mesh's 2362 x 2362 Newton matrix has half-bandwidth 39. LAPACK's banded
+Cholesky (dpbtrf / dpbtrs) then costs n w^2 to factor and 4 n w to solve, against SuperLU's
+general sparse LU (measured on the default mesh, one thread: factor 1.0 vs 8.6 ms, solve 0.16 vs
+0.57 ms).  A matrix that is not positive definite falls back to SuperLU.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+from scipy.linalg.lapack import dpbtrf, dpbtrs
+from scipy.sparse.csgraph import reverse_cuthill_mckee
+
+
+class BandedCholesky:
+    """K = P^T L L^T P for a sparse SPD K (P: RCM permutation); ``solve(b)`` for b [n] or [n, k]."""
+
+    def __init__(self, K: sp.spmatrix, perm: np.ndarray, factor: np.ndarray):
+        self.n, self.perm, self.factor = K.shape[0], perm, factor
+        self.inverse = np.argsort(perm)
+
+    @classmethod
+    def of(cls, K: sp.spmatrix) -> BandedCholesky | None:
+        """Factorise K, or None when K is not positive definite."""
+        K = K.tocsr()
+        perm = reverse_cuthill_mckee(K, symmetric_mode=True)
+        coo = K.tocoo()
+        inverse = np.argsort(perm)
+        r, c = inverse[coo.row], inverse[coo.col]
+        lower = r >= c
+        width = int((r - c)[lower].max())
+        band = np.zeros((width + 1, K.shape[0]), order="F")
+        np.add.at(band, ((r - c)[lower], c[lower]), coo.data[lower])
+        factor, info = dpbtrf(band, lower=1)
+        return cls(K, perm, factor) if info == 0 else None
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        x, info = dpbtrs(self.factor, b[self.perm], lower=1)
+        if info != 0:
+            raise np.linalg.LinAlgError(f"dpbtrs failed with info = {info}")
+        return x[self.inverse]
+
+
+def spd_factor(K: sp.spmatrix):
+    """A solver with ``.solve(b)`` for the symmetric matrix K: banded Cholesky when K is positive
+    definite, else SuperLU (symmetric mode)."""
+    banded = BandedCholesky.of(K)
+    if banded is not None:
+        return banded
+    return spla.splu(K.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                     options={"SymmetricMode": True})
