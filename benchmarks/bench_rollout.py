@@ -3,7 +3,9 @@ mesh, B = 1 (warm-up, forward with its solid / fluid / coupling split, backward,
 B = 16 (time per fish and frame, over ``FISHSIM_BENCH_FRAMES_B16`` = 30 frames), for each fluid
 model; plus the distance travelled in 1.2 s at 3-7 Hz (the paper's Fig. 4 in preview), and the
 peak memory of a ``FISHSIM_BENCH_FRAMES_LONG`` = 500-frame HydroNet episode (checkpointed every 10
-frames), and the HydroNet B = 1 episode with its bfloat16 trunk (``fluid.bf16=true``).
+frames), the HydroNet B = 1 episode with its bfloat16 trunk (``fluid.bf16=true``), and with the
+network's own pressure instead of the recovered one (``fluid.pressure=network``: timing and
+distances).
 ``FISHSIM_BENCH_FRAMES`` shortens the episode for a quick look.
 
 Each measurement runs in a fresh process: memory freed by an earlier one stays resident in the
@@ -45,8 +47,12 @@ def _peak_mib() -> float:
     return float("nan")
 
 
+VARIANTS = {"hydronet-bf16": ["fluid=hydronet", "fluid.bf16=true"],
+            "hydronet-network-pressure": ["fluid=hydronet", "fluid.pressure=network"]}
+
+
 def _episode(fluid: str, batch: int, frequencies=None):
-    overrides = ["fluid=hydronet", "fluid.bf16=true"] if fluid == "hydronet-bf16" else [f"fluid={fluid}"]
+    overrides = list(VARIANTS.get(fluid, [f"fluid={fluid}"]))
     if frequencies is not None:
         overrides.append("batch.frequency=[" + ",".join(str(f) for f in frequencies) + "]")
     elif batch > 1:
@@ -124,6 +130,8 @@ def run() -> dict:
                       "distance_1.2s_m": _recorded(distance_sweep, fluid)}
     out["hydronet"][f"B=1, {FRAMES_LONG} frames"] = _recorded(episode_timing, "hydronet", 1, FRAMES_LONG)
     out["hydronet-bf16"] = {"B=1": _recorded(episode_timing, "hydronet-bf16", 1, FRAMES)}
+    out["hydronet-network-pressure"] = {"B=1": _recorded(episode_timing, "hydronet-network-pressure", 1, FRAMES),
+                                        "distance_1.2s_m": _recorded(distance_sweep, "hydronet-network-pressure")}
     return out
 
 

@@ -80,7 +80,10 @@ class PDOptions:
     history: L-BFGS memory (pairs kept).
     backward_rtol: adjoint stopping rule, |(A - dA) x - b|_max <= backward_rtol |b|_max.
     backward_max_iter: preconditioned CG iterations before a direct sparse solve takes over.
-    backward_method: 'auto' (PCG, direct fallback), 'pcg' or 'direct'.
+    backward_method: 'direct' (default: per sample, the assembled Newton matrix factorised by
+        banded Cholesky, LU if it is indefinite; measured on the default fish at 5 Hz: B = 1
+        3.8 ms per step, B = 16 58 ms), 'auto' (batched PCG preconditioned with 'rest_newton',
+        direct for samples where it fails; ~41 iterations, 16.8 ms and 248 ms) or 'pcg'.
     preconditioner: initial inverse Hessian H0 of the forward L-BFGS:
         'lagged_newton' (default): per sample, the positive-definite (projected) Newton matrix
         factorised at the start of a step and kept for the following steps until a step needs
@@ -102,7 +105,7 @@ class PDOptions:
     history: int = 8
     backward_rtol: float = 1e-8
     backward_max_iter: int = 200
-    backward_method: str = "auto"
+    backward_method: str = "direct"
     preconditioner: str = "lagged_newton"
     refresh_iterations: int = 8
 

@@ -13,8 +13,9 @@ nodal norm is <= atol. The net residual sum_i g_i is then removed by a rigid tra
 atol is.
 
 Adjoint: (A - dA) x = b with A - dA = M/h^2 - df_int/dq, the Newton matrix at q+ (symmetric,
-indefinite only under strong compression): CG preconditioned with A(E)^-1, batched, and a
-direct sparse LU of the assembled 2N x 2N matrix for samples where CG breaks down or stalls.
+indefinite only under strong compression): by default a direct solve per sample of the assembled
+2N x 2N matrix (banded Cholesky, sparse LU if indefinite); or ('auto' / 'pcg') batched CG
+preconditioned with the rotated rest-shape Newton matrix, direct for samples where CG fails.
 """
 
 from __future__ import annotations
@@ -23,9 +24,9 @@ import warnings
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.sparse.linalg as spla
 
 from fishsim.solid import elastic
+from fishsim.solid.banded import spd_factor
 from fishsim.solid.model import SolidModel
 from fishsim.solid.preconditioner import LaggedNewton, Preconditioner
 
@@ -233,11 +234,12 @@ def _pcg(apply_K, precondition, b: np.ndarray, rtol: float, max_iter: int):
 
 
 def _direct_solve(model: SolidModel, p: elastic.Projections, b: np.ndarray, samples: np.ndarray) -> np.ndarray:
-    """Sparse LU solve of the assembled Newton matrix for the given samples (columns of b)."""
+    """Direct solve of the assembled Newton matrix for the given samples (columns of b): banded
+    Cholesky when it is positive definite, else sparse LU (banded.spd_factor)."""
     x = np.zeros_like(b)
     B = b.shape[1] // 2
     for s in samples:
         K = elastic.newton_matrix(model, p, int(s))
         cols = [s, B + s]
-        x[:, cols] = spla.spsolve(K, b[:, cols].reshape(-1)).reshape(-1, 2)
+        x[:, cols] = spd_factor(K).solve(b[:, cols].reshape(-1)).reshape(-1, 2)
     return x
