@@ -92,6 +92,8 @@ class NeumannPoisson(torch.autograd.Function):
 def _apply_inverse(f: Tensor, inv: Tensor) -> Tensor:
     if f.device.type == "cpu":
         x = f.detach().numpy()
-        y = sfft.idctn(sfft.dctn(x, type=2, axes=(-2, -1)) * inv.numpy(), type=2, axes=(-2, -1))
+        workers = torch.get_num_threads()
+        y = sfft.idctn(sfft.dctn(x, type=2, axes=(-2, -1), workers=workers) * inv.numpy(), type=2, axes=(-2, -1),
+                       workers=workers)
         return torch.from_numpy(np.ascontiguousarray(y, dtype=x.dtype))
     return idct(idct(dct(dct(f, -1), -2) * inv, -2), -1)
