@@ -19,30 +19,51 @@ from scipy.sparse.csgraph import reverse_cuthill_mckee
 class BandedCholesky:
     """K = P^T L L^T P for a sparse SPD K (P: RCM permutation); ``solve(b)`` for b [n] or [n, k]."""
 
-    def __init__(self, K: sp.spmatrix, perm: np.ndarray, factor: np.ndarray):
-        self.n, self.perm, self.factor = K.shape[0], perm, factor
-        self.inverse = np.argsort(perm)
+    def __init__(self, layout: BandLayout, factor: np.ndarray):
+        self.layout, self.factor = layout, factor
 
     @classmethod
     def of(cls, K: sp.spmatrix) -> BandedCholesky | None:
         """Factorise K, or None when K is not positive definite."""
         K = K.tocsr()
-        perm = reverse_cuthill_mckee(K, symmetric_mode=True)
-        coo = K.tocoo()
-        inverse = np.argsort(perm)
-        r, c = inverse[coo.row], inverse[coo.col]
-        lower = r >= c
-        width = int((r - c)[lower].max())
-        band = np.zeros((width + 1, K.shape[0]), order="F")
-        np.add.at(band, ((r - c)[lower], c[lower]), coo.data[lower])
+        K.sum_duplicates()
+        layout = BandLayout.of(K)
+        band = np.zeros((layout.width + 1, K.shape[0]), order="F")
+        band[layout.rows, layout.cols] = K.data[layout.lower]
         factor, info = dpbtrf(band, lower=1)
-        return cls(K, perm, factor) if info == 0 else None
+        return cls(layout, factor) if info == 0 else None
 
     def solve(self, b: np.ndarray) -> np.ndarray:
-        x, info = dpbtrs(self.factor, b[self.perm], lower=1)
+        x, info = dpbtrs(self.factor, b[self.layout.perm], lower=1)
         if info != 0:
             raise np.linalg.LinAlgError(f"dpbtrs failed with info = {info}")
-        return x[self.inverse]
+        return x[self.layout.inverse]
+
+
+class BandLayout:
+    """Where a sparsity pattern's lower-triangle entries go in LAPACK's lower band storage after
+    the RCM permutation; computed once per pattern (the solid's matrices share a few patterns)."""
+
+    _cache: dict = {}
+
+    def __init__(self, K: sp.csr_matrix):
+        self.perm = reverse_cuthill_mckee(K, symmetric_mode=True)
+        self.inverse = np.argsort(self.perm)
+        rows = np.repeat(np.arange(K.shape[0]), np.diff(K.indptr))
+        r, c = self.inverse[rows], self.inverse[K.indices]
+        self.lower = r >= c
+        self.rows, self.cols = (r - c)[self.lower], c[self.lower]
+        self.width = int(self.rows.max())
+
+    @classmethod
+    def of(cls, K: sp.csr_matrix) -> BandLayout:
+        """The layout of a canonical CSR matrix's pattern (cached)."""
+        key = (K.shape, K.indptr.tobytes(), K.indices.tobytes())
+        if key not in cls._cache:
+            if len(cls._cache) >= 16:
+                cls._cache.pop(next(iter(cls._cache)))
+            cls._cache[key] = cls(K)
+        return cls._cache[key]
 
 
 def spd_factor(K: sp.spmatrix):
