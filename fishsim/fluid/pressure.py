@@ -7,8 +7,8 @@ pressure for the network's velocities gives ~3x the thrust and ~4x the lateral f
 network's own pressure (close to the numerical solver's) and a 40 % lower L_p. The velocities are
 the better half of the surrogate, so the pressure is recovered from them.
 
-What. With R(p) the IMEX momentum residual (``fishsim.fluid.residual``) of v_t -> v_t+1 and
-w_f = 1 - b_f the fluid face weights (zero on the box-wall faces),
+What. With R(p) the IMEX momentum residual (``fishsim.fluid.residual``, central advection) of
+v_t -> v_t+1 in Pa/m and w_f = 1 - b_f the fluid face weights (zero on the box-wall faces),
 
     p = argmin_p  1/2 sum_f [ w_f (R(0)_f + (grad p)_f)^2 + eps (grad p)_f^2 ]
 
