@@ -121,7 +121,7 @@ def _cylinder(kw: dict) -> dict:
     n = kw["cells_per_d"]
     return {
         "resolution": f"{n} cells/D, {kw['length']:g} D x {kw['width']:g} D "
-        f"({round(kw['width'] * n)}x{round(kw['length'] * n)}), h = {kw.get('h', 0.05):g} D/U, "
+        f"({round(kw['width'] * n)}x{round(kw['length'] * n)}), h = {kw['h']:g} D/U, "
         f"t = {kw['t_end']:g} D/U, last {kw['window']:g}",
         "strouhal": st,
         "mean_cd": cd,

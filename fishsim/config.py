@@ -21,6 +21,7 @@ from fishsim.commands.validate import ValidateConfig
 from fishsim.coupling.layer import CouplingConfig
 from fishsim.errors import ConfigError
 from fishsim.fluid.hydronet.train import TrainConfig
+from fishsim.fluid.pressure import PRESSURES
 from fishsim.render.config import RenderConfig
 from fishsim.solid.controller import DEFAULT_C
 from fishsim.solid.model import PDOptions, SolidMaterial
@@ -169,7 +170,7 @@ class FluidConfig:
         _require(0 <= self.wall_y < self.H // 4 and 0 <= self.wall_x < self.W // 4,
                  "fluid.wall_y / fluid.wall_x must be >= 0 and leave room for the fluid")
         _require(self.refinement in (1, 2, 4), f"fluid.refinement must be 1, 2 or 4 (got {self.refinement})")
-        _require(self.pressure in ("recovered", "network"),
+        _require(self.pressure in PRESSURES,
                  f"fluid.pressure must be recovered or network (got '{self.pressure}')")
         _require(0 < self.pressure_tol < 1, f"fluid.pressure_tol must be in (0, 1) (got {self.pressure_tol})")
 

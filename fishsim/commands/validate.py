@@ -17,6 +17,7 @@ from rich.table import Table
 
 from fishsim.errors import ConfigError
 from fishsim.fluid.hydronet.evaluate import EvalConfig, evaluate, summarise
+from fishsim.fluid.pressure import PRESSURES
 from fishsim.io.outdir import make_out_dir
 
 SUITES = ("hydronet",)
@@ -39,7 +40,7 @@ class ValidateConfig:
     def validate(self) -> None:
         if self.suite not in SUITES:
             raise ConfigError(f"suite must be one of {SUITES} (got '{self.suite}')")
-        if self.pressure not in ("recovered", "network"):
+        if self.pressure not in PRESSURES:
             raise ConfigError(f"pressure must be recovered or network (got '{self.pressure}')")
         s = self.scenes
         if not (s.warmup >= 0 and s.steps >= 1 and s.radius > 0 and s.fish_amp > 0 and s.h > 0):

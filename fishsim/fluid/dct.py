@@ -60,15 +60,21 @@ def neumann_eigenvalues(H: int, W: int, dx: float, device=None, dtype=torch.floa
     return -(4 / dx**2) * (sy[:, None] + sx[None, :])
 
 
-def solve_neumann_poisson(f: Tensor, dx: float, eigenvalues: Tensor | None = None) -> Tensor:
+def neumann_inverse(H: int, W: int, dx: float, device=None, dtype=torch.float64) -> Tensor:
+    """1 / eigenvalue [H, W] of every DCT-II mode, 0 for the constant one: the pseudo-inverse of
+    ``grid.laplacian_centres`` in that basis (compute once, pass to ``solve_neumann_poisson``)."""
+    lam = neumann_eigenvalues(H, W, dx, device, dtype)
+    return torch.where(lam < 0, 1 / torch.where(lam < 0, lam, -torch.ones_like(lam)), torch.zeros_like(lam))
+
+
+def solve_neumann_poisson(f: Tensor, dx: float, inverse: Tensor | None = None) -> Tensor:
     """The mean-free phi [B, C, H, W] with lap phi = f - mean(f) (5-point, Neumann walls).
 
-    ``eigenvalues`` (from ``neumann_eigenvalues``) may be passed to reuse them.
+    ``inverse`` (from ``neumann_inverse``, in f's dtype) may be passed to reuse it.
     """
-    H, W = f.shape[-2:]
-    lam = neumann_eigenvalues(H, W, dx, f.device, f.dtype) if eigenvalues is None else eigenvalues
-    inv = torch.where(lam < 0, 1 / torch.where(lam < 0, lam, -torch.ones_like(lam)), torch.zeros_like(lam))
-    return NeumannPoisson.apply(f, inv.to(f.dtype))
+    if inverse is None:
+        inverse = neumann_inverse(f.shape[-2], f.shape[-1], dx, f.device, f.dtype)
+    return NeumannPoisson.apply(f, inverse)
 
 
 class NeumannPoisson(torch.autograd.Function):

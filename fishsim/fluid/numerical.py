@@ -38,7 +38,7 @@ from torch import Tensor
 
 from fishsim.errors import SimulationBlowUp
 from fishsim.fluid.base import Boundary, FluidParams, FluidState, Grid, rest_state
-from fishsim.fluid.dct import neumann_eigenvalues, solve_neumann_poisson
+from fishsim.fluid.dct import neumann_inverse, solve_neumann_poisson
 from fishsim.fluid.grid import (
     NO_SLIP,
     Faces,
@@ -153,11 +153,11 @@ def penalize(w: Faces, b: Faces, v_d: Faces, lam_dt: float | None = None) -> tup
     return (ux, uy), (ux - w[0], uy - w[1])
 
 
-def project(u: Faces, dx: float, eigenvalues: Tensor | None = None) -> tuple[Faces, Tensor]:
+def project(u: Faces, dx: float, inverse: Tensor | None = None) -> tuple[Faces, Tensor]:
     """Helmholtz projection onto divergence-free fields: v = u - grad phi with lap phi = div u
     (Neumann walls, DCT-II direct solve), wall faces unchanged; returns (v, phi), phi in m^2/s.
     On return div v = 0 to round-off wherever the net wall flux of u is zero."""
-    phi = solve_neumann_poisson(divergence(u, dx), dx, eigenvalues)
+    phi = solve_neumann_poisson(divergence(u, dx), dx, inverse)
     gx, gy = gradient(phi, dx)
     return (u[0] - gx, u[1] - gy), phi
 
@@ -208,7 +208,7 @@ class NumericalFluid:
         self.substeps, self.max_substeps = substeps, max_substeps
         self.penalization_iterations = int(penalization_iterations)
         self.steps_taken = 0  # only used to name the step in blow-up messages
-        self._eig: dict = {}
+        self._inv: dict = {}
 
     # -- contract ------------------------------------------------------------------------------
 
@@ -263,11 +263,11 @@ class NumericalFluid:
         """project(penalize(w)), repeated ``penalization_iterations`` times (alternating
         projections onto {v = v_d in the body} and {div v = 0}); returns (v, sum phi, sum pen)."""
         lam_dt = None if self.brinkman is None else self.brinkman * dt
-        eig = self._eigenvalues(w[0])
+        inverse = self._inverse(w[0])
         phi_sum, pen_sum = 0.0, (0.0, 0.0)
         for _ in range(self.penalization_iterations):
             u, pen = penalize(w, b, v_d, lam_dt)
-            w, phi = project(u, self.fine.dx, eig)
+            w, phi = project(u, self.fine.dx, inverse)
             phi_sum = phi_sum + phi
             pen_sum = tuple(s + q for s, q in zip(pen_sum, pen))
         return w, phi_sum, pen_sum
@@ -281,11 +281,11 @@ class NumericalFluid:
             return fine_a
         return _prolong_vertices(state.a, r)
 
-    def _eigenvalues(self, like: Tensor) -> Tensor:
+    def _inverse(self, like: Tensor) -> Tensor:
         key = (like.device, like.dtype)
-        if key not in self._eig:
-            self._eig[key] = neumann_eigenvalues(self.fine.H, self.fine.W, self.fine.dx, like.device, like.dtype)
-        return self._eig[key]
+        if key not in self._inv:
+            self._inv[key] = neumann_inverse(self.fine.H, self.fine.W, self.fine.dx, like.device, like.dtype)
+        return self._inv[key]
 
     def _count_substeps(self, v: Faces, b: Faces, v_d: Faces, nu: Tensor, h: float) -> int:
         """n >= r with max|v| (h/n) / dx <= cfl and nu (h/n) / dx^2 <= diffusion."""

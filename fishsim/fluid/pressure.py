@@ -40,11 +40,12 @@ import torch
 from torch import Tensor
 
 from fishsim.fluid.base import Grid
-from fishsim.fluid.dct import neumann_eigenvalues, solve_neumann_poisson
+from fishsim.fluid.dct import neumann_inverse, solve_neumann_poisson
 from fishsim.fluid.grid import Faces, divergence, gradient
 from fishsim.fluid.residual import fluid_face_masks, momentum_residual
 
 RECOVERED, NETWORK = "recovered", "network"
+PRESSURES = (RECOVERED, NETWORK)
 
 
 @dataclass(frozen=True)
@@ -70,13 +71,13 @@ def solve_weighted_poisson(weights: Faces, f: Tensor, dx: float, tol: float,
                            max_iter: int) -> tuple[Tensor, int]:
     """Mean-free p [B, 1, H, W] with -div(weights grad p) = f - mean(f), by PCG with the DCT
     Poisson preconditioner; returns (p, iterations). weights: positive face weights (x, y)."""
-    lam = neumann_eigenvalues(f.shape[-2], f.shape[-1], dx, f.device, f.dtype)
+    inverse = neumann_inverse(f.shape[-2], f.shape[-1], dx, f.device, f.dtype)
 
     def A(p: Tensor) -> Tensor:
         return -divergence(tuple(w * g for w, g in zip(weights, gradient(p, dx))), dx)
 
     def M(r: Tensor) -> Tensor:
-        return -solve_neumann_poisson(r, dx, lam)
+        return -solve_neumann_poisson(r, dx, inverse)
 
     f = _mean_free(f)
     p, r = torch.zeros_like(f), f

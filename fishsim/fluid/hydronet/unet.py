@@ -41,7 +41,7 @@ from torch import Tensor, nn
 from fishsim.fluid.base import Boundary, FluidParams, FluidState, Grid, rest_state
 from fishsim.fluid.grid import curl
 from fishsim.fluid.hydronet.scales import scales_of
-from fishsim.fluid.pressure import NETWORK, RECOVERED, RecoveryConfig, recover_pressure
+from fishsim.fluid.pressure import PRESSURES, RECOVERED, RecoveryConfig, recover_pressure
 
 A_IN = 32.0
 RHO_MID, RHO_HALF = 30.0, 20.0
@@ -201,8 +201,8 @@ class HydroNetFluid:
 
     def __init__(self, model: HydroNet, grid: Grid, bf16: bool = False, pressure: str = RECOVERED,
                  recovery: RecoveryConfig | None = None):
-        if pressure not in (RECOVERED, NETWORK):
-            raise ValueError(f"pressure must be '{RECOVERED}' or '{NETWORK}', got {pressure!r}")
+        if pressure not in PRESSURES:
+            raise ValueError(f"pressure must be one of {PRESSURES}, got {pressure!r}")
         self.model = model.eval()
         self.grid = grid
         self.bf16 = bf16
