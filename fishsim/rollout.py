@@ -9,7 +9,11 @@ One frame (PHYSICS.md section 1, h = 0.01 s):
 
 Without a fluid (``fluid=None``, vacuum) steps 1-3 are skipped and f_ext = 0.
 Every arrow is differentiable; ``rollout`` checkpoints segments of frames so long episodes fit in
-memory (only the segment boundaries are kept; frames are recomputed during backward).
+memory (only the segment boundaries are kept; frames are recomputed during backward). The
+recomputation replays each frame's iterative solves from the forward pass's solutions (the PD
+step's q_t+1 and, for HydroNet, the recovered pressure p_t+1, kept detached: 140 kB per fish and
+frame on the default grid), so they converge without iterating and the backward pays only for
+the network, the coupling and the adjoints.
 """
 
 from __future__ import annotations
@@ -141,8 +145,10 @@ class Swimmer:
             return 0.0
         return stabilising_force(self.added_mass.to(state.q), state.qdot, state.qdot_prev, self.h)
 
-    def frame(self, state: SwimState, params: SwimParams, t: int) -> tuple[SwimState, FrameOutput]:
-        """Advance one frame (module docstring); ``t`` is the index of the frame being left."""
+    def frame(self, state: SwimState, params: SwimParams, t: int,
+              start: SwimState | None = None) -> tuple[SwimState, FrameOutput]:
+        """Advance one frame (module docstring); ``t`` is the index of the frame being left.
+        ``start``: a guess of the new state (its q and fluid p) for the iterative solves."""
         dev, clock = state.q.device, self.timer
         t0 = time.perf_counter()
         fluid, boundary = state.fluid, None
@@ -150,7 +156,8 @@ class Swimmer:
         if self.fluid is not None:
             boundary = self.boundary(state)
             t0 = clock.add("coupling", t0, dev)
-            fluid = self.fluid.step(state.fluid, boundary, params.fluid)
+            fluid = self.fluid.step(state.fluid, boundary, params.fluid,
+                                    start=None if start is None else start.fluid.p)
             require_finite(fluid_vector_potential_a=fluid.a, fluid_pressure_p=fluid.p)
             t0 = clock.add("fluid", t0, dev)
             f_ext = fluid_to_solid(state.q, fluid.p, boundary, self.surface, self.fluid.grid,
@@ -158,7 +165,7 @@ class Swimmer:
             t0 = clock.add("coupling", t0, dev)
         contraction = params.controller.contraction(self.solid, (t + 1) * self.h)
         q, qdot = pd_step(self.solid, state.q, state.qdot, contraction, f_ext + self.added_mass_force(state),
-                          params.E)
+                          params.E, start=None if start is None else start.q)
         require_finite(solid_positions_q=q, solid_velocities_qdot=qdot)
         clock.add("solid", t0, dev)
         return SwimState(q, qdot, fluid, state.qdot), FrameOutput(f_ext, contraction, boundary)
@@ -223,6 +230,12 @@ def _unflatten(tensors: tuple[Tensor, ...]) -> SwimState:
     return SwimState(q, qdot, FluidState(a=a, p=p), qdot_prev)
 
 
+def _detached(state: SwimState) -> SwimState:
+    """The solved parts of a state (q, fluid p), detached, as a start for a recomputation."""
+    fluid = None if state.fluid is None else FluidState(a=None, p=state.fluid.p.detach())
+    return SwimState(q=state.q.detach(), qdot=None, fluid=fluid)
+
+
 def rollout(swimmer: Swimmer, state: SwimState, params: SwimParams, n_frames: int,
             segment: int = 0, on_frame: Callable[[int, SwimState, FrameOutput, dict], None] | None = None,
             start: int = 0) -> tuple[SwimState, dict[str, Tensor]]:
@@ -237,23 +250,27 @@ def rollout(swimmer: Swimmer, state: SwimState, params: SwimParams, n_frames: in
     Raises SimulationBlowUp naming the frame if a state goes non-finite.
     """
     recorded = [start - 1]
+    seg = segment if segment > 0 and torch.is_grad_enabled() else n_frames
+    solutions: dict[int, SwimState] = {}      # frame -> forward solution, replayed in recomputation
 
     def run_frames(t0: int, count: int, *tensors: Tensor):
         s, rows = _unflatten(tensors), []
         for t in range(t0, t0 + count):
+            replay = t <= recorded[0]
             try:
-                s, out = swimmer.frame(s, params, t)
+                s, out = swimmer.frame(s, params, t, start=solutions.pop(t, None) if replay else None)
             except SimulationBlowUp as err:
                 raise SimulationBlowUp(f"simulation blew up at frame {t + 1}: {err}") from None
             m = frame_metrics(swimmer, s, out)
-            if t > recorded[0]:
+            if not replay:
                 if on_frame is not None:
                     on_frame(t, s, out, m)
                 recorded[0] = t
+                if seg < n_frames:
+                    solutions[t] = _detached(s)
             rows.append(torch.stack(list(m.values())))
         return (*_flatten(s), torch.stack(rows))
 
-    seg = segment if segment > 0 and torch.is_grad_enabled() else n_frames
     tensors, chunks = _flatten(state), []
     t = start
     while t < start + n_frames:

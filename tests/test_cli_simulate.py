@@ -148,9 +148,9 @@ def test_simulate_blow_up_exit_code_2_and_partial_file_kept(tmp_path, monkeypatc
 
     real, calls = NumericalFluid.step, {"n": 0}
 
-    def failing(self, state, boundary, params):
+    def failing(self, state, boundary, params, start=None):
         calls["n"] += 1
-        new = real(self, state, boundary, params)
+        new = real(self, state, boundary, params, start)
         return FluidState(new.a, new.p * torch.nan) if calls["n"] == 4 else new
 
     monkeypatch.setattr(NumericalFluid, "step", failing)

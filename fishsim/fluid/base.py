@@ -106,8 +106,12 @@ class FluidModel(Protocol):
         """Fluid at rest: a = 0, p = 0."""
         ...
 
-    def step(self, state: FluidState, boundary: Boundary, params: FluidParams) -> FluidState:
-        """Return the state one time step ``params.h`` later."""
+    def step(self, state: FluidState, boundary: Boundary, params: FluidParams,
+             start: Tensor | None = None) -> FluidState:
+        """Return the state one time step ``params.h`` later. ``start``: a guess of the new
+        pressure [B, 1, H, W] for a model that solves for it iteratively (a checkpoint
+        recomputation passes the forward pass's result); it changes the result only within
+        the solver's tolerance."""
         ...
 
 

@@ -216,8 +216,10 @@ class NumericalFluid:
         """Fluid at rest: a = 0, p = 0 on the r = 1 grid."""
         return rest_state(self.grid, batch, device, dtype)
 
-    def step(self, state: FluidState, boundary: Boundary, params: FluidParams) -> FluidState:
-        """(a_t, p_t, b_t, v_d,t) -> (a_t+1, p_t+1); p_t is not needed by a projection method."""
+    def step(self, state: FluidState, boundary: Boundary, params: FluidParams,
+             start: Tensor | None = None) -> FluidState:
+        """(a_t, p_t, b_t, v_d,t) -> (a_t+1, p_t+1); p_t is not needed by a projection method,
+        nor ``start`` (its pressure solves are direct)."""
         return self.step_with_diagnostics(state, boundary, params)[0]
 
     # -- the step ------------------------------------------------------------------------------

@@ -100,13 +100,12 @@ def _two_loop(g: np.ndarray, history: list, precondition) -> np.ndarray:
 def pd_solve(model: SolidModel, Y: np.ndarray, X0: np.ndarray, contraction: np.ndarray,
              E: np.ndarray) -> tuple[np.ndarray, ForwardInfo]:
     """q+ = argmin Phi for every sample. Y, X0: [N, 2B]; contraction [n_act, B]; E [B].
-    Returns (X [N, 2B], ForwardInfo). Converged samples stop moving while others iterate."""
+    Returns (X [N, 2B], ForwardInfo). Converged samples stop moving while others iterate; the
+    preconditioner is built only if some sample needs an iteration (a start that is already
+    converged, e.g. a checkpoint recomputation's, costs one residual evaluation)."""
     opts = model.options
     objective = Objective(model, Y, contraction, E)
-    if opts.preconditioner == "lagged_newton":
-        precondition = LaggedNewton(model, X0, contraction, E)
-    else:
-        precondition = Preconditioner(model, E, X0, opts.preconditioner)
+    precondition = None
     B = Y.shape[1] // 2
     X = X0.copy()
     phi, g = objective(X)
@@ -118,6 +117,8 @@ def pd_solve(model: SolidModel, Y: np.ndarray, X0: np.ndarray, contraction: np.n
         if not active.any():
             break
         iterations += active
+        if precondition is None:
+            precondition = _preconditioner(model, X0, contraction, E)
         d = _two_loop(g, history, precondition) * per_column(active)
         slope = sample_dot(g, d)
         uphill = slope >= 0
@@ -141,6 +142,13 @@ def pd_solve(model: SolidModel, Y: np.ndarray, X0: np.ndarray, contraction: np.n
         warnings.warn(f"PD step did not converge in {opts.max_iter} iterations "
                       f"(max residual {residual.max():.3g} N > atol {opts.atol:g} N)", RuntimeWarning, stacklevel=3)
     return X, ForwardInfo(iterations, residual, converged)
+
+
+def _preconditioner(model: SolidModel, X0: np.ndarray, contraction: np.ndarray, E: np.ndarray):
+    """The forward's initial inverse Hessian (options.preconditioner) at the start X0."""
+    if model.options.preconditioner == "lagged_newton":
+        return LaggedNewton(model, X0, contraction, E)
+    return Preconditioner(model, E, X0, model.options.preconditioner)
 
 
 def _remove_net_residual(model: SolidModel, X: np.ndarray, g: np.ndarray):

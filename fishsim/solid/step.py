@@ -29,16 +29,17 @@ def _np(t: torch.Tensor) -> np.ndarray:
     return t.detach().to("cpu", torch.float64).numpy()
 
 
-def forward_step(model: SolidModel, q, qdot, contraction, f_ext, E) -> tuple[np.ndarray, np.ndarray, ForwardInfo]:
+def forward_step(model: SolidModel, q, qdot, contraction, f_ext, E, start=None) -> tuple[np.ndarray, np.ndarray, ForwardInfo]:
     """numpy step: q, qdot, f_ext [B, N, 2] (or None), contraction [B, n_act], E [B] -> (q+, qdot+, info).
 
-    Target y = q + h qdot + h^2 M^-1 f_ext.  L-BFGS starts from the free flight q + h qdot, not
-    from y: h^2 M^-1 f_ext moves single surface nodes by up to ~2 mm (an element) under the IBM's
-    nodal forces, which the stiff body then undoes."""
+    Target y = q + h qdot + h^2 M^-1 f_ext.  L-BFGS starts from ``start`` [B, N, 2] if given,
+    else from the free flight q + h qdot, not from y: h^2 M^-1 f_ext moves single surface nodes
+    by up to ~2 mm (an element) under the IBM's nodal forces, which the stiff body then undoes."""
     h = model.h
     free = q + h * qdot
     y = free if f_ext is None else free + h * h * f_ext / model.mass[None, :, None]
-    X, info = pd_solve(model, elastic.to_columns(y), elastic.to_columns(free), np.ascontiguousarray(contraction.T), E)
+    X0 = elastic.to_columns(free if start is None else start)
+    X, info = pd_solve(model, elastic.to_columns(y), X0, np.ascontiguousarray(contraction.T), E)
     q_next = elastic.from_columns(X)
     return q_next, (q_next - q) / h, info
 
@@ -64,9 +65,10 @@ class PDStepFunction(torch.autograd.Function):
     """(q, qdot, contraction, f_ext, E) -> (q+, qdot+); backward by the adjoint (module doc)."""
 
     @staticmethod
-    def forward(ctx, model, q, qdot, contraction, f_ext, E):
+    def forward(ctx, model, q, qdot, contraction, f_ext, E, start=None):
         f = None if f_ext is None else _np(f_ext)
-        q_next, qdot_next, info = forward_step(model, _np(q), _np(qdot), _np(contraction), f, _np(E))
+        start = None if start is None else _np(start)
+        q_next, qdot_next, info = forward_step(model, _np(q), _np(qdot), _np(contraction), f, _np(E), start)
         model.stats.record_forward(info.iterations, info.residual)
         if not (np.isfinite(q_next).all() and np.isfinite(qdot_next).all()):
             raise SimulationBlowUp("PD step produced non-finite positions; reduce the time step, the "
@@ -88,7 +90,7 @@ class PDStepFunction(torch.autograd.Function):
         out = [torch.as_tensor(g, dtype=t.dtype, device=t.device) for g, t in zip(grads, like)]
         if not ctx.has_f_ext:
             out[3] = None
-        return (None, *out)
+        return (None, *out, None)
 
 
 def _batch_E(model: SolidModel, E, B: int, like: torch.Tensor) -> torch.Tensor:
@@ -106,7 +108,8 @@ def _batch_E(model: SolidModel, E, B: int, like: torch.Tensor) -> torch.Tensor:
 
 
 def pd_step(model: SolidModel, q: torch.Tensor, qdot: torch.Tensor, contraction: torch.Tensor,
-            f_ext: torch.Tensor | None = None, E=None, return_info: bool = False):
+            f_ext: torch.Tensor | None = None, E=None, return_info: bool = False,
+            start: torch.Tensor | None = None):
     """Advance a batch of fish by one implicit-Euler PD step of length model.h.
 
     q, qdot: [B, N, 2] positions (m) and velocities (m/s).
@@ -116,6 +119,9 @@ def pd_step(model: SolidModel, q: torch.Tensor, qdot: torch.Tensor, contraction:
     E: Young's modulus (Pa): None (the material's), a float, or a [B] tensor (differentiable).
     Returns (q+, qdot+), both [B, N, 2], differentiable w.r.t. q, qdot, contraction, f_ext and E;
     with return_info also the ForwardInfo (L-BFGS iterations and residual per sample).
+    start: [B, N, 2] positions L-BFGS starts from (default: the free flight q + h qdot); it
+    changes q+ only within the solver's tolerance (a checkpoint recomputation passes the
+    forward pass's q+, which is then returned without an iteration).
     Raises SimulationBlowUp if the step produces non-finite values.
     """
     if q.ndim != 3 or q.shape[1:] != (model.n_nodes, 2) or qdot.shape != q.shape:
@@ -130,7 +136,10 @@ def pd_step(model: SolidModel, q: torch.Tensor, qdot: torch.Tensor, contraction:
     if f_ext is not None and f_ext.shape != q.shape:
         raise ValueError(f"f_ext must have shape {tuple(q.shape)}, got {tuple(f_ext.shape)}")
     E = _batch_E(model, E, B, q)
-    q_next, qdot_next = PDStepFunction.apply(model, q, qdot, contraction, f_ext, E)
+    if start is not None and start.shape != q.shape:
+        raise ValueError(f"start must have shape {tuple(q.shape)}, got {tuple(start.shape)}")
+    q_next, qdot_next = PDStepFunction.apply(model, q, qdot, contraction, f_ext, E,
+                                             None if start is None else start.detach())
     if return_info:
         stats = model.stats
         return q_next, qdot_next, ForwardInfo(stats.forward_iterations, stats.forward_residual,

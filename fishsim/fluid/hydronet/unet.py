@@ -41,7 +41,7 @@ from torch import Tensor, nn
 from fishsim.fluid.base import Boundary, FluidParams, FluidState, Grid, rest_state
 from fishsim.fluid.grid import curl
 from fishsim.fluid.hydronet.scales import scales_of
-from fishsim.fluid.pressure import PRESSURES, RECOVERED, RecoveryConfig, recover_pressure
+from fishsim.fluid.pressure import PRESSURES, RECOVERED, RecoveryConfig, WarmStart, recover_pressure
 
 A_IN = 32.0
 RHO_MID, RHO_HALF = 30.0, 20.0
@@ -207,13 +207,16 @@ class HydroNetFluid:
         self.grid = grid
         self.bf16 = bf16
         self.pressure, self.recovery = pressure, recovery or RecoveryConfig()
+        self.warm = WarmStart()
 
     def initial_state(self, batch: int, device=None, dtype=torch.float32) -> FluidState:
         """Fluid at rest: a = 0 [B,1,H+1,W+1], p = 0 [B,1,H,W]."""
         return rest_state(self.grid, batch, device, dtype)
 
-    def step(self, state: FluidState, boundary: Boundary, params: FluidParams) -> FluidState:
-        """(a_t, p_t, b, v_d) -> (a_t+1, p_t+1): one network evaluation (and the pressure recovery)."""
+    def step(self, state: FluidState, boundary: Boundary, params: FluidParams,
+             start: Tensor | None = None) -> FluidState:
+        """(a_t, p_t, b, v_d) -> (a_t+1, p_t+1): one network evaluation (and the pressure
+        recovery, whose PCG starts from ``start``, else from p_t)."""
         dev = state.a.device.type
         with torch.autocast(dev, dtype=torch.bfloat16, enabled=self.bf16):
             a, p = self.model(state.a, state.p, boundary.mask, boundary.velocity,
@@ -221,5 +224,6 @@ class HydroNetFluid:
         if self.pressure == RECOVERED:
             dx = self.grid.dx
             p = recover_pressure(curl(state.a, dx), curl(a, dx), boundary.mask.to(a.dtype), params.rho,
-                                 params.mu, params.h, self.grid, self.recovery)
+                                 params.mu, params.h, self.grid, self.recovery,
+                                 start=state.p if start is None else start, warm=self.warm)
         return FluidState(a=a, p=p)
