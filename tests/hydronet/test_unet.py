@@ -5,7 +5,8 @@ import torch
 
 from fishsim.fluid.base import Boundary, FluidModel, FluidParams, FluidState
 from fishsim.fluid.grid import closed_tank
-from fishsim.fluid.hydronet.unet import HydroNet, HydroNetFluid, NetConfig, UNet, network_inputs, to_canvas
+from fishsim.fluid.hydronet.unet import (HydroNet, HydroNetFluid, NetConfig, UNet, inference_copy, network_inputs,
+                                         to_canvas)
 
 from .conftest import paper_params
 
@@ -60,7 +61,8 @@ def test_fluid_model_contract(grid, tiny_net):
 
 
 def test_step_is_differentiable(grid, tiny_net):
-    """Gradients reach the state, the boundary velocity and the weights."""
+    """Gradients reach the state and the boundary velocity; the inference copy's weights are
+    frozen (no weight gradients computed in a rollout's backward)."""
     fluid = HydroNetFluid(HydroNet(tiny_net), grid)
     state, boundary = _random_inputs(grid)
     a = state.a.clone().requires_grad_()
@@ -68,7 +70,27 @@ def test_step_is_differentiable(grid, tiny_net):
     new = fluid.step(FluidState(a, state.p), Boundary(boundary.mask, vd), paper_params(2))
     (new.a.square().sum() + new.p.square().sum()).backward()
     assert a.grad.abs().sum() > 0 and vd.grad.abs().sum() > 0
-    assert fluid.model.unet.outc.weight.grad.abs().sum() > 0
+    assert not any(w.requires_grad for w in fluid.model.parameters())
+
+
+def test_inference_copy_folds_batchnorm_without_changing_the_map(grid, tiny_net):
+    """Folding eval-mode BatchNorm (non-trivial running statistics) into the convolutions gives
+    the original network's outputs to float32 round-off, and leaves the original untouched."""
+    model = HydroNet(tiny_net)
+    g = torch.Generator().manual_seed(1)
+    for bn in (m for m in model.modules() if isinstance(m, torch.nn.BatchNorm2d)):
+        bn.running_mean.copy_(0.3 * torch.randn(bn.num_features, generator=g))
+        bn.running_var.copy_(0.5 + torch.rand(bn.num_features, generator=g))
+        bn.weight.data.copy_(1 + 0.2 * torch.randn(bn.num_features, generator=g))
+        bn.bias.data.copy_(0.1 * torch.randn(bn.num_features, generator=g))
+    model.eval()
+    fused = inference_copy(model)
+    assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in fused.modules())
+    assert sum(isinstance(m, torch.nn.BatchNorm2d) for m in model.modules()) > 0
+    x = torch.randn(2, tiny_net.in_channels, grid.H + 1, grid.W + 1, generator=g)
+    with torch.no_grad():
+        expected = model.unet(x)
+        torch.testing.assert_close(fused.unet(x), expected, rtol=1e-5, atol=1e-5 * expected.abs().max().item())
 
 
 def test_bounded_outputs_and_mean_removal(grid, tiny_net):

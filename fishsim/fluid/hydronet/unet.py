@@ -31,12 +31,14 @@ from impulsive starts, which the bound clips (Wandel: "avoid filling the pool wi
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
+from torch.nn.utils.fusion import fuse_conv_bn_eval
 
 from fishsim.fluid.base import Boundary, FluidParams, FluidState, Grid, rest_state
 from fishsim.fluid.grid import curl
@@ -186,11 +188,26 @@ class HydroNet(nn.Module):
         return y - y.mean(dim=(-2, -1), keepdim=True)
 
 
-class HydroNetFluid:
-    """``FluidModel`` backed by a trained ``HydroNet`` (eval mode: BatchNorm uses running stats).
+def inference_copy(model: HydroNet) -> HydroNet:
+    """A frozen eval-mode copy of ``model`` with each BatchNorm folded into the convolution before
+    it: with s = sqrt(running_var + eps), W' = W gamma / s and b' = (b - running_mean) gamma / s
+    + beta, the same map to round-off with a third fewer ops. Its weights do not require grad, so
+    a backward pass through the fluid skips the weight gradients (train the original)."""
+    fused = copy.deepcopy(model).eval()
+    for block in fused.modules():
+        if isinstance(block, DoubleConv):
+            for i in (0, 3):
+                block[i], block[i + 1] = fuse_conv_bn_eval(block[i], block[i + 1]), nn.Identity()
+    return fused.requires_grad_(False)
 
-    Differentiable w.r.t. the state, the boundary and the network weights; batched over B; runs on
-    the device of the inputs (the model must be there too). ``bf16=True`` runs the U-Net trunk under
+
+class HydroNetFluid:
+    """``FluidModel`` backed by a trained ``HydroNet``, run as its ``inference_copy`` (eval mode:
+    BatchNorm uses running stats, folded into the convolutions).
+
+    Differentiable w.r.t. the state and the boundary (not the network weights: train the
+    network with ``fishsim train-hydronet``); batched over B; runs on the device of the inputs
+    (the model must be there too). ``bf16=True`` runs the U-Net trunk under
     bfloat16 autocast (the bounded update and the unit conversions stay in float32).
 
     ``pressure``: "recovered" (default) returns the pressure that best satisfies the momentum
@@ -203,7 +220,7 @@ class HydroNetFluid:
                  recovery: RecoveryConfig | None = None):
         if pressure not in PRESSURES:
             raise ValueError(f"pressure must be one of {PRESSURES}, got {pressure!r}")
-        self.model = model.eval()
+        self.model = inference_copy(model)
         self.grid = grid
         self.bf16 = bf16
         self.pressure, self.recovery = pressure, recovery or RecoveryConfig()
