@@ -9,8 +9,8 @@ One frame (PHYSICS.md section 1, h = 0.01 s):
 
 Without a fluid (``fluid=None``, vacuum) steps 1-3 are skipped and f_ext = 0.
 Every arrow is differentiable; ``rollout`` checkpoints segments of frames so long episodes fit in
-memory (only the segment boundaries are kept; frames are recomputed during backward). The
-recomputation replays each frame's iterative solves from the forward pass's solutions (the PD
+memory: a segment's forward runs without an autograd graph (only its boundary states are kept)
+and its backward recomputes it with one (``CheckpointedFrames``). The recomputation replays each frame's iterative solves from the forward pass's solutions (the PD
 step's q_t+1 and, for HydroNet, the recovered pressure p_t+1, kept detached: 140 kB per fish and
 frame on the default grid), so they converge without iterating and the backward pays only for
 the network, the coupling and the adjoints.
@@ -18,6 +18,7 @@ the network, the coupling and the adjoints.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Callable
@@ -26,7 +27,6 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 from torch import Tensor
-from torch.utils.checkpoint import checkpoint
 
 from fishsim.coupling import CouplingConfig, fluid_to_solid, solid_to_fluid
 from fishsim.coupling.added_mass import stabilising_force
@@ -230,6 +230,45 @@ def _unflatten(tensors: tuple[Tensor, ...]) -> SwimState:
     return SwimState(q, qdot, FluidState(a=a, p=p), qdot_prev)
 
 
+def _param_tensors(params: SwimParams) -> tuple[Tensor, ...]:
+    """The tensors of ``params`` (controller C, omega, gamma; E; fluid rho, mu)."""
+    c = params.controller
+    fluid = () if params.fluid is None else (params.fluid.rho, params.fluid.mu)
+    return (c.C, c.omega, c.gamma, params.E, *fluid)
+
+
+def _with_param_tensors(params: SwimParams, tensors: tuple[Tensor, ...]) -> SwimParams:
+    """``params`` with its tensors replaced (inverse of _param_tensors)."""
+    C, omega, gamma, E, *fluid = tensors
+    controller = dataclasses.replace(params.controller, C=C, omega=omega, gamma=gamma)
+    fluid_params = None if params.fluid is None else dataclasses.replace(params.fluid, rho=fluid[0], mu=fluid[1])
+    return SwimParams(controller, E, fluid_params)
+
+
+class CheckpointedFrames(torch.autograd.Function):
+    """outputs = run(*inputs) computed without an autograd graph; the backward recomputes run
+    with one and differentiates it w.r.t. the inputs (a segment's state and parameter tensors:
+    gradients reach only what is passed in, never tensors run captures)."""
+
+    @staticmethod
+    def forward(ctx, run: Callable, *inputs: Tensor):
+        ctx.run = run
+        ctx.save_for_backward(*inputs)
+        return run(*inputs)
+
+    @staticmethod
+    def backward(ctx, *grad_outputs: Tensor):
+        wanted = ctx.needs_input_grad[1:]
+        inputs = [x.detach().requires_grad_(w) for x, w in zip(ctx.saved_tensors, wanted)]
+        with torch.enable_grad():
+            outputs = ctx.run(*inputs)
+        pairs = [(o, g) for o, g in zip(outputs, grad_outputs) if g is not None and o.requires_grad]
+        wrt = [x for x in inputs if x.requires_grad]
+        grads = iter(torch.autograd.grad([o for o, _ in pairs], wrt, [g for _, g in pairs], allow_unused=True)
+                     if pairs and wrt else [None] * len(wrt))
+        return (None, *(next(grads) if x.requires_grad else None for x in inputs))
+
+
 def _detached(state: SwimState) -> SwimState:
     """The solved parts of a state (q, fluid p), detached, as a start for a recomputation."""
     fluid = None if state.fluid is None else FluidState(a=None, p=state.fluid.p.detach())
@@ -243,7 +282,9 @@ def rollout(swimmer: Swimmer, state: SwimState, params: SwimParams, n_frames: in
     metrics stacked to [n_frames, B] (differentiable w.r.t. the initial state and ``params``).
 
     segment: gradient-checkpoint segment length in frames (0: no checkpointing, keep every
-        frame's graph). Only segment boundaries are stored; frames are recomputed in backward.
+        frame's graph). Only segment boundaries are stored; frames are recomputed in backward,
+        and gradients then reach only the initial state and ``params`` (not, e.g., trainable
+        weights inside the fluid model: use segment=0 for those).
     on_frame(t, state, output, metrics): called once per frame after frame t (0-based, counted
         from ``start``) in the forward pass only (not again during checkpoint recomputation),
         e.g. to write outputs; raising stops the episode.
@@ -253,12 +294,15 @@ def rollout(swimmer: Swimmer, state: SwimState, params: SwimParams, n_frames: in
     seg = segment if segment > 0 and torch.is_grad_enabled() else n_frames
     solutions: dict[int, SwimState] = {}      # frame -> forward solution, replayed in recomputation
 
+    n_state = len(_flatten(state))
+
     def run_frames(t0: int, count: int, *tensors: Tensor):
-        s, rows = _unflatten(tensors), []
+        s, rows = _unflatten(tensors[:n_state]), []
+        p = _with_param_tensors(params, tensors[n_state:])
         for t in range(t0, t0 + count):
             replay = t <= recorded[0]
             try:
-                s, out = swimmer.frame(s, params, t, start=solutions.pop(t, None) if replay else None)
+                s, out = swimmer.frame(s, p, t, start=solutions.pop(t, None) if replay else None)
             except SimulationBlowUp as err:
                 raise SimulationBlowUp(f"simulation blew up at frame {t + 1}: {err}") from None
             m = frame_metrics(swimmer, s, out)
@@ -275,10 +319,11 @@ def rollout(swimmer: Swimmer, state: SwimState, params: SwimParams, n_frames: in
     t = start
     while t < start + n_frames:
         count = min(seg, start + n_frames - t)
+        inputs = (*tensors, *_param_tensors(params))
         if seg < n_frames:
-            result = checkpoint(run_frames, t, count, *tensors, use_reentrant=False)
+            result = CheckpointedFrames.apply(lambda *x, t0=t, n=count: run_frames(t0, n, *x), *inputs)
         else:
-            result = run_frames(t, count, *tensors)
+            result = run_frames(t, count, *inputs)
         tensors, rows = result[:-1], result[-1]
         chunks.append(rows)
         t += count
