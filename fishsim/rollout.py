@@ -33,7 +33,7 @@ from fishsim.coupling.added_mass import stabilising_force
 from fishsim.errors import SimulationBlowUp
 from fishsim.fluid.base import Boundary, FluidModel, FluidParams, FluidState
 from fishsim.fluid.grid import union
-from fishsim.solid import SolidModel, pd_step
+from fishsim.solid import SolidModel, pd_step, predicted_start
 from fishsim.solid.controller import WaveController
 
 
@@ -43,8 +43,8 @@ class SwimState:
 
     q, qdot: world-frame node positions (m) and velocities (m/s), [B, N, 2], float64.
     fluid: the fluid state (None in vacuum).
-    qdot_prev: the previous frame's velocities (the added-mass stabilisation's a_t; None: qdot,
-        a start from rest).
+    qdot_prev: the previous frame's velocities (the added-mass stabilisation's a_t and the PD
+        step's predicted start; None: a start from rest).
     """
 
     q: Tensor
@@ -148,7 +148,8 @@ class Swimmer:
     def frame(self, state: SwimState, params: SwimParams, t: int,
               start: SwimState | None = None) -> tuple[SwimState, FrameOutput]:
         """Advance one frame (module docstring); ``t`` is the index of the frame being left.
-        ``start``: a guess of the new state (its q and fluid p) for the iterative solves."""
+        ``start``: a guess of the new state (its q and fluid p) for the iterative solves
+        (default: the PD step starts from ``predicted_start``, the fluid from p_t)."""
         dev, clock = state.q.device, self.timer
         t0 = time.perf_counter()
         fluid, boundary = state.fluid, None
@@ -164,8 +165,10 @@ class Swimmer:
                                    self.coupling, step=t + 1)
             t0 = clock.add("coupling", t0, dev)
         contraction = params.controller.contraction(self.solid, (t + 1) * self.h)
+        solid_start = start.q if start is not None else (
+            None if state.qdot_prev is None else predicted_start(state.q, state.qdot, state.qdot_prev, self.h))
         q, qdot = pd_step(self.solid, state.q, state.qdot, contraction, f_ext + self.added_mass_force(state),
-                          params.E, start=None if start is None else start.q)
+                          params.E, start=solid_start)
         require_finite(solid_positions_q=q, solid_velocities_qdot=qdot)
         clock.add("solid", t0, dev)
         return SwimState(q, qdot, fluid, state.qdot), FrameOutput(f_ext, contraction, boundary)
@@ -217,15 +220,16 @@ def require_finite(**fields: Tensor) -> None:
 
 
 def _flatten(state: SwimState) -> tuple[Tensor, ...]:
-    if state.fluid is None:
-        return state.q, state.qdot
     qdot_prev = state.qdot if state.qdot_prev is None else state.qdot_prev
+    if state.fluid is None:
+        return state.q, state.qdot, qdot_prev
     return state.q, state.qdot, qdot_prev, state.fluid.a, state.fluid.p
 
 
 def _unflatten(tensors: tuple[Tensor, ...]) -> SwimState:
-    if len(tensors) == 2:
-        return SwimState(*tensors)
+    if len(tensors) == 3:
+        q, qdot, qdot_prev = tensors
+        return SwimState(q, qdot, qdot_prev=qdot_prev)
     q, qdot, qdot_prev, a, p = tensors
     return SwimState(q, qdot, FluidState(a=a, p=p), qdot_prev)
 

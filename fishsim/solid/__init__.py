@@ -10,7 +10,7 @@
 from fishsim.solid.fem import FemQuantities, fem_quantities
 from fishsim.solid.model import PDOptions, SolidMaterial, SolidModel
 from fishsim.solid.solve import ForwardInfo
-from fishsim.solid.step import pd_step, rest_state
+from fishsim.solid.step import pd_step, predicted_start, rest_state
 
 __all__ = [
            "FemQuantities",
@@ -20,5 +20,6 @@ __all__ = [
            "SolidModel",
            "fem_quantities",
            "pd_step",
+           "predicted_start",
            "rest_state",
 ]

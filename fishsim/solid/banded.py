@@ -25,9 +25,11 @@ class BandedCholesky:
     @classmethod
     def of(cls, K: sp.spmatrix) -> BandedCholesky | None:
         """Factorise K, or None when K is not positive definite."""
-        K = K.tocsr()
-        K.sum_duplicates()
-        layout = BandLayout.of(K)
+        if not isinstance(K, (sp.csr_matrix, sp.csc_matrix)) or not K.has_canonical_format:
+            K = K.tocsr()
+            K.sum_duplicates()
+        # K is symmetric, so its CSC arrays read as CSR describe the same matrix
+        layout = BandLayout.of(K.indptr, K.indices)
         band = np.zeros((layout.width + 1, K.shape[0]), order="F")
         band[layout.rows, layout.cols] = K.data[layout.lower]
         factor, info = dpbtrf(band, lower=1)
@@ -46,23 +48,25 @@ class BandLayout:
 
     _cache: dict = {}
 
-    def __init__(self, K: sp.csr_matrix):
-        self.perm = reverse_cuthill_mckee(K, symmetric_mode=True)
+    def __init__(self, indptr: np.ndarray, indices: np.ndarray):
+        n = len(indptr) - 1
+        pattern = sp.csr_matrix((np.ones(len(indices)), indices, indptr), shape=(n, n))
+        self.perm = reverse_cuthill_mckee(pattern, symmetric_mode=True)
         self.inverse = np.argsort(self.perm)
-        rows = np.repeat(np.arange(K.shape[0]), np.diff(K.indptr))
-        r, c = self.inverse[rows], self.inverse[K.indices]
+        rows = np.repeat(np.arange(n), np.diff(indptr))
+        r, c = self.inverse[rows], self.inverse[indices]
         self.lower = r >= c
         self.rows, self.cols = (r - c)[self.lower], c[self.lower]
         self.width = int(self.rows.max())
 
     @classmethod
-    def of(cls, K: sp.csr_matrix) -> BandLayout:
-        """The layout of a canonical CSR matrix's pattern (cached)."""
-        key = (K.shape, K.indptr.tobytes(), K.indices.tobytes())
+    def of(cls, indptr: np.ndarray, indices: np.ndarray) -> BandLayout:
+        """The layout of a canonical CSR (or, symmetric, CSC) pattern (cached)."""
+        key = (indptr.tobytes(), indices.tobytes())
         if key not in cls._cache:
             if len(cls._cache) >= 16:
                 cls._cache.pop(next(iter(cls._cache)))
-            cls._cache[key] = cls(K)
+            cls._cache[key] = cls(indptr, indices)
         return cls._cache[key]
 
 

@@ -212,7 +212,7 @@ def newton_matrix(model: SolidModel, p: Projections, sample: int, projected: boo
     `projected`: the positive definite approximation of stress_differential."""
     Ge = model.fem.element_G
     Ke = Ge.transpose(0, 2, 1) @ element_hessians(model, p, sample, projected) @ Ge
-    return model.fem.pattern.assemble(Ke) + sp.diags(np.repeat(model.mass_h2, 2))
+    return model.fem.pattern.assemble(Ke, np.repeat(model.mass_h2, 2))
 
 
 def select_sample(p: Projections, b: int) -> Projections:

@@ -27,17 +27,24 @@ from fishsim.mesh.fish_mesh import FishMesh
 @dataclass(frozen=True)
 class CscPattern:
     """Sparsity of sum_e (element 6x6 blocks) in CSC form: entry (e, r, c) of the stacked element
-    matrices [T, 6, 6] is added to data[slot[e, r, c]] (so assembly is one bincount)."""
+    matrices [T, 6, 6] is added to data[slot[e, r, c]] (so assembly is one bincount); the
+    diagonal entry of DOF k is data[diagonal[k]]."""
 
     slot: np.ndarray
     indices: np.ndarray
     indptr: np.ndarray
+    diagonal: np.ndarray
     size: int
 
-    def assemble(self, Ke: np.ndarray) -> sp.csc_matrix:
-        """Sparse [size, size] matrix sum_e P_e^T Ke[e] P_e from element matrices Ke [T, 6, 6]."""
+    def assemble(self, Ke: np.ndarray, diagonal: np.ndarray | None = None) -> sp.csc_matrix:
+        """Sparse [size, size] matrix sum_e P_e^T Ke[e] P_e (+ diag(diagonal) if given) from element
+        matrices Ke [T, 6, 6]; canonical CSC (sorted indices, no duplicates)."""
         data = np.bincount(self.slot, weights=Ke.ravel(), minlength=len(self.indices))
-        return sp.csc_matrix((data, self.indices, self.indptr), shape=(self.size, self.size))
+        if diagonal is not None:
+            data[self.diagonal] += diagonal
+        K = sp.csc_matrix((data, self.indices, self.indptr), shape=(self.size, self.size))
+        K.has_canonical_format = True
+        return K
 
 
 @dataclass(frozen=True)
@@ -114,7 +121,8 @@ def csc_pattern(triangles: np.ndarray, n_nodes: int) -> CscPattern:
     size = 2 * n_nodes
     keys, slot = np.unique(cols * size + rows, return_inverse=True)    # sorted by (col, row)
     indptr = np.searchsorted(keys // size, np.arange(size + 1))
-    return CscPattern(slot.ravel(), (keys % size).astype(np.int32), indptr.astype(np.int32), size)
+    diagonal = np.searchsorted(keys, np.arange(size) * (size + 1))
+    return CscPattern(slot.ravel(), (keys % size).astype(np.int32), indptr.astype(np.int32), diagonal, size)
 
 
 def lumped_masses(triangles: np.ndarray, area: np.ndarray, n_nodes: int, density: float) -> np.ndarray:

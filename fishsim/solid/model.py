@@ -154,7 +154,8 @@ class SolidModel:
     added_mass: [N] added_mass_ratio * fem.mass, extra nodal mass (kg per unit depth) of the
         integrator: the coupling's added-mass stabilisation (fishsim.coupling.added_mass).
     mass: [N] fem.mass + added_mass, the mass of the implicit-Euler step.
-    muscles: [n_act] actuated element indices.
+    muscles: [n_act] actuated element indices; muscle_of: [T] the inverse map (-1: passive).
+    mesh_triangles: [T, 3] node indices (int64, contiguous, for the compiled kernels).
     muscle_weight: [n_act] k_m area (Pa m^2).  mass_h2: [N] mass_i / h^2.
     K0: [N, N] sparse, dA/dE.  K_muscle: [N, N] sparse.
     """
@@ -168,6 +169,9 @@ class SolidModel:
         self.fem: FemQuantities = fem_quantities(mesh, material.density)
         self.muscles = np.asarray(mesh.actuated, np.int64)
         self.muscle_weight = material.muscle_stiffness * self.fem.area[self.muscles]
+        self.muscle_of = np.full(self.fem.n_elements, -1, np.int64)      # element -> muscle index
+        self.muscle_of[self.muscles] = np.arange(len(self.muscles))
+        self.mesh_triangles = np.ascontiguousarray(mesh.triangles, np.int64)
         if not added_mass_ratio >= 0:
             raise ConfigError(f"added_mass_ratio must be >= 0, got {added_mass_ratio}")
         self.added_mass = added_mass_ratio * self.fem.mass

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fishsim.solid import elastic
+from fishsim.solid import elastic, kernels
 from fishsim.solid.banded import spd_factor
 from fishsim.solid.model import SolidModel
 from fishsim.solid.preconditioner import LaggedNewton, Preconditioner
@@ -43,14 +43,16 @@ class ForwardInfo:
 
 def sample_dot(u: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Per-sample inner product [B] of two [N, 2B] arrays (column a B + b)."""
+    if u.shape[1] == 2:                                   # B = 1: one BLAS dot (the hot path)
+        return np.array([np.dot(u.ravel(), v.ravel())])
     d = np.einsum("ij,ij->j", u, v)
     B = len(d) // 2
     return d[:B] + d[B:]
 
 
 def per_column(s: np.ndarray) -> np.ndarray:
-    """Per-sample scalars [B] -> [1, 2B] for broadcasting against [N, 2B]."""
-    return np.concatenate([s, s])[None, :]
+    """Per-sample scalars [B] -> [1, 2B] for broadcasting against [N, 2B] (B = 1: s itself)."""
+    return s if len(s) == 1 else np.concatenate([s, s])[None, :]
 
 
 def sample_columns(samples: np.ndarray, B: int) -> np.ndarray:
@@ -65,15 +67,26 @@ def max_nodal_norm(g: np.ndarray) -> np.ndarray:
 
 
 class Objective:
-    """Phi and grad Phi of one step for a batch (y [N, 2B], contraction [n_act, B], E [B])."""
+    """Phi and grad Phi of one step for a batch (y [N, 2B], contraction [n_act, B], E [B]): the
+    compiled kernels.objective, or the numpy local step for models with the volume term."""
 
     def __init__(self, model: SolidModel, Y: np.ndarray, contraction: np.ndarray, E: np.ndarray):
         self.model, self.Y, self.contraction, self.E = model, Y, contraction, E
         self.mass_h2 = model.mass_h2[:, None]
         self.buffer = np.empty((2, model.fem.n_elements, 2, Y.shape[1] // 2))
+        self.fused = not model.material.volume_term
+        if self.fused:
+            fem = model.fem
+            self.w_corotated = np.ascontiguousarray(np.outer(fem.area * model.material.corotated_per_E, E))
+            self.stretch = np.ascontiguousarray(1.0 - contraction)
 
     def __call__(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(Phi [B] in J per unit depth, grad Phi [N, 2B] in N per unit depth)."""
+        if self.fused:
+            model, g = self.model, np.empty_like(X)
+            phi = kernels.objective(X, self.Y, model.mass_h2, model.mesh_triangles, model.fem.grad,
+                                    self.w_corotated, model.muscle_of, model.muscle_weight, self.stretch, g)
+            return phi, g
         p = elastic.project(self.model, elastic.deformation_gradients(self.model, X), self.contraction, self.E)
         energy, S = elastic.energy_and_stress(self.model, p, out=self.buffer)
         MD = self.mass_h2 * (X - self.Y)
@@ -82,19 +95,20 @@ class Objective:
         return sample_dot(X - self.Y, MD) / 2 + energy, grad
 
 
-def _two_loop(g: np.ndarray, history: list, precondition) -> np.ndarray:
-    """L-BFGS direction -H g with H_0 = A^-1; history entries (s, y, rho [B]), rho = 0 = unused."""
+def _two_loop(g: np.ndarray, history: list, precondition, active: np.ndarray) -> np.ndarray:
+    """L-BFGS direction -H g with H_0 = A^-1; history entries (s, y, rho [B]), rho = 0 = unused;
+    only the `active` [B] samples' columns are computed (the others are 0)."""
     q = g.copy()
     alphas = []
     for s, y, rho in reversed(history):
         a = rho * sample_dot(s, q)
         q -= per_column(a) * y
         alphas.append(a)
-    r = precondition(q)
+    r = precondition(q, active)
     for (s, y, rho), a in zip(history, reversed(alphas)):
         b = rho * sample_dot(y, r)
         r += per_column(a - b) * s
-    return -r
+    return -r * per_column(active)
 
 
 def pd_solve(model: SolidModel, Y: np.ndarray, X0: np.ndarray, contraction: np.ndarray,
@@ -119,12 +133,12 @@ def pd_solve(model: SolidModel, Y: np.ndarray, X0: np.ndarray, contraction: np.n
         iterations += active
         if precondition is None:
             precondition = _preconditioner(model, X0, contraction, E)
-        d = _two_loop(g, history, precondition) * per_column(active)
+        d = _two_loop(g, history, precondition, active)
         slope = sample_dot(g, d)
-        uphill = slope >= 0
+        uphill = (slope >= 0) & active
         if uphill.any():                                  # not a descent direction: restart
             history = [(s, y, np.where(uphill, 0.0, rho)) for s, y, rho in history]
-            d = np.where(per_column(uphill), -precondition(g) * per_column(active), d)
+            d = np.where(per_column(uphill), -precondition(g, uphill), d)
             slope = sample_dot(g, d)
         X_new, phi_new, g_new = _line_search(objective, X, phi, d, slope)
         s, y = X_new - X, g_new - g

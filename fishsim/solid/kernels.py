@@ -1,0 +1,65 @@
+"""Fused, compiled (numba) energy and gradient of the forward PD objective: the L-BFGS hot loop.
+
+    Phi(X) = 1/(2 h^2) ||X - Y||_M^2 + E_int(X),   grad Phi = M/h^2 (X - Y) + G^T S(X)
+
+with E_int the co-rotated and muscle energies of elastic.py (same conventions: conformal
+coordinates, fiber column j = 0, target stretch 1 - contraction). One pass over the elements
+computes F, the projections, the energy and the nodal gradient without numpy temporaries: on the
+default fish (2142 elements) 0.03 ms instead of 0.26 ms per evaluation, which L-BFGS does ~11
+times per step. Models with the volume term use the numpy path (solve.Objective); the numpy
+local step stays the reference (tests/solid/test_kernels.py) and builds the Newton matrices.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+from fishsim.solid.energies import _TINY
+
+
+@numba.njit(cache=True, fastmath=False)
+def objective(X: np.ndarray, Y: np.ndarray, mass_h2: np.ndarray, triangles: np.ndarray, grad: np.ndarray,
+              w_corotated: np.ndarray, muscle_of: np.ndarray, w_muscle: np.ndarray, stretch: np.ndarray,
+              g: np.ndarray) -> np.ndarray:
+    """Phi [B] (J per unit depth), writing grad Phi into g [N, 2B] (N per unit depth).
+
+    X, Y [N, 2B] (column a B + b); mass_h2 [N]; triangles [T, 3]; grad [T, 3, 2] shape-function
+    gradients; w_corotated [T, B] = area 2 mu_s(E_b); muscle_of [T] muscle index or -1;
+    w_muscle [n_act] = k_m area; stretch [n_act, B] = 1 - contraction."""
+    N, B = X.shape[0], X.shape[1] // 2
+    phi = np.zeros(B)
+    for i in range(N):
+        for col in range(2 * B):
+            d = X[i, col] - Y[i, col]
+            g[i, col] = mass_h2[i] * d
+            phi[col % B] += 0.5 * mass_h2[i] * d * d
+    for e in range(triangles.shape[0]):
+        k0, k1, k2 = triangles[e, 0], triangles[e, 1], triangles[e, 2]
+        m = muscle_of[e]
+        for b in range(B):
+            x0, x1, x2 = X[k0, b], X[k1, b], X[k2, b]
+            y0, y1, y2 = X[k0, B + b], X[k1, B + b], X[k2, B + b]
+            F00 = x0 * grad[e, 0, 0] + x1 * grad[e, 1, 0] + x2 * grad[e, 2, 0]
+            F01 = x0 * grad[e, 0, 1] + x1 * grad[e, 1, 1] + x2 * grad[e, 2, 1]
+            F10 = y0 * grad[e, 0, 0] + y1 * grad[e, 1, 0] + y2 * grad[e, 2, 0]
+            F11 = y0 * grad[e, 0, 1] + y1 * grad[e, 1, 1] + y2 * grad[e, 2, 1]
+            alpha, beta = (F00 + F11) / 2, (F10 - F01) / 2
+            gamma, delta = (F00 - F11) / 2, (F01 + F10) / 2
+            c = max(np.sqrt(alpha * alpha + beta * beta), _TINY)
+            ra, rb = alpha - alpha / c, beta - beta / c             # F - R, conformal coordinates
+            w = w_corotated[e, b]
+            phi[b] += w * (ra * ra + rb * rb + gamma * gamma + delta * delta)
+            S00, S01 = w * (ra + gamma), w * (delta - rb)
+            S10, S11 = w * (rb + delta), w * (ra - gamma)
+            if m >= 0:                                              # muscle: F m - a F m / |F m|
+                length = max(np.sqrt(F00 * F00 + F10 * F10), _TINY)
+                m0 = F00 - stretch[m, b] * F00 / length
+                m1 = F10 - stretch[m, b] * F10 / length
+                phi[b] += w_muscle[m] / 2 * (m0 * m0 + m1 * m1)
+                S00 += w_muscle[m] * m0
+                S10 += w_muscle[m] * m1
+            for k, node in ((0, k0), (1, k1), (2, k2)):             # dE/dx_ka = sum_j S_aj g_kj
+                g[node, b] += S00 * grad[e, k, 0] + S01 * grad[e, k, 1]
+                g[node, B + b] += S10 * grad[e, k, 0] + S11 * grad[e, k, 1]
+    return phi
