@@ -63,3 +63,67 @@ def objective(X: np.ndarray, Y: np.ndarray, mass_h2: np.ndarray, triangles: np.n
                 g[node, b] += S00 * grad[e, k, 0] + S01 * grad[e, k, 1]
                 g[node, B + b] += S10 * grad[e, k, 0] + S11 * grad[e, k, 1]
     return phi
+
+
+@numba.njit(cache=True)
+def _sample_dots(U: np.ndarray, V: np.ndarray, out: np.ndarray) -> None:
+    """out[b] = sum over nodes and axes of U * V for sample b (columns a B + b of [N, 2B])."""
+    B = out.shape[0]
+    if B == 1:                                   # one contiguous vector: a vectorisable loop
+        u, v = U.reshape(-1), V.reshape(-1)
+        total = 0.0
+        for j in range(u.shape[0]):
+            total += u[j] * v[j]
+        out[0] = total
+        return
+    out[:] = 0.0
+    for i in range(U.shape[0]):
+        for a in range(2):
+            for b in range(B):
+                out[b] += U[i, a * B + b] * V[i, a * B + b]
+
+
+@numba.njit(cache=True)
+def _axpy_per_sample(c: np.ndarray, X: np.ndarray, Z: np.ndarray) -> None:
+    """Z += c_b X on the columns of sample b ([N, 2B] arrays, c [B])."""
+    B = c.shape[0]
+    if B == 1:
+        x, z, c0 = X.reshape(-1), Z.reshape(-1), c[0]
+        for j in range(z.shape[0]):
+            z[j] += c0 * x[j]
+        return
+    for i in range(Z.shape[0]):
+        for a in range(2):
+            for b in range(B):
+                Z[i, a * B + b] += c[b] * X[i, a * B + b]
+
+
+@numba.njit(cache=True)
+def lbfgs_first_loop(q: np.ndarray, S: np.ndarray, Y: np.ndarray, rho: np.ndarray, order: np.ndarray,
+                     alphas: np.ndarray) -> None:
+    """L-BFGS two-loop recursion, first half, in place on q [N, 2B]: for the pairs
+    (S[h], Y[h], rho[h]) from newest to oldest (h = order[k]), alpha_k = rho s.q, q -= alpha_k y
+    (per sample); alphas [len(order), B] receives the alpha_k."""
+    B = alphas.shape[1]
+    dots = np.empty(B)
+    for k in range(order.shape[0]):
+        h = order[k]
+        _sample_dots(S[h], q, dots)
+        for b in range(B):
+            alphas[k, b] = rho[h, b] * dots[b]
+        _axpy_per_sample(-alphas[k], Y[h], q)
+
+
+@numba.njit(cache=True)
+def lbfgs_second_loop(r: np.ndarray, S: np.ndarray, Y: np.ndarray, rho: np.ndarray, order: np.ndarray,
+                      alphas: np.ndarray) -> None:
+    """Second half, in place on r = H0 q: from oldest to newest, beta = rho y.r,
+    r += (alpha_k - beta) s (per sample)."""
+    B = alphas.shape[1]
+    dots = np.empty(B)
+    for k in range(order.shape[0] - 1, -1, -1):
+        h = order[k]
+        _sample_dots(Y[h], r, dots)
+        for b in range(B):
+            dots[b] = alphas[k, b] - rho[h, b] * dots[b]
+        _axpy_per_sample(dots, S[h], r)

@@ -95,19 +95,37 @@ class Objective:
         return sample_dot(X - self.Y, MD) / 2 + energy, grad
 
 
-def _two_loop(g: np.ndarray, history: list, precondition, active: np.ndarray) -> np.ndarray:
-    """L-BFGS direction -H g with H_0 = A^-1; history entries (s, y, rho [B]), rho = 0 = unused;
-    only the `active` [B] samples' columns are computed (the others are 0)."""
+class History:
+    """L-BFGS memory: the last m pairs s = X_k+1 - X_k, y = g_k+1 - g_k ([m, N, 2B] ring
+    buffers) and rho = 1 / s.y per sample ([m, B]; 0 marks a pair a sample does not use)."""
+
+    def __init__(self, m: int, like: np.ndarray):
+        self.S, self.Y = np.zeros((m, *like.shape)), np.zeros((m, *like.shape))
+        self.rho = np.zeros((m, like.shape[1] // 2))
+        self.count, self.head = 0, 0
+
+    def push(self, s: np.ndarray, y: np.ndarray, rho: np.ndarray) -> None:
+        self.S[self.head], self.Y[self.head], self.rho[self.head] = s, y, rho
+        self.head = (self.head + 1) % len(self.S)
+        self.count = min(self.count + 1, len(self.S))
+
+    def forget(self, samples: np.ndarray) -> None:
+        """Drop every pair of the samples marked in the [B] mask."""
+        self.rho[:, samples] = 0.0
+
+    def newest_first(self) -> np.ndarray:
+        return (self.head - 1 - np.arange(self.count)) % len(self.S)
+
+
+def _two_loop(g: np.ndarray, history: History, precondition, active: np.ndarray) -> np.ndarray:
+    """L-BFGS direction -H g with H_0 = A^-1 (compiled two-loop recursion, kernels.py); only the
+    `active` [B] samples' columns are computed (the others are 0)."""
     q = g.copy()
-    alphas = []
-    for s, y, rho in reversed(history):
-        a = rho * sample_dot(s, q)
-        q -= per_column(a) * y
-        alphas.append(a)
+    order = history.newest_first()
+    alphas = np.zeros((len(order), len(active)))
+    kernels.lbfgs_first_loop(q, history.S, history.Y, history.rho, order, alphas)
     r = precondition(q, active)
-    for (s, y, rho), a in zip(history, reversed(alphas)):
-        b = rho * sample_dot(y, r)
-        r += per_column(a - b) * s
+    kernels.lbfgs_second_loop(r, history.S, history.Y, history.rho, order, alphas)
     return -r * per_column(active)
 
 
@@ -125,7 +143,7 @@ def pd_solve(model: SolidModel, Y: np.ndarray, X0: np.ndarray, contraction: np.n
     phi, g = objective(X)
     residual = max_nodal_norm(g)
     iterations = np.zeros(B, np.int64)
-    history: list = []
+    history = History(opts.history, X)
     for _ in range(opts.max_iter):
         active = residual > opts.atol
         if not active.any():
@@ -137,14 +155,14 @@ def pd_solve(model: SolidModel, Y: np.ndarray, X0: np.ndarray, contraction: np.n
         slope = sample_dot(g, d)
         uphill = (slope >= 0) & active
         if uphill.any():                                  # not a descent direction: restart
-            history = [(s, y, np.where(uphill, 0.0, rho)) for s, y, rho in history]
+            history.forget(uphill)
             d = np.where(per_column(uphill), -precondition(g, uphill), d)
             slope = sample_dot(g, d)
         X_new, phi_new, g_new = _line_search(objective, X, phi, d, slope)
         s, y = X_new - X, g_new - g
         sy = sample_dot(s, y)
         rho = np.where(sy > 1e-300, 1.0 / np.where(sy > 1e-300, sy, 1.0), 0.0)
-        history = (history + [(s, y, rho)])[-opts.history:]
+        history.push(s, y, rho)
         X, phi, g = X_new, phi_new, g_new
         residual = max_nodal_norm(g)
     if isinstance(precondition, LaggedNewton):
