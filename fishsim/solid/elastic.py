@@ -20,6 +20,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from fishsim.solid import energies as en
+from fishsim.solid import kernels
 from fishsim.solid.model import SolidModel
 
 
@@ -209,9 +210,19 @@ def element_hessians(model: SolidModel, p: Projections, sample: int, projected: 
 def newton_matrix(model: SolidModel, p: Projections, sample: int, projected: bool = False) -> sp.csc_matrix:
     """Assembled Newton matrix M/h^2 - df_int/dq = M/h^2 + sum_e G_e^T H_e G_e of one sample,
     sparse [2N, 2N] over DOFs 2i + a (x and y coupled, unlike the per-axis PD matrix);
-    `projected`: the positive definite approximation of stress_differential."""
-    Ge = model.fem.element_G
-    Ke = Ge.transpose(0, 2, 1) @ element_hessians(model, p, sample, projected) @ Ge
+    `projected`: the positive definite approximation of stress_differential. Without the volume
+    term the element matrices come from the compiled kernels.newton_elements."""
+    if p.volume is None:
+        s = select_sample(p, sample)
+        col = lambda x: np.ascontiguousarray(x[:, 0])          # [., 1] -> [.]
+        n0, n1, length, a = (col(x) for x in s.muscle[2:6])
+        Ke = np.empty((model.fem.n_elements, 6, 6))
+        kernels.newton_elements(col(s.rotation[0]), col(s.rotation[1]), col(s.rotation[2]), col(s.w_corotated),
+                                model.muscle_of, model.muscle_weight, n0, n1, length, a, model.fem.grad,
+                                projected, Ke)
+    else:
+        Ge = model.fem.element_G
+        Ke = Ge.transpose(0, 2, 1) @ element_hessians(model, p, sample, projected) @ Ge
     return model.fem.pattern.assemble(Ke, np.repeat(model.mass_h2, 2))
 
 

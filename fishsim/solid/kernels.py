@@ -127,3 +127,43 @@ def lbfgs_second_loop(r: np.ndarray, S: np.ndarray, Y: np.ndarray, rho: np.ndarr
         for b in range(B):
             dots[b] = alphas[k, b] - rho[h, b] * dots[b]
         _axpy_per_sample(dots, S[h], r)
+
+
+@numba.njit(cache=True)
+def newton_elements(alpha_R: np.ndarray, beta_R: np.ndarray, c: np.ndarray, w_corotated: np.ndarray,
+                    muscle_of: np.ndarray, w_muscle: np.ndarray, n0: np.ndarray, n1: np.ndarray,
+                    length: np.ndarray, stretch: np.ndarray, grad: np.ndarray, projected: bool,
+                    Ke: np.ndarray) -> None:
+    """Element Newton matrices Ke [T, 6, 6] = G_e^T H_e G_e of one sample (element DOF 2k + a),
+    H_e = d vec(S) / d vec(F) of the co-rotated and muscle energies: elastic.element_hessians
+    without the volume term. Inputs are one sample's projections ([T] and [n_act] arrays, see
+    elastic.Projections); `projected` clamps c and |F m| as elastic.stress_differential does."""
+    H = np.empty((4, 4))
+    for e in range(grad.shape[0]):
+        ce = max(c[e], 1.0) if projected else c[e]
+        m = muscle_of[e]
+        for col in range(4):                         # unit dF_aj, col = 2a + j
+            dF00, dF01 = 1.0 if col == 0 else 0.0, 1.0 if col == 1 else 0.0
+            dF10, dF11 = 1.0 if col == 2 else 0.0, 1.0 if col == 3 else 0.0
+            d_alpha, d_beta = (dF00 + dF11) / 2, (dF10 - dF01) / 2
+            d_gamma, d_delta = (dF00 - dF11) / 2, (dF01 + dF10) / 2
+            radial = alpha_R[e] * d_alpha + beta_R[e] * d_beta
+            c0 = w_corotated[e] * (d_alpha - (d_alpha - radial * alpha_R[e]) / ce)
+            c1 = w_corotated[e] * (d_beta - (d_beta - radial * beta_R[e]) / ce)
+            c2, c3 = w_corotated[e] * d_gamma, w_corotated[e] * d_delta
+            S00, S01, S10, S11 = c0 + c2, c3 - c1, c1 + c3, c0 - c2
+            if m >= 0:
+                L = max(length[m], stretch[m]) if projected else length[m]
+                rad = n0[m] * dF00 + n1[m] * dF10
+                S00 += w_muscle[m] * (dF00 - stretch[m] * (dF00 - rad * n0[m]) / L)
+                S10 += w_muscle[m] * (dF10 - stretch[m] * (dF10 - rad * n1[m]) / L)
+            H[0, col], H[1, col], H[2, col], H[3, col] = S00, S01, S10, S11
+        for k in range(3):                            # Ke[2k+a, 2l+b] = sum_ji g_kj H[2a+j, 2b+i] g_li
+            for a in range(2):
+                for l in range(3):
+                    for b in range(2):
+                        s = 0.0
+                        for j in range(2):
+                            for i in range(2):
+                                s += grad[e, k, j] * H[2 * a + j, 2 * b + i] * grad[e, l, i]
+                        Ke[e, 2 * k + a, 2 * l + b] = s
