@@ -1,7 +1,9 @@
 """HydroNet speed: inference ms/step at the paper's 100 x 300 grid (B = 1, 16; fp32, bf16
 autocast; hidden 16 (our default) and 20 (Wandel's UNet2)), forward + backward ms/step, the bf16
 error, and training iterations/s (pool + step + loss + Adam) for the default TrainConfig.
-All CPU runs use channels_last. Target: <= 20 ms forward per step at B = 1 on 2 cores."""
+All CPU runs use channels_last; the step is the network alone (its own pressure output: the
+recovered pressure's PCG is timed in the coupled rollout, bench_rollout). Target: <= 20 ms
+forward per step at B = 1 on 2 cores."""
 
 from __future__ import annotations
 
@@ -15,6 +17,7 @@ from fishsim.fluid.base import Boundary, FluidParams, FluidState, Grid
 from fishsim.fluid.grid import closed_tank
 from fishsim.fluid.hydronet import train as T
 from fishsim.fluid.hydronet.unet import HydroNet, HydroNetFluid, NetConfig
+from fishsim.fluid.pressure import NETWORK
 
 GRID = Grid(100, 300, 2.5e-3)
 
@@ -41,7 +44,7 @@ def _ms(fn, reps: int) -> float:
 def _fluid(hidden: int, bf16: bool) -> HydroNetFluid:
     torch.manual_seed(0)
     model = HydroNet(NetConfig(hidden=hidden)).to(memory_format=torch.channels_last)
-    return HydroNetFluid(model, GRID, bf16=bf16)
+    return HydroNetFluid(model, GRID, bf16=bf16, pressure=NETWORK)   # the network alone
 
 
 def inference(hidden: int, batch: int, bf16: bool) -> float:

@@ -87,7 +87,7 @@ def tail_excursion(model: SolidModel, frequency: float = 5.0, t_end: float = 1.2
     return max(ys) - min(ys)
 
 
-def run(steps: int = 20, warmup: int = 40, repeats: int = 3) -> dict:
+def run(steps: int = 20, warmup: int = 40, repeats: int = 7) -> dict:
     """Benchmark dict: mesh size, ms/step forward and backward at B = 1 and 16 (best of
     `repeats`, the machine is shared), iterations per step."""
     torch.set_num_threads(1)

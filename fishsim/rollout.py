@@ -10,10 +10,10 @@ One frame (PHYSICS.md section 1, h = 0.01 s):
 Without a fluid (``fluid=None``, vacuum) steps 1-3 are skipped and f_ext = 0.
 Every arrow is differentiable; ``rollout`` checkpoints segments of frames so long episodes fit in
 memory: a segment's forward runs without an autograd graph (only its boundary states are kept)
-and its backward recomputes it with one (``CheckpointedFrames``). The recomputation replays each frame's iterative solves from the forward pass's solutions (the PD
-step's q_t+1 and, for HydroNet, the recovered pressure p_t+1, kept detached: 140 kB per fish and
-frame on the default grid), so they converge without iterating and the backward pays only for
-the network, the coupling and the adjoints.
+and its backward recomputes it with one (``CheckpointedFrames``). The recomputation replays each
+frame's iterative solves from the forward pass's solutions (the PD step's q_t+1 and the fluid's
+pressure p_t+1, kept detached: 140 kB per fish and frame on the default grid), so they converge
+without iterating and the backward pays only for the network, the coupling and the adjoints.
 """
 
 from __future__ import annotations

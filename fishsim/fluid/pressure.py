@@ -47,7 +47,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 import torch
 from torch import Tensor
 
@@ -55,6 +54,7 @@ from fishsim.fluid.base import Grid
 from fishsim.fluid.dct import neumann_inverse, solve_neumann_poisson
 from fishsim.fluid.grid import Faces, divergence, gradient
 from fishsim.fluid.residual import fluid_face_masks, momentum_residual
+from fishsim.solid.banded import BandedCholesky, BandLayout
 
 RECOVERED, NETWORK = "recovered", "network"
 PRESSURES = (RECOVERED, NETWORK)
@@ -83,8 +83,9 @@ class SchwarzPreconditioner:
     """r -> z = L^+ r + R^T A_S^-1 R r (additive Schwarz, symmetric positive semi-definite), with
     L^+ the DCT Neumann Poisson solve of -laplacian and A_S the rows and columns of
     A = -div(w grad .) on the subdomain S of cells whose face weights are all < ``threshold``
-    (Dirichlet truncation; R restricts to S). The sparse LU factors of A_S (scipy, one per sample,
-    on the CPU) are built on first use, so a solve that starts converged costs nothing."""
+    (Dirichlet truncation; R restricts to S). The banded Cholesky factors of A_S (RCM ordering:
+    half-bandwidth ~9 for the fish and the walls; one per sample, on the CPU; 0.6 ms against
+    1.1 ms for SuperLU) are built on first use, so a solve that starts converged costs nothing."""
 
     def __init__(self, weights: Faces, dx: float, threshold: float = 0.5):
         self.weights, self.dx, self.threshold = weights, dx, threshold
@@ -97,13 +98,16 @@ class SchwarzPreconditioner:
         if self.subdomains is None:
             self.subdomains = [self._factor(b) for b in range(r.shape[0])]
         flat = z.flatten(1)
-        for b, (cells, lu) in enumerate(self.subdomains):
-            local = lu.solve(r[b].flatten()[cells].to("cpu", torch.float64).numpy())
+        for b, (cells, factor) in enumerate(self.subdomains):
+            if factor is None:
+                continue
+            local = factor.solve(r[b].flatten()[cells].to("cpu", torch.float64).numpy())
             flat[b, cells] += torch.from_numpy(local).to(z)
         return _mean_free(z)
 
     def _factor(self, b: int) -> tuple[Tensor, object]:
-        """(flat indices of S [n], LU of A_S) for sample b."""
+        """(flat indices of S [n], banded Cholesky factor of A_S) for sample b; the factor is None
+        when S is empty (then only the DCT part acts)."""
         wx = self.weights[0][b, 0].to("cpu", torch.float64).numpy()
         wy = self.weights[1][b, 0].to("cpu", torch.float64).numpy()
         ex = np.pad(wx[:, 1:-1], ((0, 0), (1, 1)))            # interior faces; box faces: 0
@@ -121,9 +125,13 @@ class SchwarzPreconditioner:
             cols += [c[pair], a[pair]]
             vals += [-w[pair], -w[pair]]
         n = len(cells)
+        if n == 0:
+            return torch.as_tensor(cells, device=self.weights[0].device), None
         A_S = sp.csc_matrix((np.concatenate(vals) / self.dx**2, (np.concatenate(rows), np.concatenate(cols))),
                             shape=(n, n))
-        return torch.as_tensor(cells, device=self.weights[0].device), spla.splu(A_S)
+        A_S.sum_duplicates()
+        layout = BandLayout(A_S.indptr, A_S.indices)          # a new pattern every frame: not cached
+        return torch.as_tensor(cells, device=self.weights[0].device), BandedCholesky.with_layout(layout, A_S.data)
 
 
 def solve_weighted_poisson(weights: Faces, f: Tensor, dx: float, tol: float, max_iter: int,

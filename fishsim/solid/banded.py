@@ -29,9 +29,14 @@ class BandedCholesky:
             K = K.tocsr()
             K.sum_duplicates()
         # K is symmetric, so its CSC arrays read as CSR describe the same matrix
-        layout = BandLayout.of(K.indptr, K.indices)
-        band = np.zeros((layout.width + 1, K.shape[0]), order="F")
-        band[layout.rows, layout.cols] = K.data[layout.lower]
+        return cls.with_layout(BandLayout.of(K.indptr, K.indices), K.data)
+
+    @classmethod
+    def with_layout(cls, layout: BandLayout, data: np.ndarray) -> BandedCholesky | None:
+        """Factorise the matrix with the values ``data`` (in its CSR/CSC order) on the pattern
+        of ``layout``, or None when it is not positive definite."""
+        band = np.zeros((layout.width + 1, len(layout.perm)), order="F")
+        band[layout.rows, layout.cols] = data[layout.lower]
         factor, info = dpbtrf(band, lower=1)
         return cls(layout, factor) if info == 0 else None
 

@@ -76,8 +76,7 @@ class Objective:
         self.buffer = np.empty((2, model.fem.n_elements, 2, Y.shape[1] // 2))
         self.fused = not model.material.volume_term
         if self.fused:
-            fem = model.fem
-            self.w_corotated = np.ascontiguousarray(np.outer(fem.area * model.material.corotated_per_E, E))
+            self.w_corotated = np.ascontiguousarray(np.outer(model.fem.area * model.material.corotated_per_E, E))
             self.stretch = np.ascontiguousarray(1.0 - contraction)
 
     def __call__(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
