@@ -12,8 +12,9 @@ Every arrow is differentiable; ``rollout`` checkpoints segments of frames so lon
 memory: a segment's forward runs without an autograd graph (only its boundary states are kept)
 and its backward recomputes it with one (``CheckpointedFrames``). The recomputation replays each
 frame's iterative solves from the forward pass's solutions (the PD step's q_t+1 and the fluid's
-pressure p_t+1, kept detached: 140 kB per fish and frame on the default grid), so they converge
-without iterating and the backward pays only for the network, the coupling and the adjoints.
+pressure p_t+1, kept detached while the graph lives: 140 kB per fish and frame on the default
+grid), so they converge without iterating and the backward pays only for the network, the
+coupling and the adjoints; a second backward through the same graph replays them again.
 """
 
 from __future__ import annotations
@@ -258,6 +259,7 @@ class CheckpointedFrames(torch.autograd.Function):
     def forward(ctx, run: Callable, *inputs: Tensor):
         ctx.run = run
         ctx.save_for_backward(*inputs)
+        ctx.set_materialize_grads(False)            # unused outputs: None, not zero tensors
         return run(*inputs)
 
     @staticmethod
@@ -287,8 +289,8 @@ def rollout(swimmer: Swimmer, state: SwimState, params: SwimParams, n_frames: in
 
     segment: gradient-checkpoint segment length in frames (0: no checkpointing, keep every
         frame's graph). Only segment boundaries are stored; frames are recomputed in backward,
-        and gradients then reach only the initial state and ``params`` (not, e.g., trainable
-        weights inside the fluid model: use segment=0 for those).
+        and gradients then reach only the initial state and ``params`` (not tensors a custom
+        fluid model holds, such as trainable weights: use segment=0 for those).
     on_frame(t, state, output, metrics): called once per frame after frame t (0-based, counted
         from ``start``) in the forward pass only (not again during checkpoint recomputation),
         e.g. to write outputs; raising stops the episode.
@@ -306,7 +308,7 @@ def rollout(swimmer: Swimmer, state: SwimState, params: SwimParams, n_frames: in
         for t in range(t0, t0 + count):
             replay = t <= recorded[0]
             try:
-                s, out = swimmer.frame(s, p, t, start=solutions.pop(t, None) if replay else None)
+                s, out = swimmer.frame(s, p, t, start=solutions.get(t) if replay else None)
             except SimulationBlowUp as err:
                 raise SimulationBlowUp(f"simulation blew up at frame {t + 1}: {err}") from None
             m = frame_metrics(swimmer, s, out)
@@ -314,12 +316,13 @@ def rollout(swimmer: Swimmer, state: SwimState, params: SwimParams, n_frames: in
                 if on_frame is not None:
                     on_frame(t, s, out, m)
                 recorded[0] = t
-                if seg < n_frames:
+                if keep_solutions:
                     solutions[t] = _detached(s)
             rows.append(torch.stack(list(m.values())))
         return (*_flatten(s), torch.stack(rows))
 
     tensors, chunks = _flatten(state), []
+    keep_solutions = seg < n_frames and any(x.requires_grad for x in (*tensors, *_param_tensors(params)))
     t = start
     while t < start + n_frames:
         count = min(seg, start + n_frames - t)

@@ -12,7 +12,6 @@ from fishsim.config import load_config
 from fishsim.coupling import fluid_to_solid
 from fishsim.errors import SimulationBlowUp
 from fishsim.fluid.numerical import NumericalFluid
-from fishsim.fluid.pressure import WarmStart
 from fishsim.rollout import Swimmer, SwimState, rollout
 
 SMALL = ["fish.edge_length=4e-3", "fluid.H=32", "fluid.W=96", "fluid.dx=6e-3", "origin=[0.2,0.096]",
@@ -157,8 +156,6 @@ def test_checkpointed_gradient_equals_plain_backprop(fluid, tiny_model):
         params = type(p)(controller=ctrl, E=p.E, fluid=fluid_params)
         sw.solid.lagged = []  # both forward passes start from fresh PD preconditioners
         _, m = rollout(sw, sw.initial_state(params, ep.origin), params, 6, segment=segment)
-        if fluid == "hydronet":  # and both backward passes start their adjoint solves from zero
-            sw.fluid.warm = WarmStart()
         grads.append(torch.autograd.grad(m["head_x"][-1].sum(), omega)[0])
         if segment:  # the backward's last recomputed frame (frame 3 of 6)
             assert sw.solid.stats.forward_iterations.max() == 0

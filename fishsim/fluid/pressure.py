@@ -34,11 +34,11 @@ dL/df = lambda and dL/dw_f = -(grad lambda)_f (grad p)_f; one more solve per bac
 The gradient is the exact gradient of the converged solve (use a tight ``tol`` where it must
 match finite differences, e.g. in float64 tests).
 
-Warm starts. Consecutive frames have similar pressures, and consecutive backward calls (frames
-t+1, t in reverse order) similar adjoints, so PCG starts from the previous frame's pressure (the
-fluid state's p) and from the last adjoint (``WarmStart``). The start changes the result only
-within ``tol``; it is detached (the solution, not the start, is differentiated), and a checkpoint
-recomputation sees the same start as the forward pass, so it reproduces the forward exactly.
+Warm start. Consecutive frames have similar pressures, so the forward PCG starts from the
+previous frame's pressure (the fluid state's p), or from a given guess (a checkpoint
+recomputation passes the forward's solution, which then needs no iteration). The start changes
+the result only within ``tol`` and is detached (the solution, not the start, is differentiated).
+The adjoint solve starts from zero, so a backward pass does not depend on earlier ones.
 """
 
 from __future__ import annotations
@@ -97,7 +97,7 @@ class SchwarzPreconditioner:
         z = -solve_neumann_poisson(r, self.dx, self.inverse)
         if self.subdomains is None:
             self.subdomains = [self._factor(b) for b in range(r.shape[0])]
-        flat = z.flatten(1)
+        flat = z.view(z.shape[0], -1)
         for b, (cells, factor) in enumerate(self.subdomains):
             if factor is None:
                 continue
@@ -147,12 +147,12 @@ def solve_weighted_poisson(weights: Faces, f: Tensor, dx: float, tol: float, max
         return -divergence(tuple(w * g for w, g in zip(weights, gradient(p, dx))), dx)
 
     f = _mean_free(f)
+    stop = tol * f.flatten(1).norm(dim=1)
     if start is None:
         p, r = torch.zeros_like(f), f
-    else:
-        p = _mean_free(start.detach().to(f.dtype))
+    else:                                  # a sample with f = 0 has p = 0, whatever its start
+        p = _mean_free(start.detach().to(f.dtype)) * (stop > 0).to(f.dtype).view(-1, 1, 1, 1)
         r = f - A(p)
-    stop = tol * f.flatten(1).norm(dim=1)
     tiny = torch.finfo(f.dtype).tiny
     d = rz = None
     it = 0
@@ -168,53 +168,38 @@ def solve_weighted_poisson(weights: Faces, f: Tensor, dx: float, tol: float, max
     return _mean_free(p), it
 
 
-class WarmStart:
-    """Holds the last adjoint solution of a sequence of ``WeightedPoisson`` backward calls (the
-    next one starts from it when the shapes match)."""
-
-    def __init__(self):
-        self.adjoint: Tensor | None = None
-
-    def start_for(self, rhs: Tensor) -> Tensor | None:
-        a = self.adjoint
-        return a if a is not None and a.shape == rhs.shape and a.device == rhs.device else None
-
-
 class WeightedPoisson(torch.autograd.Function):
     """p = A(w)^+ f with A(w) p = -div(w grad p), differentiable in w (faces) and f (module
-    docstring); forward and backward are PCG solves to ``tol``, started from ``start`` (forward)
-    and from ``warm``'s last adjoint (backward; None: from zero). The backward builds its own
+    docstring); forward and backward are PCG solves to ``tol``, the forward started from
+    ``start`` (None: from zero), the backward from zero. The backward builds its own
     preconditioner: one kept in ctx would hold every frame's factors through a checkpointed
     forward pass, whose backward uses the recomputation's ctx anyway."""
 
     @staticmethod
     def forward(ctx, wx: Tensor, wy: Tensor, f: Tensor, dx: float, tol: float, max_iter: int,
-                start: Tensor | None = None, warm: WarmStart | None = None) -> Tensor:
+                start: Tensor | None = None) -> Tensor:
         p, _ = solve_weighted_poisson((wx, wy), f, dx, tol, max_iter, start)
         ctx.save_for_backward(wx, wy, p)
-        ctx.settings = (dx, tol, max_iter, warm)
+        ctx.settings = (dx, tol, max_iter)
         return p
 
     @staticmethod
     def backward(ctx, grad_p: Tensor):
         wx, wy, p = ctx.saved_tensors
-        dx, tol, max_iter, warm = ctx.settings
-        start = None if warm is None else warm.start_for(grad_p)
-        lam, _ = solve_weighted_poisson((wx, wy), grad_p, dx, tol, max_iter, start)
-        if warm is not None:
-            warm.adjoint = lam
+        dx, tol, max_iter = ctx.settings
+        lam, _ = solve_weighted_poisson((wx, wy), grad_p, dx, tol, max_iter)
         (gl_x, gl_y), (gp_x, gp_y) = gradient(lam, dx), gradient(p, dx)
-        return -gl_x * gp_x, -gl_y * gp_y, _mean_free(lam), None, None, None, None, None
+        return -gl_x * gp_x, -gl_y * gp_y, _mean_free(lam), None, None, None, None
 
 
 def recover_pressure(v_old: Faces, v_new: Faces, mask: Tensor, rho: Tensor | float, mu: Tensor | float,
                      h: float, grid: Grid, cfg: RecoveryConfig = RecoveryConfig(),
-                     start: Tensor | None = None, warm: WarmStart | None = None) -> Tensor:
+                     start: Tensor | None = None) -> Tensor:
     """The pressure [B, 1, H, W] (Pa, mean free) of the module docstring for the step
     v_old -> v_new (face velocities, m/s) with the soft mask ``mask`` [B, 1, H, W]; ``start``
-    (e.g. the previous frame's pressure) and ``warm`` (adjoint) are PCG's warm starts."""
+    (e.g. the previous frame's pressure) is PCG's initial guess."""
     r0 = momentum_residual(v_old, v_new, torch.zeros_like(mask), rho, mu, h, grid)
     w = fluid_face_masks(mask)
     f = divergence(tuple(wi * ri for wi, ri in zip(w, r0)), grid.dx)
     wx, wy = (wi + cfg.eps for wi in w)
-    return WeightedPoisson.apply(wx, wy, f, grid.dx, cfg.tol, cfg.max_iter, start, warm)
+    return WeightedPoisson.apply(wx, wy, f, grid.dx, cfg.tol, cfg.max_iter, start)

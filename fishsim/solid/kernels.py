@@ -1,13 +1,16 @@
-"""Fused, compiled (numba) energy and gradient of the forward PD objective: the L-BFGS hot loop.
+"""Compiled (numba) hot loops of the forward PD solve: the objective's energy and gradient, the
+L-BFGS two-loop recursion, and the element Newton matrices of the lagged preconditioner.
 
     Phi(X) = 1/(2 h^2) ||X - Y||_M^2 + E_int(X),   grad Phi = M/h^2 (X - Y) + G^T S(X)
 
 with E_int the co-rotated and muscle energies of elastic.py (same conventions: conformal
 coordinates, fiber column j = 0, target stretch 1 - contraction). One pass over the elements
 computes F, the projections, the energy and the nodal gradient without numpy temporaries: on the
-default fish (2142 elements) 0.03 ms instead of 0.26 ms per evaluation, which L-BFGS does ~11
-times per step. Models with the volume term use the numpy path (solve.Objective); the numpy
-local step stays the reference (tests/solid/test_kernels.py) and builds the Newton matrices.
+default fish (2142 elements) 0.05 ms instead of 0.29 ms per evaluation, which L-BFGS does ~11
+times per step. Models with the volume term use the numpy paths (solve.Objective,
+elastic.element_hessians), which stay the reference (tests/solid/test_kernels.py). Arrays must
+be C-contiguous float64 (another layout compiles another specialisation, or fails in the B = 1
+fast paths).
 """
 
 from __future__ import annotations

@@ -85,9 +85,10 @@ class PDOptions:
         3.8 ms per step, B = 16 58 ms), 'auto' (batched PCG preconditioned with 'rest_newton',
         direct for samples where it fails; ~41 iterations, 16.8 ms and 248 ms) or 'pcg'.
     preconditioner: initial inverse Hessian H0 of the forward L-BFGS:
-        'lagged_newton' (default): per sample, the positive-definite (projected) Newton matrix
-        factorised at the start of a step and kept for the following steps until a step needs
-        more than `refresh_iterations` iterations (then refactorised at the next step's start);
+        'lagged_newton' (default): per sample, the Newton matrix (exact where positive definite,
+        else its projection) factorised at the start of a step and kept for the following steps
+        until a step needs more than `refresh_iterations` iterations (then refactorised at the
+        next step's start);
         'rest_newton': the Newton matrix of the rest shape, M/h^2 + K(rest), rotated per sample
         into the best-fit rigid frame of the current shape, factorised once per E;
         'pd': DiffPD's per-axis PD matrix A(E), factorised once per E.
@@ -96,8 +97,9 @@ class PDOptions:
         ~10 at small amplitude but 20-80 at the calibrated amplitude, 'lagged_newton' a few.
         The adjoint CG is always preconditioned with 'rest_newton' (shared by the batch).
     refresh_iterations: see 'lagged_newton'. 8 (was 15 while factorising cost SuperLU's ~9 ms; the
-        banded Cholesky takes ~1 ms): B = 1 12 iterations per step instead of 16, B = 16 (a batch
-        costs its slowest sample) 16 instead of 32.
+        banded Cholesky takes ~0.6 ms): with the rollout's predicted start, B = 1 takes 10.1
+        iterations per step, B = 16 (a batch costs its slowest sample) 20; 10-15 measured the
+        same within this machine's noise.
     """
 
     atol: float = 1e-5

@@ -6,9 +6,10 @@ Forward (PHYSICS.md section 3): q+ = argmin Phi(q),
     grad Phi = M/h^2 (q - y) - f_int(q)            (the force residual, N per unit depth),
 
 by L-BFGS (DiffPD's solver) with a prefactorised initial inverse Hessian (preconditioner.py: the
-rotated rest-shape Newton matrix by default, or DiffPD's PD matrix A(E), with which the first
-iteration is exactly one local-global step), Armijo backtracking, until the residual's largest
-nodal norm is <= atol. The net residual sum_i g_i is then removed by a rigid translation of q+
+lagged Newton matrix by default; the rotated rest-shape Newton matrix; or DiffPD's PD matrix
+A(E), with which the first iteration is exactly one local-global step), Armijo backtracking,
+until the residual's largest nodal norm is <= atol. The objective and the two-loop recursion run
+compiled (kernels.py). The net residual sum_i g_i is then removed by a rigid translation of q+
 (exact: f_int is translation invariant), so linear momentum is conserved to round-off whatever
 atol is.
 
@@ -119,11 +120,11 @@ class History:
 def _two_loop(g: np.ndarray, history: History, precondition, active: np.ndarray) -> np.ndarray:
     """L-BFGS direction -H g with H_0 = A^-1 (compiled two-loop recursion, kernels.py); only the
     `active` [B] samples' columns are computed (the others are 0)."""
-    q = g.copy()
+    q = np.array(g, order="C")                           # the kernels need C order
     order = history.newest_first()
     alphas = np.zeros((len(order), len(active)))
     kernels.lbfgs_first_loop(q, history.S, history.Y, history.rho, order, alphas)
-    r = precondition(q, active)
+    r = np.ascontiguousarray(precondition(q, active))
     kernels.lbfgs_second_loop(r, history.S, history.Y, history.rho, order, alphas)
     return -r * per_column(active)
 

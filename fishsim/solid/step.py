@@ -62,7 +62,8 @@ def adjoint_gradients(model: SolidModel, q_next, contraction, E, grad_q_next, gr
 
 
 class PDStepFunction(torch.autograd.Function):
-    """(q, qdot, contraction, f_ext, E) -> (q+, qdot+); backward by the adjoint (module doc)."""
+    """(q, qdot, contraction, f_ext, E, start) -> (q+, qdot+); backward by the adjoint (module
+    doc). ``start`` (L-BFGS's initial guess, or None) is not differentiated."""
 
     @staticmethod
     def forward(ctx, model, q, qdot, contraction, f_ext, E, start=None):

@@ -5,8 +5,15 @@ import torch
 
 from fishsim.fluid.base import Boundary, FluidModel, FluidParams, FluidState
 from fishsim.fluid.grid import closed_tank
-from fishsim.fluid.hydronet.unet import (HydroNet, HydroNetFluid, NetConfig, UNet, inference_copy, network_inputs,
-                                         to_canvas)
+from fishsim.fluid.hydronet.unet import (
+    HydroNet,
+    HydroNetFluid,
+    NetConfig,
+    UNet,
+    inference_copy,
+    network_inputs,
+    to_canvas,
+)
 
 from .conftest import paper_params
 

@@ -43,7 +43,7 @@ from torch.nn.utils.fusion import fuse_conv_bn_eval
 from fishsim.fluid.base import Boundary, FluidParams, FluidState, Grid, rest_state
 from fishsim.fluid.grid import curl
 from fishsim.fluid.hydronet.scales import scales_of
-from fishsim.fluid.pressure import PRESSURES, RECOVERED, RecoveryConfig, WarmStart, recover_pressure
+from fishsim.fluid.pressure import PRESSURES, RECOVERED, RecoveryConfig, recover_pressure
 
 A_IN = 32.0
 RHO_MID, RHO_HALF = 30.0, 20.0
@@ -224,7 +224,6 @@ class HydroNetFluid:
         self.grid = grid
         self.bf16 = bf16
         self.pressure, self.recovery = pressure, recovery or RecoveryConfig()
-        self.warm = WarmStart()
 
     def initial_state(self, batch: int, device=None, dtype=torch.float32) -> FluidState:
         """Fluid at rest: a = 0 [B,1,H+1,W+1], p = 0 [B,1,H,W]."""
@@ -242,5 +241,5 @@ class HydroNetFluid:
             dx = self.grid.dx
             p = recover_pressure(curl(state.a, dx), curl(a, dx), boundary.mask.to(a.dtype), params.rho,
                                  params.mu, params.h, self.grid, self.recovery,
-                                 start=state.p if start is None else start, warm=self.warm)
+                                 start=state.p if start is None else start)
         return FluidState(a=a, p=p)
