@@ -300,7 +300,8 @@ def rollout(swimmer: Swimmer, state: SwimState, params: SwimParams, n_frames: in
     seg = segment if segment > 0 and torch.is_grad_enabled() else n_frames
     solutions: dict[int, SwimState] = {}      # frame -> forward solution, replayed in recomputation
 
-    n_state = len(_flatten(state))
+    tensors, chunks = _flatten(state), []
+    n_state = len(tensors)
 
     def run_frames(t0: int, count: int, *tensors: Tensor):
         s, rows = _unflatten(tensors[:n_state]), []
@@ -321,7 +322,6 @@ def rollout(swimmer: Swimmer, state: SwimState, params: SwimParams, n_frames: in
             rows.append(torch.stack(list(m.values())))
         return (*_flatten(s), torch.stack(rows))
 
-    tensors, chunks = _flatten(state), []
     keep_solutions = seg < n_frames and any(x.requires_grad for x in (*tensors, *_param_tensors(params)))
     t = start
     while t < start + n_frames:

@@ -135,13 +135,12 @@ class SchwarzPreconditioner:
 
 
 def solve_weighted_poisson(weights: Faces, f: Tensor, dx: float, tol: float, max_iter: int,
-                           start: Tensor | None = None,
-                           precondition: SchwarzPreconditioner | None = None) -> tuple[Tensor, int]:
-    """Mean-free p [B, 1, H, W] with -div(weights grad p) = f - mean(f), by PCG, stopping at
-    |f - A p| <= tol |f - mean(f)| per sample; returns (p, iterations). weights: positive face
-    weights (x, y); start: initial guess (None: 0); precondition: a SchwarzPreconditioner for
-    these weights (None: a new one)."""
-    precondition = precondition or SchwarzPreconditioner(weights, dx)
+                           start: Tensor | None = None) -> tuple[Tensor, int]:
+    """Mean-free p [B, 1, H, W] with -div(weights grad p) = f - mean(f), by PCG with the
+    SchwarzPreconditioner of these weights, stopping at |f - A p| <= tol |f - mean(f)| per
+    sample; returns (p, iterations). weights: positive face weights (x, y) [B, 1, ., .];
+    start: initial guess (None: 0)."""
+    precondition = SchwarzPreconditioner(weights, dx)
 
     def A(p: Tensor) -> Tensor:
         return -divergence(tuple(w * g for w, g in zip(weights, gradient(p, dx))), dx)
@@ -171,9 +170,8 @@ def solve_weighted_poisson(weights: Faces, f: Tensor, dx: float, tol: float, max
 class WeightedPoisson(torch.autograd.Function):
     """p = A(w)^+ f with A(w) p = -div(w grad p), differentiable in w (faces) and f (module
     docstring); forward and backward are PCG solves to ``tol``, the forward started from
-    ``start`` (None: from zero), the backward from zero. The backward builds its own
-    preconditioner: one kept in ctx would hold every frame's factors through a checkpointed
-    forward pass, whose backward uses the recomputation's ctx anyway."""
+    ``start`` (None: from zero), the backward from zero. Each solve builds its own
+    preconditioner, so no factors are held from the forward until the backward."""
 
     @staticmethod
     def forward(ctx, wx: Tensor, wy: Tensor, f: Tensor, dx: float, tol: float, max_iter: int,
