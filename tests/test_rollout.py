@@ -154,7 +154,7 @@ def test_checkpointed_gradient_equals_plain_backprop(fluid, tiny_model):
                                   gamma=p.controller.gamma, t_a=0.05)
         fluid_params = type(p.fluid)(p.fluid.rho.double(), p.fluid.mu.double(), p.fluid.h)
         params = type(p)(controller=ctrl, E=p.E, fluid=fluid_params)
-        sw.solid.lagged = []  # both forward passes start from fresh PD preconditioners
+        sw.solid.lagged = None  # both forward passes start from fresh PD preconditioners
         _, m = rollout(sw, sw.initial_state(params, ep.origin), params, 6, segment=segment)
         grads.append(torch.autograd.grad(m["head_x"][-1].sum(), omega)[0])
         if segment:  # the backward's last recomputed frame (frame 3 of 6)

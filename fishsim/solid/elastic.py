@@ -213,17 +213,22 @@ def newton_matrix(model: SolidModel, p: Projections, sample: int, projected: boo
     `projected`: the positive definite approximation of stress_differential. Without the volume
     term the element matrices come from the compiled kernels.newton_elements."""
     if p.volume is None:
-        s = select_sample(p, sample)
-        col = lambda x: np.ascontiguousarray(x[:, 0])          # [., 1] -> [.]
-        n0, n1, length, a = (col(x) for x in s.muscle[2:6])
         Ke = np.empty((model.fem.n_elements, 6, 6))
-        kernels.newton_elements(col(s.rotation[0]), col(s.rotation[1]), col(s.rotation[2]), col(s.w_corotated),
-                                model.muscle_of, model.muscle_weight, n0, n1, length, a, model.fem.grad,
-                                projected, Ke)
+        kernels.newton_elements(*newton_kernel_arrays(model, p), projected, sample, Ke)
     else:
         Ge = model.fem.element_G
         Ke = Ge.transpose(0, 2, 1) @ element_hessians(model, p, sample, projected) @ Ge
     return model.fem.pattern.assemble(Ke, np.repeat(model.mass_h2, 2))
+
+
+def newton_kernel_arrays(model: SolidModel, p: Projections) -> tuple:
+    """The projections and model arrays the compiled Newton kernels take, in their argument order
+    (alpha_R, beta_R, c, w_corotated, muscle_of, w_muscle, n0, n1, |F m|, a, grad), C-contiguous."""
+    c = np.ascontiguousarray
+    alpha_R, beta_R, cc = p.rotation
+    n0, n1, length, a = p.muscle[2:6]
+    return (c(alpha_R), c(beta_R), c(cc), c(p.w_corotated), model.muscle_of, model.muscle_weight, c(n0), c(n1),
+            c(length), c(a), model.fem.grad)
 
 
 def select_sample(p: Projections, b: int) -> Projections:

@@ -13,6 +13,7 @@ on q or on the activations, so it is factorised once per distinct E and reused e
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -20,7 +21,7 @@ import scipy.sparse as sp
 
 from fishsim.errors import ConfigError
 from fishsim.mesh.fish_mesh import FishMesh
-from fishsim.solid.fem import FemQuantities, fem_quantities
+from fishsim.solid.fem import FemQuantities, NewtonBand, fem_quantities
 
 
 @dataclass(frozen=True)
@@ -182,11 +183,16 @@ class SolidModel:
         self.K0, self.K_muscle = self._stiffness_parts()
         self.stats = SolverStats()
         self.factors: dict[float, object] = {}   # E -> factorisation (preconditioner.py)
-        self.lagged: list = []                    # per-sample lagged Newton factors (preconditioner.py)
+        self.lagged = None                        # the batch's lagged Newton factors (preconditioner.py)
 
     @property
     def n_nodes(self) -> int:
         return self.fem.n_nodes
+
+    @functools.cached_property
+    def newton_band(self) -> NewtonBand:
+        """Band layout of the [2N, 2N] Newton matrices (built on first use)."""
+        return NewtonBand.of(self.fem.pattern)
 
     @property
     def n_muscles(self) -> int:

@@ -4,7 +4,8 @@
   (the exact Hessian of Phi; its positive definite projection where the exact one is indefinite,
   under strong compression), factorised at the start of a step and reused by later steps until
   one needs more than options.refresh_iterations iterations (kept in model.lagged; the batch size
-  changing rebuilds them). It follows the body's local rotations, which the two fixed matrices
+  changing rebuilds them). The batch's factors are assembled and factorised in parallel over
+  the samples, straight into their bands (kernels.newton_factors). It follows the body's local rotations, which the two fixed matrices
   below cannot. The exact Hessian, where positive definite, saves ~1.2 of ~12 L-BFGS iterations
   per step on the default fish over the projected one.
 
@@ -25,7 +26,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from fishsim.solid import elastic
+from fishsim.solid import elastic, kernels
 from fishsim.solid.banded import BandedCholesky, spd_factor
 from fishsim.solid.model import SolidModel
 
@@ -77,9 +78,10 @@ def _rotate(R: np.ndarray, cos: np.ndarray, sin: np.ndarray) -> np.ndarray:
 
 
 class Preconditioner:
-    """r -> H0 r for [N, 2B] arrays, one factorisation per distinct E among the samples;
-    `X_frame` [N, 2B] (rest_newton only) sets each sample's rigid frame. Every sample is solved
-    (the `active` argument of the call is accepted for LaggedNewton's interface)."""
+    """r -> H0 r for [B, N, 2] arrays (solved in elastic's [N, 2B] column layout), one
+    factorisation per distinct E among the samples; `X_frame` [B, N, 2] (rest_newton only) sets
+    each sample's rigid frame. Every sample is solved (the `active` argument of the call is
+    accepted for LaggedNewton's interface)."""
 
     def __init__(self, model: SolidModel, E: np.ndarray, X_frame: np.ndarray | None = None,
                  kind: str = "rest_newton"):
@@ -87,9 +89,10 @@ class Preconditioner:
         self.groups = [(factor(model, v, kind), np.flatnonzero(inverse.ravel() == i)) for i, v in enumerate(values)]
         self.rotated = kind == "rest_newton"
         if self.rotated:
-            self.cos, self.sin = best_fit_rotation(model, X_frame)
+            self.cos, self.sin = best_fit_rotation(model, elastic.to_columns(X_frame))
 
     def __call__(self, R: np.ndarray, active: np.ndarray | None = None) -> np.ndarray:
+        R = elastic.to_columns(R)
         if self.rotated:
             R = _rotate(R, self.cos, -self.sin)
         if len(self.groups) == 1:
@@ -100,7 +103,7 @@ class Preconditioner:
             for lu, samples in self.groups:
                 cols = np.concatenate([samples, B + samples])
                 Z[:, cols] = self._solve(lu, R[:, cols])
-        return _rotate(Z, self.cos, self.sin) if self.rotated else Z
+        return elastic.from_columns(_rotate(Z, self.cos, self.sin) if self.rotated else Z)
 
     def _solve(self, lu, R: np.ndarray) -> np.ndarray:
         if not self.rotated:                                   # per-axis [N, N] matrix
@@ -109,32 +112,71 @@ class Preconditioner:
         return lu.solve(R.reshape(2 * N, B)).reshape(N, 2 * B)
 
 
+def newton_factors(model: SolidModel, p: elastic.Projections, samples: np.ndarray, L: np.ndarray,
+                   projected: bool = False) -> np.ndarray:
+    """Banded Cholesky factors of the samples' Newton matrices (exact, or `projected`) at the
+    projections p, written to L[b] ([B, n, w + 1], model.newton_band's layout) in parallel over
+    the samples. Returns ok [B]: the matrix was positive definite (False also for samples not
+    factorised). Models without the volume term only (compiled element matrices)."""
+    band, ok = model.newton_band, np.zeros(len(L), bool)
+    kernels.newton_factors(*elastic.newton_kernel_arrays(model, p), projected, band.slot, band.diagonal,
+                           np.repeat(model.mass_h2, 2), np.asarray(samples, np.int64), L, ok)
+    return ok
+
+
+class LaggedFactors:
+    """The lagged Newton factors of a batch of B samples, kept on the model between steps
+    (model.lagged): banded factors L [B, n, w + 1] where `banded`, else a SuperLU object in
+    `other` (models with the volume term, or a projected matrix that failed Cholesky);
+    `valid` [B] False marks samples to refactorise at the next step's start."""
+
+    def __init__(self, model: SolidModel, B: int):
+        self.L = model.newton_band.empty(B)
+        self.banded = np.zeros(B, bool)
+        self.valid = np.zeros(B, bool)
+        self.other: dict[int, object] = {}
+
+    def refactorise(self, model: SolidModel, X: np.ndarray, contraction: np.ndarray, E: np.ndarray) -> None:
+        """Factorise the Newton matrix at positions X [B, N, 2] of every invalid sample: the exact
+        one where positive definite, else its positive definite projection."""
+        stale = np.flatnonzero(~self.valid)
+        if not len(stale):
+            return
+        p = elastic.project(model, elastic.deformation_gradients(model, elastic.to_columns(X)), contraction, E)
+        self.banded[stale] = False
+        if p.volume is None:
+            self.banded |= newton_factors(model, p, stale, self.L)
+            failed = stale[~self.banded[stale]]
+            if len(failed):
+                self.banded |= newton_factors(model, p, failed, self.L, projected=True)
+        for b in stale[~self.banded[stale]]:
+            self.other[int(b)] = (BandedCholesky.of(elastic.newton_matrix(model, p, int(b)))
+                                  or spd_factor(elastic.newton_matrix(model, p, int(b), projected=True)))
+        self.valid[stale] = True
+
+
 class LaggedNewton:
-    """r -> K_b^-1 r per sample with the lagged Newton factors of `model.lagged`; with `active`
-    [B] only those samples are solved (the others' columns are 0)."""
+    """r -> K_b^-1 r per sample with the lagged Newton factors of `model.lagged` (refactorised
+    where stale); with `active` [B] only those samples are solved (the others' columns are 0)."""
 
     def __init__(self, model: SolidModel, X: np.ndarray, contraction: np.ndarray, E: np.ndarray):
-        B = X.shape[1] // 2
-        if len(model.lagged) != B:
-            model.lagged = [None] * B
-        stale = [b for b in range(B) if model.lagged[b] is None]
-        if stale:
-            p = elastic.project(model, elastic.deformation_gradients(model, X), contraction, E)
-            for b in stale:
-                model.lagged[b] = (BandedCholesky.of(elastic.newton_matrix(model, p, b))
-                                   or spd_factor(elastic.newton_matrix(model, p, b, projected=True)))
-        self.factors = list(model.lagged)
-        self.model = model
+        B = len(X)
+        if model.lagged is None or len(model.lagged.valid) != B:
+            model.lagged = LaggedFactors(model, B)
+        self.lagged, self.model = model.lagged, model
+        self.lagged.refactorise(model, X, contraction, E)
 
     def __call__(self, R: np.ndarray, active: np.ndarray | None = None) -> np.ndarray:
-        N, B = R.shape[0], R.shape[1] // 2
+        samples = np.arange(len(R)) if active is None else np.flatnonzero(active)
+        lagged, layout = self.lagged, self.model.newton_band.layout
         Z = np.zeros_like(R)
-        for b in range(B) if active is None else np.flatnonzero(active):
-            lu, cols = self.factors[b], [b, B + b]
-            Z[:, cols] = lu.solve(np.ascontiguousarray(R[:, cols]).reshape(2 * N)).reshape(N, 2)
+        banded = samples[lagged.banded[samples]]
+        if len(banded):
+            kernels.solve_samples(lagged.L, layout.perm, layout.inverse, R, banded, Z)
+        for b in samples[~lagged.banded[samples]]:
+            Z[b] = lagged.other[int(b)].solve(R[b].reshape(-1)).reshape(-1, 2)
         return Z
 
     def refresh(self, iterations: np.ndarray) -> None:
         """Mark samples whose step needed more than refresh_iterations for refactorisation."""
-        for b in np.flatnonzero(iterations > self.model.options.refresh_iterations):
-            self.model.lagged[b] = None
+        self.lagged.valid &= iterations <= self.model.options.refresh_iterations

@@ -17,6 +17,10 @@ Adjoint: (A - dA) x = b with A - dA = M/h^2 - df_int/dq, the Newton matrix at q+
 indefinite only under strong compression): by default a direct solve per sample of the assembled
 2N x 2N matrix (banded Cholesky, sparse LU if indefinite); or ('auto' / 'pcg') batched CG
 preconditioned with the rotated rest-shape Newton matrix, direct for samples where CG fails.
+
+Layout: nodal vectors are [B, N, 2] arrays, one sample contiguous (the compiled kernels work on
+one sample at a time, in parallel over the batch); elastic.py's operators take the [N, 2B]
+column layout (elastic.to_columns), which the numpy paths convert to at their boundaries.
 """
 
 from __future__ import annotations
@@ -29,7 +33,7 @@ import numpy as np
 from fishsim.solid import elastic, kernels
 from fishsim.solid.banded import spd_factor
 from fishsim.solid.model import SolidModel
-from fishsim.solid.preconditioner import LaggedNewton, Preconditioner
+from fishsim.solid.preconditioner import LaggedNewton, Preconditioner, newton_factors
 
 
 @dataclass(frozen=True)
@@ -43,65 +47,60 @@ class ForwardInfo:
 
 
 def sample_dot(u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Per-sample inner product [B] of two [N, 2B] arrays (column a B + b)."""
-    if u.shape[1] == 2:                                   # B = 1: one BLAS dot (the hot path)
+    """Per-sample inner product [B] of two [B, N, 2] arrays."""
+    if len(u) == 1:                                       # one BLAS dot (the hot path)
         return np.array([np.dot(u.ravel(), v.ravel())])
-    d = np.einsum("ij,ij->j", u, v)
-    B = len(d) // 2
-    return d[:B] + d[B:]
+    return np.einsum("bij,bij->b", u, v)
 
 
-def per_column(s: np.ndarray) -> np.ndarray:
-    """Per-sample scalars [B] -> [1, 2B] for broadcasting against [N, 2B] (B = 1: s itself)."""
-    return s if len(s) == 1 else np.concatenate([s, s])[None, :]
-
-
-def sample_columns(samples: np.ndarray, B: int) -> np.ndarray:
-    """Columns of [N, 2B] arrays that hold the given samples."""
-    return np.concatenate([samples, B + samples])
+def per_sample(s: np.ndarray) -> np.ndarray:
+    """Per-sample scalars [B] -> [B, 1, 1] for broadcasting against [B, N, 2]."""
+    return s[:, None, None]
 
 
 def max_nodal_norm(g: np.ndarray) -> np.ndarray:
-    """max_i |g_i| per sample [B] of a [N, 2B] nodal vector field."""
-    B = g.shape[1] // 2
-    return np.sqrt(g[:, :B] ** 2 + g[:, B:] ** 2).max(0)
+    """max_i |g_i| per sample [B] of a [B, N, 2] nodal vector field."""
+    return np.sqrt(g[:, :, 0] ** 2 + g[:, :, 1] ** 2).max(1)
 
 
 class Objective:
-    """Phi and grad Phi of one step for a batch (y [N, 2B], contraction [n_act, B], E [B]): the
+    """Phi and grad Phi of one step for a batch (y [B, N, 2], contraction [n_act, B], E [B]): the
     compiled kernels.objective, or the numpy local step for models with the volume term."""
 
     def __init__(self, model: SolidModel, Y: np.ndarray, contraction: np.ndarray, E: np.ndarray):
         self.model, self.Y, self.contraction, self.E = model, Y, contraction, E
-        self.mass_h2 = model.mass_h2[:, None]
-        self.buffer = np.empty((2, model.fem.n_elements, 2, Y.shape[1] // 2))
         self.fused = not model.material.volume_term
         if self.fused:
             self.w_corotated = np.ascontiguousarray(np.outer(model.fem.area * model.material.corotated_per_E, E))
             self.stretch = np.ascontiguousarray(1.0 - contraction)
 
-    def __call__(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(Phi [B] in J per unit depth, grad Phi [N, 2B] in N per unit depth)."""
+    def __call__(self, X: np.ndarray, samples: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(Phi [B] in J per unit depth, grad Phi [B, N, 2] in N per unit depth); with a [B] mask
+        `samples`, only those samples' entries are computed (the compiled path leaves the
+        others unspecified)."""
+        model = self.model
         if self.fused:
-            model, g = self.model, np.empty_like(X)
+            g = np.empty_like(X)
+            which = np.arange(len(self.E)) if samples is None else np.flatnonzero(samples)
             phi = kernels.objective(X, self.Y, model.mass_h2, model.mesh_triangles, model.fem.grad,
-                                    self.w_corotated, model.muscle_of, model.muscle_weight, self.stretch, g)
+                                    self.w_corotated, model.muscle_of, model.muscle_weight, self.stretch,
+                                    which, g)
             return phi, g
-        p = elastic.project(self.model, elastic.deformation_gradients(self.model, X), self.contraction, self.E)
-        energy, S = elastic.energy_and_stress(self.model, p, out=self.buffer)
-        MD = self.mass_h2 * (X - self.Y)
-        grad = self.model.fem.G.T @ S.reshape(-1, X.shape[1])
-        grad += MD
+        Xc = elastic.to_columns(X)
+        p = elastic.project(model, elastic.deformation_gradients(model, Xc), self.contraction, self.E)
+        energy, S = elastic.energy_and_stress(model, p)
+        MD = model.mass_h2[None, :, None] * (X - self.Y)
+        grad = MD + elastic.from_columns(model.fem.G.T @ S.reshape(-1, Xc.shape[1]))
         return sample_dot(X - self.Y, MD) / 2 + energy, grad
 
 
 class History:
-    """L-BFGS memory: the last m pairs s = X_k+1 - X_k, y = g_k+1 - g_k ([m, N, 2B] ring
+    """L-BFGS memory: the last m pairs s = X_k+1 - X_k, y = g_k+1 - g_k ([m, B, N, 2] ring
     buffers) and rho = 1 / s.y per sample ([m, B]; 0 marks a pair a sample does not use)."""
 
     def __init__(self, m: int, like: np.ndarray):
         self.S, self.Y = np.zeros((m, *like.shape)), np.zeros((m, *like.shape))
-        self.rho = np.zeros((m, like.shape[1] // 2))
+        self.rho = np.zeros((m, like.shape[0]))
         self.count, self.head = 0, 0
 
     def push(self, s: np.ndarray, y: np.ndarray, rho: np.ndarray) -> None:
@@ -123,22 +122,23 @@ def _two_loop(g: np.ndarray, history: History, precondition, active: np.ndarray)
     q = np.array(g, order="C")                           # the kernels need C order
     order = history.newest_first()
     alphas = np.zeros((len(order), len(active)))
-    kernels.lbfgs_first_loop(q, history.S, history.Y, history.rho, order, alphas)
+    samples = np.flatnonzero(active)
+    kernels.lbfgs_first_loop(q, history.S, history.Y, history.rho, order, samples, alphas)
     r = np.ascontiguousarray(precondition(q, active))
-    kernels.lbfgs_second_loop(r, history.S, history.Y, history.rho, order, alphas)
-    return -r * per_column(active)
+    kernels.lbfgs_second_loop(r, history.S, history.Y, history.rho, order, samples, alphas)
+    return -r * per_sample(active)
 
 
 def pd_solve(model: SolidModel, Y: np.ndarray, X0: np.ndarray, contraction: np.ndarray,
              E: np.ndarray) -> tuple[np.ndarray, ForwardInfo]:
-    """q+ = argmin Phi for every sample. Y, X0: [N, 2B]; contraction [n_act, B]; E [B].
-    Returns (X [N, 2B], ForwardInfo). Converged samples stop moving while others iterate; the
+    """q+ = argmin Phi for every sample. Y, X0: [B, N, 2]; contraction [n_act, B]; E [B].
+    Returns (X [B, N, 2], ForwardInfo). Converged samples stop moving while others iterate; the
     preconditioner is built only if some sample needs an iteration (a start that is already
     converged, e.g. a checkpoint recomputation's, costs one residual evaluation)."""
     opts = model.options
     objective = Objective(model, Y, contraction, E)
     precondition = None
-    B = Y.shape[1] // 2
+    B = Y.shape[0]
     X = X0.copy()
     phi, g = objective(X)
     residual = max_nodal_norm(g)
@@ -156,9 +156,9 @@ def pd_solve(model: SolidModel, Y: np.ndarray, X0: np.ndarray, contraction: np.n
         uphill = (slope >= 0) & active
         if uphill.any():                                  # not a descent direction: restart
             history.forget(uphill)
-            d = np.where(per_column(uphill), -precondition(g, uphill), d)
+            d = np.where(per_sample(uphill), -precondition(g, uphill), d)
             slope = sample_dot(g, d)
-        X_new, phi_new, g_new = _line_search(objective, X, phi, d, slope)
+        X_new, phi_new, g_new = _line_search(objective, X, phi, g, d, slope, active)
         s, y = X_new - X, g_new - g
         sy = sample_dot(s, y)
         rho = np.where(sy > 1e-300, 1.0 / np.where(sy > 1e-300, sy, 1.0), 0.0)
@@ -186,56 +186,57 @@ def _preconditioner(model: SolidModel, X0: np.ndarray, contraction: np.ndarray, 
 def _remove_net_residual(model: SolidModel, X: np.ndarray, g: np.ndarray):
     """Translate each sample by -sum_i g_i / sum_i (m_i / h^2): grad Phi changes by M/h^2 times
     the shift (f_int is translation invariant), so afterwards sum_i g_i = 0 exactly."""
-    shift = g.sum(0, keepdims=True) / model.mass_h2.sum()
-    return X - shift, g - model.mass_h2[:, None] * shift
+    shift = g.sum(1, keepdims=True) / model.mass_h2.sum()
+    return X - shift, g - model.mass_h2[None, :, None] * shift
 
 
-def _line_search(objective, X, phi, d, slope, c1: float = 1e-4, max_halvings: int = 30):
+def _line_search(objective, X, phi, g, d, slope, active, c1: float = 1e-4, max_halvings: int = 30):
     """Armijo backtracking per sample: Phi(X + t d) <= Phi + c1 t slope, starting at t = 1; a
-    change within round-off of Phi counts as sufficient (needed at tight tolerances)."""
+    change within round-off of Phi counts as sufficient (needed at tight tolerances). Only the
+    `active` [B] samples move (and are evaluated); the others keep X, phi and g."""
     t = np.ones_like(phi)
     X_new = X + d
-    phi_new, g_new = objective(X_new)
+    phi_new, g_new = objective(X_new, active)
+    phi_new, g_new = np.where(active, phi_new, phi), np.where(per_sample(active), g_new, g)
     for _ in range(max_halvings):
-        ok = phi_new - phi <= c1 * t * slope + 64 * np.finfo(float).eps * np.abs(phi)
+        ok = ~active | (phi_new - phi <= c1 * t * slope + 64 * np.finfo(float).eps * np.abs(phi))
         if ok.all():
             break
         t = np.where(ok, t, t / 2)
-        X_try = X + per_column(t) * d
-        phi_try, g_try = objective(X_try)
-        keep = per_column(ok)
+        X_try = X + per_sample(t) * d
+        phi_try, g_try = objective(X_try, ~ok)
+        keep = per_sample(ok)
         X_new, g_new = np.where(keep, X_new, X_try), np.where(keep, g_new, g_try)
         phi_new = np.where(ok, phi_new, phi_try)
     return X_new, phi_new, g_new
 
 
 class NewtonOperator:
-    """X -> (A - dA) X = M/h^2 X + G^T dS[G X], the Newton matrix at the projections p."""
+    """V -> (A - dA) V = M/h^2 V + G^T dS[G V], the Newton matrix at the projections p (V [B, N, 2])."""
 
     def __init__(self, model: SolidModel, p: elastic.Projections):
         self.model, self.p = model, p
-        self.buffer = np.empty((2, model.fem.n_elements, 2, p.F[0].shape[1]))
 
     def __call__(self, V: np.ndarray) -> np.ndarray:
-        dZ = elastic.deformation_gradients(self.model, V)
-        dS = elastic.stress_differential(self.model, self.p, dZ, out=self.buffer)
-        return self.model.mass_h2[:, None] * V + self.model.fem.G.T @ dS.reshape(-1, V.shape[1])
+        Vc = elastic.to_columns(V)
+        dS = elastic.stress_differential(self.model, self.p, elastic.deformation_gradients(self.model, Vc))
+        KV = elastic.from_columns(self.model.fem.G.T @ dS.reshape(-1, Vc.shape[1]))
+        return self.model.mass_h2[None, :, None] * V + KV
 
 
 def newton_solve(model: SolidModel, p: elastic.Projections, X: np.ndarray, b: np.ndarray, E: np.ndarray,
                  method: str | None = None) -> tuple[np.ndarray, int, int]:
-    """x = (A - dA)^-1 b for every sample (b, x: [N, 2B]) at positions X [N, 2B] with projections
+    """x = (A - dA)^-1 b for every sample (b, x: [B, N, 2]) at positions X [B, N, 2] with projections
     p. Returns (x, CG iterations, number of samples solved directly)."""
     method = method or model.options.backward_method
-    B = b.shape[1] // 2
+    B = b.shape[0]
     if method == "direct":
         return _direct_solve(model, p, b, np.arange(B)), 0, B
     x, ok, its = _pcg(NewtonOperator(model, p), Preconditioner(model, E, X, "rest_newton"), b,
                       model.options.backward_rtol, model.options.backward_max_iter)
     failed = np.flatnonzero(~ok)
     if len(failed) and method == "auto":
-        cols = sample_columns(failed, B)
-        x[:, cols] = _direct_solve(model, p, b, failed)[:, cols]
+        x[failed] = _direct_solve(model, p, b, failed)[failed]
     elif len(failed):
         warnings.warn(f"adjoint PCG did not converge for {len(failed)} samples", RuntimeWarning, stacklevel=3)
     return x, its, len(failed) if method == "auto" else 0
@@ -244,7 +245,7 @@ def newton_solve(model: SolidModel, p: elastic.Projections, X: np.ndarray, b: np
 def _pcg(apply_K, precondition, b: np.ndarray, rtol: float, max_iter: int):
     """Batched preconditioned CG; a sample stops at |r|_max <= rtol |b|_max, fails on
     p^T K p <= 0 (indefinite) or after max_iter. Returns (x, converged [B], iterations)."""
-    B = b.shape[1] // 2
+    B = b.shape[0]
     x = np.zeros_like(b)
     target = rtol * max_nodal_norm(b)
     r = b.copy()
@@ -263,23 +264,27 @@ def _pcg(apply_K, precondition, b: np.ndarray, rtol: float, max_iter: int):
         broken |= active & (dKd <= 0)
         active &= ~broken
         step = np.where(active, rz / np.where(active, dKd, 1.0), 0.0)
-        x += per_column(step) * d
-        r -= per_column(step) * Kd
+        x += per_sample(step) * d
+        r -= per_sample(step) * Kd
         done |= active & (max_nodal_norm(r) <= target)
         z = precondition(r)
         rz_new = sample_dot(r, z)
-        d = z + per_column(np.where(active, rz_new / np.where(rz != 0, rz, 1.0), 0.0)) * d
+        d = z + per_sample(np.where(active, rz_new / np.where(rz != 0, rz, 1.0), 0.0)) * d
         rz = rz_new
     return x, done, it
 
 
 def _direct_solve(model: SolidModel, p: elastic.Projections, b: np.ndarray, samples: np.ndarray) -> np.ndarray:
-    """Direct solve of the assembled Newton matrix for the given samples (columns of b): banded
-    Cholesky when it is positive definite, else sparse LU (banded.spd_factor)."""
+    """Direct solve of the assembled Newton matrix for the given samples of b [B, N, 2]: banded
+    Cholesky when it is positive definite (assembled, factorised and solved in parallel over the
+    samples), else sparse LU (banded.spd_factor)."""
     x = np.zeros_like(b)
-    B = b.shape[1] // 2
+    if p.volume is None:
+        L = model.newton_band.empty(len(b))
+        banded = np.flatnonzero(newton_factors(model, p, samples, L))
+        layout = model.newton_band.layout
+        kernels.solve_samples(L, layout.perm, layout.inverse, np.ascontiguousarray(b), banded, x)
+        samples = np.setdiff1d(samples, banded)
     for s in samples:
-        K = elastic.newton_matrix(model, p, int(s))
-        cols = [s, B + s]
-        x[:, cols] = spd_factor(K).solve(b[:, cols].reshape(-1)).reshape(-1, 2)
+        x[s] = spd_factor(elastic.newton_matrix(model, p, int(s))).solve(b[s].reshape(-1)).reshape(-1, 2)
     return x

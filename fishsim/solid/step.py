@@ -38,9 +38,8 @@ def forward_step(model: SolidModel, q, qdot, contraction, f_ext, E, start=None) 
     h = model.h
     free = q + h * qdot
     y = free if f_ext is None else free + h * h * f_ext / model.mass[None, :, None]
-    X0 = elastic.to_columns(free if start is None else start)
-    X, info = pd_solve(model, elastic.to_columns(y), X0, np.ascontiguousarray(contraction.T), E)
-    q_next = elastic.from_columns(X)
+    X0 = np.ascontiguousarray(free if start is None else start)
+    q_next, info = pd_solve(model, np.ascontiguousarray(y), X0, np.ascontiguousarray(contraction.T), E)
     return q_next, (q_next - q) / h, info
 
 
@@ -49,14 +48,13 @@ def adjoint_gradients(model: SolidModel, q_next, contraction, E, grad_q_next, gr
     h = model.h
     X = elastic.to_columns(q_next)
     p = elastic.project(model, elastic.deformation_gradients(model, X), np.ascontiguousarray(contraction.T), E)
-    b = elastic.to_columns(grad_q_next + grad_qdot_next / h)
-    lam, its, direct = newton_solve(model, p, X, b, E)
+    b = np.ascontiguousarray(grad_q_next + grad_qdot_next / h)
+    lam, its, direct = newton_solve(model, p, q_next, b, E)
     model.stats.record_backward(its, direct)
-    dZ = elastic.deformation_gradients(model, lam)                       # G lambda, Z layout
+    dZ = elastic.deformation_gradients(model, elastic.to_columns(lam))   # G lambda, Z layout
     dS0, dS1 = elastic.fiber_stress_per_contraction(p)
     grad_u = -(dZ[0, model.muscles, 0] * dS0 + dZ[0, model.muscles, 1] * dS1).T
     grad_E = -(dZ * elastic.stress_per_E(model, p)).sum(axis=(0, 1, 2))
-    lam = elastic.from_columns(lam)
     mass = model.mass[None, :, None]
     return mass / h**2 * lam - grad_qdot_next / h, mass / h * lam, grad_u, lam, grad_E
 

@@ -1,13 +1,14 @@
-"""The banded Cholesky of the solid's SPD matrices solves to round-off, and an indefinite matrix
-falls back to SuperLU."""
+"""The banded Cholesky of the solid's SPD matrices solves to round-off (per matrix, and batched
+straight from the element matrices), and an indefinite matrix falls back to SuperLU."""
 
+import numba
 import numpy as np
 import scipy.sparse as sp
 
 from fishsim.mesh import make_fish_mesh
-from fishsim.solid import SolidModel
-from fishsim.solid.banded import BandedCholesky, spd_factor
-from fishsim.solid.preconditioner import pd_matrix, rest_newton_matrix
+from fishsim.solid import SolidModel, elastic, kernels
+from fishsim.solid.banded import BandedCholesky, band_factor, band_solve, spd_factor
+from fishsim.solid.preconditioner import newton_factors, pd_matrix, rest_newton_matrix
 
 
 def test_banded_cholesky_solves_the_fish_matrices():
@@ -27,3 +28,55 @@ def test_indefinite_matrix_falls_back_to_lu():
     solver = spd_factor(K)
     assert not isinstance(solver, BandedCholesky)
     np.testing.assert_allclose(solver.solve(np.array([2.0, 1.0, 3.0])), [1.0, -1.0, 1.0])
+
+
+def test_band_kernels_match_dense_cholesky():
+    """band_factor / band_solve on a random SPD band equal numpy's dense Cholesky; a matrix that
+    is not positive definite is reported, not factorised."""
+    rng = np.random.default_rng(1)
+    n, w = 60, 5
+    K = np.zeros((n, n))
+    for i in range(1, w + 1):
+        off = rng.standard_normal(n - i)
+        K += np.diag(off, -i) + np.diag(off, i)
+    K += np.diag(np.abs(K).sum(1) + 1.0)                       # diagonally dominant: SPD
+    L = np.array([[K[j + i, j] if j + i < n else 0.0 for i in range(w + 1)] for j in range(n)])
+    assert band_factor(L)
+    C = np.linalg.cholesky(K)
+    np.testing.assert_allclose([[C[j + i, j] if j + i < n else 0.0 for i in range(w + 1)] for j in range(n)], L,
+                               rtol=0, atol=1e-13 * np.abs(C).max())
+    b = rng.standard_normal(n)
+    x = b.copy()
+    band_solve(L, x)
+    np.testing.assert_allclose(K @ x, b, rtol=0, atol=1e-12 * np.abs(b).max())
+    L_bad = L * 0
+    L_bad[:, 0] = 1.0
+    L_bad[n // 2, 0] = -1.0
+    assert not band_factor(L_bad)
+
+
+def test_batched_newton_factors_equal_per_sample_solves(coarse_mesh):
+    """kernels.newton_factors (assembled straight into the band, factorised in parallel) and
+    kernels.solve_samples solve each sample's assembled Newton matrix, exact and projected; a
+    compressed sample whose exact matrix is indefinite is reported as such."""
+    numba.set_num_threads(min(2, numba.config.NUMBA_NUM_THREADS))     # the parallel path
+    model = SolidModel(coarse_mesh)
+    rng = np.random.default_rng(2)
+    B = 3
+    X = np.repeat(model.mesh.points[None], B, axis=0) + 1e-3 * rng.standard_normal((B, model.n_nodes, 2))
+    X[2] *= [0.5, 1.0]                                         # strongly compressed along the body
+    p = elastic.project(model, elastic.deformation_gradients(model, elastic.to_columns(X)),
+                        rng.uniform(0, 0.3, (model.n_muscles, B)), np.array([6e5, 3e5, 6e5]))
+    R = rng.standard_normal(X.shape)
+    layout = model.newton_band.layout
+    for projected in (False, True):
+        L = model.newton_band.empty(B)
+        ok = newton_factors(model, p, np.arange(B), L, projected)
+        Z = np.zeros_like(R)
+        kernels.solve_samples(L, layout.perm, layout.inverse, R, np.flatnonzero(ok), Z)
+        for b in range(B):
+            K = elastic.newton_matrix(model, p, b, projected)
+            assert ok[b] == (np.linalg.eigvalsh(K.toarray()).min() > 0)
+            if ok[b]:
+                np.testing.assert_allclose(K @ Z[b].ravel(), R[b].ravel(), rtol=0, atol=1e-9 * np.abs(R[b]).max())
+        assert ok.all() if projected else not ok[2]
