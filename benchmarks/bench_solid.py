@@ -5,7 +5,9 @@ default controller amplitude was calibrated to (5 Hz, vacuum). `run() -> dict` f
 
 Scenario: the default controller in vacuum (5 Hz; B = 16 spreads 3-7 Hz over the batch), timed
 over `steps` steps after `warmup` steps (past most of the activation ramp), float64 on the CPU;
-each step starts L-BFGS from `predicted_start`, as the rollout does.
+each step starts L-BFGS from `predicted_start`, as the rollout does. torch runs one thread (it
+only moves a few kB per step); the compiled solver spreads a batch's samples over numba's
+threads (all cores by default; `NUMBA_NUM_THREADS` sets them).
 """
 
 from __future__ import annotations

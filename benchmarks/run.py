@@ -11,6 +11,7 @@ import sys
 import time
 from pathlib import Path
 
+import numba
 import torch
 
 SUITES = ["bench_solid", "bench_fluid", "bench_hydronet", "bench_rollout", "bench_render"]
@@ -27,7 +28,8 @@ def machine() -> dict:
                 break
     except OSError:
         pass
-    return {"cpu": cpu, "torch_threads": torch.get_num_threads(), "torch": torch.__version__,
+    return {"cpu": cpu, "torch_threads": torch.get_num_threads(), "numba_threads": numba.get_num_threads(),
+            "torch": torch.__version__,
             "cuda": torch.cuda.get_device_name() if torch.cuda.is_available() else None,
             "date": time.strftime("%Y-%m-%d %H:%M")}
 

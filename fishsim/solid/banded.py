@@ -6,11 +6,10 @@ Cholesky K = L L^T then costs n w^2 to factor and 4 n w to solve, against SuperL
 sparse LU (default mesh, one thread: factor 0.84 vs 8.6 ms, solve 0.12 vs 0.57 ms).
 
 The factor and the triangular solves are compiled (numba) on a row-major band L[j, i] = L_{j+i, j}
-(column j of L, from its diagonal down; LAPACK's lower band storage transposed), so a batch of
-factors [B, n, w + 1] is factorised and solved in parallel over the samples (`factor_many`,
-`solve_many`: each sample's work is serial, the samples spread over numba's threads; LAPACK's
-banded routines called from Python hold the GIL and cannot). A matrix that is not positive
-definite falls back to SuperLU (`spd_factor`).
+(column j of L, from its diagonal down; LAPACK's lower band storage transposed), so the solid's
+batched kernels (kernels.newton_factors, kernels.solve_samples) call them for many samples in
+parallel over numba's threads; LAPACK's banded routines called from Python hold the GIL and
+cannot be. A matrix that is not positive definite falls back to SuperLU (`spd_factor`).
 """
 
 from __future__ import annotations
@@ -62,20 +61,6 @@ def band_solve(L: np.ndarray, x: np.ndarray) -> None:
         for i in range(1, min(w, n - 1 - j) + 1):
             s -= L[j, i] * x[j + i]
         x[j] = s / L[j, 0]
-
-
-@numba.njit(cache=True, parallel=True)
-def factor_many(L: np.ndarray, ok: np.ndarray) -> None:
-    """band_factor of each L[b] ([B, n, w + 1]) in parallel; ok[b] = it succeeded."""
-    for b in numba.prange(L.shape[0]):
-        ok[b] = band_factor(L[b])
-
-
-@numba.njit(cache=True, parallel=True)
-def solve_many(L: np.ndarray, x: np.ndarray, samples: np.ndarray) -> None:
-    """band_solve(L[b], x[b]) for each b in samples, in parallel (x [B, n])."""
-    for k in numba.prange(samples.shape[0]):
-        band_solve(L[samples[k]], x[samples[k]])
 
 
 class BandLayout:

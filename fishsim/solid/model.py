@@ -82,9 +82,10 @@ class PDOptions:
     backward_rtol: adjoint stopping rule, |(A - dA) x - b|_max <= backward_rtol |b|_max.
     backward_max_iter: preconditioned CG iterations before a direct sparse solve takes over.
     backward_method: 'direct' (default: per sample, the assembled Newton matrix factorised by
-        banded Cholesky, LU if it is indefinite; measured on the default fish at 5 Hz: B = 1
-        3.8 ms per step, B = 16 58 ms), 'auto' (batched PCG preconditioned with 'rest_newton',
-        direct for samples where it fails; ~41 iterations, 16.8 ms and 248 ms) or 'pcg'.
+        banded Cholesky, in parallel over the samples, LU if it is indefinite; bench_solid on
+        the default fish, 2 cores: B = 1 1.5 ms per step, B = 16 11.5 ms), 'auto' (batched PCG
+        preconditioned with 'rest_newton', direct for samples where it fails; ~41 iterations,
+        16.8 ms and 248 ms when last measured) or 'pcg'.
     preconditioner: initial inverse Hessian H0 of the forward L-BFGS:
         'lagged_newton' (default): per sample, the Newton matrix (exact where positive definite,
         else its projection) factorised at the start of a step and kept for the following steps
@@ -98,9 +99,9 @@ class PDOptions:
         ~10 at small amplitude but 20-80 at the calibrated amplitude, 'lagged_newton' a few.
         The adjoint CG is always preconditioned with 'rest_newton' (shared by the batch).
     refresh_iterations: see 'lagged_newton'. 8 (was 15 while factorising cost SuperLU's ~9 ms; the
-        banded Cholesky takes ~0.6 ms): with the rollout's predicted start, B = 1 takes 10.1
-        iterations per step, B = 16 (a batch costs its slowest sample) 20; 10-15 measured the
-        same within this machine's noise.
+        banded Cholesky takes ~0.8 ms): with the rollout's predicted start, B = 1 takes 10.1
+        iterations per step, B = 16 10.7 per sample (20 for the slowest); 12 and 16 measured
+        the same or slower (B = 1 4.5 / 5.1 ms, B = 16 42 / 44 ms against 5.1 / 41 ms).
     """
 
     atol: float = 1e-5
@@ -151,7 +152,8 @@ class SolverStats:
 
 class SolidModel:
     """Mesh, material, time step and precomputed operators of the PD solid (read-only after
-    construction, except for the factorisation cache `factors` and the diagnostics `stats`).
+    construction, except for the factorisation caches `factors` and `lagged` and the
+    diagnostics `stats`).
 
     fem: FemQuantities of the mesh (fem.mass: the fish's own lumped masses).
     added_mass: [N] added_mass_ratio * fem.mass, extra nodal mass (kg per unit depth) of the
