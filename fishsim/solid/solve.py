@@ -103,8 +103,12 @@ class History:
         self.rho = np.zeros((m, like.shape[0]))
         self.count, self.head = 0, 0
 
-    def push(self, s: np.ndarray, y: np.ndarray, rho: np.ndarray) -> None:
-        self.S[self.head], self.Y[self.head], self.rho[self.head] = s, y, rho
+    def push(self, X_new: np.ndarray, X: np.ndarray, g_new: np.ndarray, g: np.ndarray) -> None:
+        """Store s = X_new - X, y = g_new - g and rho = 1 / s.y (0 where s.y <= 0: not used)."""
+        s = np.subtract(X_new, X, out=self.S[self.head])
+        y = np.subtract(g_new, g, out=self.Y[self.head])
+        sy = sample_dot(s, y)
+        self.rho[self.head] = np.where(sy > 1e-300, 1.0 / np.where(sy > 1e-300, sy, 1.0), 0.0)
         self.head = (self.head + 1) % len(self.S)
         self.count = min(self.count + 1, len(self.S))
 
@@ -159,10 +163,7 @@ def pd_solve(model: SolidModel, Y: np.ndarray, X0: np.ndarray, contraction: np.n
             d = np.where(per_sample(uphill), -precondition(g, uphill), d)
             slope = sample_dot(g, d)
         X_new, phi_new, g_new = _line_search(objective, X, phi, g, d, slope, active)
-        s, y = X_new - X, g_new - g
-        sy = sample_dot(s, y)
-        rho = np.where(sy > 1e-300, 1.0 / np.where(sy > 1e-300, sy, 1.0), 0.0)
-        history.push(s, y, rho)
+        history.push(X_new, X, g_new, g)
         X, phi, g = X_new, phi_new, g_new
         residual = max_nodal_norm(g)
     if isinstance(precondition, LaggedNewton):
@@ -197,17 +198,17 @@ def _line_search(objective, X, phi, g, d, slope, active, c1: float = 1e-4, max_h
     t = np.ones_like(phi)
     X_new = X + d
     phi_new, g_new = objective(X_new, active)
-    phi_new, g_new = np.where(active, phi_new, phi), np.where(per_sample(active), g_new, g)
+    rest = ~active
+    phi_new[rest], g_new[rest] = phi[rest], g[rest]
     for _ in range(max_halvings):
-        ok = ~active | (phi_new - phi <= c1 * t * slope + 64 * np.finfo(float).eps * np.abs(phi))
+        ok = rest | (phi_new - phi <= c1 * t * slope + 64 * np.finfo(float).eps * np.abs(phi))
         if ok.all():
             break
-        t = np.where(ok, t, t / 2)
-        X_try = X + per_sample(t) * d
-        phi_try, g_try = objective(X_try, ~ok)
-        keep = per_sample(ok)
-        X_new, g_new = np.where(keep, X_new, X_try), np.where(keep, g_new, g_try)
-        phi_new = np.where(ok, phi_new, phi_try)
+        redo = ~ok
+        t[redo] /= 2
+        X_new[redo] = X[redo] + per_sample(t[redo]) * d[redo]
+        phi_try, g_try = objective(X_new, redo)
+        phi_new[redo], g_new[redo] = phi_try[redo], g_try[redo]
     return X_new, phi_new, g_new
 
 
