@@ -157,7 +157,7 @@ class LaggedFactors:
 
 class LaggedNewton:
     """r -> K_b^-1 r per sample with the lagged Newton factors of `model.lagged` (refactorised
-    where stale); with `active` [B] only those samples are solved (the others' columns are 0)."""
+    where stale); with `active` [B] only those samples are solved (the others are 0)."""
 
     def __init__(self, model: SolidModel, X: np.ndarray, contraction: np.ndarray, E: np.ndarray):
         B = len(X)

@@ -122,7 +122,7 @@ class History:
 
 def _two_loop(g: np.ndarray, history: History, precondition, active: np.ndarray) -> np.ndarray:
     """L-BFGS direction -H g with H_0 = A^-1 (compiled two-loop recursion, kernels.py); only the
-    `active` [B] samples' columns are computed (the others are 0)."""
+    `active` [B] samples are computed (the others are 0)."""
     q = np.array(g, order="C")                           # the kernels need C order
     order = history.newest_first()
     alphas = np.zeros((len(order), len(active)))
