@@ -1,6 +1,8 @@
-"""Compiled (numba) hot loops of the forward PD solve: the objective's energy and gradient, the
-L-BFGS two-loop recursion, the element Newton matrices and their assembly into banded factors,
-and the per-sample banded solves on the solver's [N, 2B] layout.
+"""Compiled (numba) hot loops of the PD solve: the objective's energy and gradient, the L-BFGS
+two-loop recursion, the banded Cholesky factor and solves (banded.py's), the element Newton
+matrices and their assembly into banded factors, and the per-sample banded solves on the
+solver's [B, N, 2] layout. (All compiled code lives in this one file: numba's cache of a
+function is invalidated only when the file defining it changes, not when a callee's does.)
 
     Phi(X) = 1/(2 h^2) ||X - Y||_M^2 + E_int(X),   grad Phi = M/h^2 (X - Y) + G^T S(X)
 
@@ -13,9 +15,8 @@ elastic.element_hessians), which stay the reference (tests/solid/test_kernels.py
 
 Batches: every kernel works on the samples of a mask or index list only (converged samples cost
 nothing) and runs them in parallel over numba's threads (`prange`); one sample's arithmetic is
-serial and in the same order whatever the batch, so a sample's result does not depend on the
-batch it is in. Arrays must be C-contiguous float64 (another layout compiles another
-specialisation).
+serial and in the same order whatever the batch, so a kernel's result for one sample does not
+depend on the batch it is in. Arrays must be C-contiguous float64 (other layouts fail to compile).
 """
 
 from __future__ import annotations
@@ -23,7 +24,6 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from fishsim.solid.banded import band_factor, band_solve
 from fishsim.solid.energies import _TINY
 
 
@@ -127,6 +127,46 @@ def lbfgs_second_loop(r: np.ndarray, S: np.ndarray, Y: np.ndarray, rho: np.ndarr
         for k in range(order.shape[0] - 1, -1, -1):
             h = order[k]
             _axpy(alphas[k, b] - rho[h, b] * _dot(Y[h, b], r[b]), S[h, b], r[b])
+
+
+@numba.njit(cache=True)
+def band_factor(L: np.ndarray) -> bool:
+    """In place K -> its Cholesky factor, both as bands [n, w + 1] (L[j, i] = K_{j+i, j}, the
+    lower triangle). Right-looking: column j is scaled by 1 / sqrt(pivot) and its outer product
+    subtracted from the next w columns. Returns False (L then garbage) on a pivot <= 0, i.e. K is
+    not positive definite."""
+    n, w = L.shape[0], L.shape[1] - 1
+    for j in range(n):
+        pivot = L[j, 0]
+        if not pivot > 0.0:
+            return False
+        d = np.sqrt(pivot)
+        L[j, 0] = d
+        m = min(w, n - 1 - j)
+        for i in range(1, m + 1):
+            L[j, i] /= d
+        for k in range(1, m + 1):                   # column j + k -= L[j+k:, j] L[j+k, j]
+            lk = L[j, k]
+            for i in range(m - k + 1):
+                L[j + k, i] -= L[j, k + i] * lk
+    return True
+
+
+@numba.njit(cache=True, fastmath={"reassoc", "contract"})
+def band_solve(L: np.ndarray, x: np.ndarray) -> None:
+    """In place x -> (L L^T)^-1 x for a factor band L [n, w + 1] and x [n]: forward substitution
+    by columns, back substitution by (vectorised) dots."""
+    n, w = L.shape[0], L.shape[1] - 1
+    for j in range(n):
+        xj = x[j] / L[j, 0]
+        x[j] = xj
+        for i in range(1, min(w, n - 1 - j) + 1):
+            x[j + i] -= L[j, i] * xj
+    for j in range(n - 1, -1, -1):
+        s = x[j]
+        for i in range(1, min(w, n - 1 - j) + 1):
+            s -= L[j, i] * x[j + i]
+        x[j] = s / L[j, 0]
 
 
 @numba.njit(cache=True)

@@ -101,7 +101,8 @@ class PDOptions:
     refresh_iterations: see 'lagged_newton'. 8 (was 15 while factorising cost SuperLU's ~9 ms; the
         banded Cholesky takes ~0.8 ms): with the rollout's predicted start, B = 1 takes 10.1
         iterations per step, B = 16 10.7 per sample (20 for the slowest); 12 and 16 measured
-        the same or slower (B = 1 4.5 / 5.1 ms, B = 16 42 / 44 ms against 5.1 / 41 ms).
+        within this machine's 10-30 % noise (B = 1 4.5 / 5.1 ms, B = 16 42 / 44 ms against
+        5.1 / 41 ms at 8).
     """
 
     atol: float = 1e-5

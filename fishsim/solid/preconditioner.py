@@ -5,9 +5,10 @@
   under strong compression), factorised at the start of a step and reused by later steps until
   one needs more than options.refresh_iterations iterations (kept in model.lagged; the batch size
   changing rebuilds them). The batch's factors are assembled and factorised in parallel over
-  the samples, straight into their bands (kernels.newton_factors). It follows the body's local rotations, which the two fixed matrices
-  below cannot. The exact Hessian, where positive definite, saves ~1.2 of ~12 L-BFGS iterations
-  per step on the default fish over the projected one.
+  the samples, straight into their bands (kernels.newton_factors). It follows the body's local
+  rotations, which the two fixed matrices below cannot. The exact Hessian, where positive
+  definite, saves ~1.2 of ~12 L-BFGS iterations per step on the default fish over the
+  projected one.
 
 The next two are constant in time and affine in E, so each is factorised once per distinct E
 (cached in model.factors) and reused every step. Every factorisation is a banded Cholesky after
@@ -131,7 +132,7 @@ class LaggedFactors:
     `valid` [B] False marks samples to refactorise at the next step's start."""
 
     def __init__(self, model: SolidModel, B: int):
-        self.L = model.newton_band.empty(B)
+        self.L = None if model.material.volume_term else model.newton_band.empty(B)
         self.banded = np.zeros(B, bool)
         self.valid = np.zeros(B, bool)
         self.other: dict[int, object] = {}
@@ -149,6 +150,8 @@ class LaggedFactors:
             failed = stale[~self.banded[stale]]
             if len(failed):
                 self.banded |= newton_factors(model, p, failed, self.L, projected=True)
+        for b in stale:
+            self.other.pop(int(b), None)
         for b in stale[~self.banded[stale]]:
             self.other[int(b)] = (BandedCholesky.of(elastic.newton_matrix(model, p, int(b)))
                                   or spd_factor(elastic.newton_matrix(model, p, int(b), projected=True)))
@@ -167,9 +170,10 @@ class LaggedNewton:
         self.lagged.refactorise(model, X, contraction, E)
 
     def __call__(self, R: np.ndarray, active: np.ndarray | None = None) -> np.ndarray:
+        R = np.ascontiguousarray(R, dtype=np.float64)
         samples = np.arange(len(R)) if active is None else np.flatnonzero(active)
         lagged, layout = self.lagged, self.model.newton_band.layout
-        Z = np.zeros_like(R)
+        Z = np.zeros(R.shape)
         banded = samples[lagged.banded[samples]]
         if len(banded):
             kernels.solve_samples(lagged.L, layout.perm, layout.inverse, R, banded, Z)

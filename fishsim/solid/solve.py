@@ -76,8 +76,8 @@ class Objective:
 
     def __call__(self, X: np.ndarray, samples: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(Phi [B] in J per unit depth, grad Phi [B, N, 2] in N per unit depth); with a [B] mask
-        `samples`, only those samples' entries are computed (the compiled path leaves the
-        others unspecified)."""
+        `samples`, only those samples' entries are needed (the compiled path computes only
+        them and leaves the others unspecified)."""
         model = self.model
         if self.fused:
             g = np.empty_like(X)
@@ -279,7 +279,7 @@ def _direct_solve(model: SolidModel, p: elastic.Projections, b: np.ndarray, samp
     """Direct solve of the assembled Newton matrix for the given samples of b [B, N, 2]: banded
     Cholesky when it is positive definite (assembled, factorised and solved in parallel over the
     samples), else sparse LU (banded.spd_factor)."""
-    x = np.zeros_like(b)
+    x = np.zeros(b.shape)
     if p.volume is None:
         L = model.newton_band.empty(len(b))
         banded = np.flatnonzero(newton_factors(model, p, samples, L))

@@ -7,7 +7,8 @@ import scipy.sparse as sp
 
 from fishsim.mesh import make_fish_mesh
 from fishsim.solid import SolidModel, elastic, kernels
-from fishsim.solid.banded import BandedCholesky, band_factor, band_solve, spd_factor
+from fishsim.solid.banded import BandedCholesky, spd_factor
+from fishsim.solid.kernels import band_factor, band_solve
 from fishsim.solid.preconditioner import newton_factors, pd_matrix, rest_newton_matrix
 
 
