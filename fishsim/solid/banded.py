@@ -89,11 +89,13 @@ class BandedCholesky:
         return x[self.layout.inverse]
 
 
-def spd_factor(K: sp.spmatrix):
-    """A solver with ``.solve(b)`` for the symmetric matrix K: banded Cholesky when K is positive
-    definite, else SuperLU (symmetric mode)."""
-    banded = BandedCholesky.of(K)
-    if banded is not None:
-        return banded
+def lu_factor(K: sp.spmatrix):
+    """SuperLU (symmetric mode) of the symmetric matrix K, for one that is not positive definite."""
     return spla.splu(K.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
                      options={"SymmetricMode": True})
+
+
+def spd_factor(K: sp.spmatrix):
+    """A solver with ``.solve(b)`` for the symmetric matrix K: banded Cholesky when K is positive
+    definite, else SuperLU (lu_factor)."""
+    return BandedCholesky.of(K) or lu_factor(K)

@@ -28,7 +28,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from fishsim.solid import elastic, kernels
-from fishsim.solid.banded import BandedCholesky, spd_factor
+from fishsim.solid.banded import BandedCholesky, lu_factor, spd_factor
 from fishsim.solid.model import SolidModel
 
 _CACHE_SIZE = 64
@@ -145,16 +145,19 @@ class LaggedFactors:
             return
         p = elastic.project(model, elastic.deformation_gradients(model, elastic.to_columns(X)), contraction, E)
         self.banded[stale] = False
-        if p.volume is None:
+        for b in stale:
+            self.other.pop(int(b), None)
+        if p.volume is None:                       # compiled: exact, else projected, else LU
             self.banded |= newton_factors(model, p, stale, self.L)
             failed = stale[~self.banded[stale]]
             if len(failed):
                 self.banded |= newton_factors(model, p, failed, self.L, projected=True)
-        for b in stale:
-            self.other.pop(int(b), None)
-        for b in stale[~self.banded[stale]]:
-            self.other[int(b)] = (BandedCholesky.of(elastic.newton_matrix(model, p, int(b)))
-                                  or spd_factor(elastic.newton_matrix(model, p, int(b), projected=True)))
+            for b in stale[~self.banded[stale]]:
+                self.other[int(b)] = lu_factor(elastic.newton_matrix(model, p, int(b), projected=True))
+        else:
+            for b in stale:
+                self.other[int(b)] = (BandedCholesky.of(elastic.newton_matrix(model, p, int(b)))
+                                      or spd_factor(elastic.newton_matrix(model, p, int(b), projected=True)))
         self.valid[stale] = True
 
 

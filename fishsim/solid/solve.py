@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fishsim.solid import elastic, kernels
-from fishsim.solid.banded import spd_factor
+from fishsim.solid.banded import lu_factor, spd_factor
 from fishsim.solid.model import SolidModel
 from fishsim.solid.preconditioner import LaggedNewton, Preconditioner, newton_factors
 
@@ -278,14 +278,16 @@ def _pcg(apply_K, precondition, b: np.ndarray, rtol: float, max_iter: int):
 def _direct_solve(model: SolidModel, p: elastic.Projections, b: np.ndarray, samples: np.ndarray) -> np.ndarray:
     """Direct solve of the assembled Newton matrix for the given samples of b [B, N, 2]: banded
     Cholesky when it is positive definite (assembled, factorised and solved in parallel over the
-    samples), else sparse LU (banded.spd_factor)."""
+    samples), else sparse LU (banded.lu_factor)."""
     x = np.zeros(b.shape)
     if p.volume is None:
         L = model.newton_band.empty(len(b))
         banded = np.flatnonzero(newton_factors(model, p, samples, L))
         layout = model.newton_band.layout
         kernels.solve_samples(L, layout.perm, layout.inverse, np.ascontiguousarray(b), banded, x)
-        samples = np.setdiff1d(samples, banded)
+        for s in np.setdiff1d(samples, banded):           # not positive definite
+            x[s] = lu_factor(elastic.newton_matrix(model, p, int(s))).solve(b[s].reshape(-1)).reshape(-1, 2)
+        return x
     for s in samples:
         x[s] = spd_factor(elastic.newton_matrix(model, p, int(s))).solve(b[s].reshape(-1)).reshape(-1, 2)
     return x
