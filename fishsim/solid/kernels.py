@@ -246,18 +246,101 @@ def newton_factors(alpha_R: np.ndarray, beta_R: np.ndarray, c: np.ndarray, w_cor
         ok[b] = band_factor(L[b])
 
 
+@numba.njit(cache=True)
+def _solve_sample(L: np.ndarray, perm: np.ndarray, inverse: np.ndarray, r: np.ndarray, z: np.ndarray,
+                  x: np.ndarray) -> None:
+    """z = K^-1 r for one sample (r, z: contiguous [N, 2], DOF 2i + a; r and z may be the same
+    array) with K's banded factor L under the DOF permutation perm (row k of the band is DOF
+    perm[k], inverse = argsort(perm)); x [2N] scratch."""
+    r, z = r.reshape(-1), z.reshape(-1)
+    for j in range(x.shape[0]):
+        x[j] = r[perm[j]]
+    band_solve(L, x)
+    for dof in range(x.shape[0]):
+        z[dof] = x[inverse[dof]]
+
+
 @numba.njit(cache=True, parallel=True)
 def solve_samples(L: np.ndarray, perm: np.ndarray, inverse: np.ndarray, R: np.ndarray, samples: np.ndarray,
                   Z: np.ndarray) -> None:
-    """Z[b] = K_b^-1 R[b] ([B, N, 2], DOF 2i + a) for each b in samples (in parallel), with K_b's
-    banded factor L[b] under the DOF permutation perm (row k of the band is DOF perm[k],
-    inverse = argsort(perm))."""
+    """Z[b] = K_b^-1 R[b] ([B, N, 2]) for each b in samples (in parallel), with K_b's banded factor
+    L[b] (_solve_sample)."""
     for k in numba.prange(samples.shape[0]):
         b = samples[k]
-        r, z = R[b].reshape(-1), Z[b].reshape(-1)
-        x = np.empty(r.shape[0])
-        for j in range(x.shape[0]):
-            x[j] = r[perm[j]]
-        band_solve(L[b], x)
-        for dof in range(x.shape[0]):
-            z[dof] = x[inverse[dof]]
+        _solve_sample(L[b], perm, inverse, R[b], Z[b], np.empty(L.shape[1]))
+
+
+@numba.njit(cache=True)
+def _max_nodal_norm(g: np.ndarray) -> float:
+    """max_i |g_i| of one sample's [N, 2] nodal vectors."""
+    largest = 0.0
+    for i in range(g.shape[0]):
+        largest = max(largest, np.sqrt(g[i, 0] ** 2 + g[i, 1] ** 2))
+    return largest
+
+
+@numba.njit(cache=True)
+def _lbfgs_sample(X, Y, mass_h2, triangles, grad, w_corotated, muscle_of, w_muscle, stretch, b, L, perm,
+                  inverse, atol, max_iter, m, g) -> int:
+    """L-BFGS on Phi of sample b from X (its [N, 2] positions, updated in place to the minimiser;
+    g receives grad Phi there): solve.pd_solve's iteration for one sample, compiled, with the
+    sample's banded Newton factor L as H0 (_solve_sample). Returns the iterations taken."""
+    c1, round_off = 1e-4, 64 * np.finfo(np.float64).eps
+    S, Yp = np.zeros((m, X.shape[0], 2)), np.zeros((m, X.shape[0], 2))  # pairs s, y; ring of m
+    rho, alphas = np.zeros(m), np.zeros(m)
+    d, X_new, g_new, x = np.empty_like(X), np.empty_like(X), np.empty_like(X), np.empty(2 * X.shape[0])
+    phi = _objective_sample(X, Y, mass_h2, triangles, grad, w_corotated, muscle_of, w_muscle, stretch, b, g)
+    count, head, iterations = 0, 0, 0
+    while iterations < max_iter and _max_nodal_norm(g) > atol:
+        iterations += 1
+        d[:] = g                                                      # d = -H g, two-loop recursion
+        for k in range(count):
+            h = (head - 1 - k) % m
+            alphas[k] = rho[h] * _dot(S[h], d)
+            _axpy(-alphas[k], Yp[h], d)
+        _solve_sample(L, perm, inverse, d, d, x)
+        for k in range(count - 1, -1, -1):
+            h = (head - 1 - k) % m
+            _axpy(alphas[k] - rho[h] * _dot(Yp[h], d), S[h], d)
+        d *= -1.0
+        slope = _dot(g, d)
+        if slope >= 0:                                                # not a descent direction: restart
+            rho[:] = 0.0
+            _solve_sample(L, perm, inverse, g, d, x)
+            d *= -1.0
+            slope = _dot(g, d)
+        t = 1.0                                                       # Armijo backtracking
+        for halvings in range(31):
+            if halvings:
+                t /= 2
+            X_new[:] = X
+            _axpy(t, d, X_new)
+            phi_new = _objective_sample(X_new, Y, mass_h2, triangles, grad, w_corotated, muscle_of, w_muscle,
+                                        stretch, b, g_new)
+            if phi_new - phi <= c1 * t * slope + round_off * abs(phi):
+                break
+        np.subtract(X_new, X, S[head])                                # history: s, y, rho = 1 / s.y
+        np.subtract(g_new, g, Yp[head])
+        sy = _dot(S[head], Yp[head])
+        rho[head] = 1.0 / sy if sy > 1e-300 else 0.0
+        head, count = (head + 1) % m, min(count + 1, m)
+        X[:] = X_new
+        g[:] = g_new
+        phi = phi_new
+    return iterations
+
+
+@numba.njit(cache=True, parallel=True)
+def lbfgs_samples(X: np.ndarray, Y: np.ndarray, mass_h2: np.ndarray, triangles: np.ndarray, grad: np.ndarray,
+                  w_corotated: np.ndarray, muscle_of: np.ndarray, w_muscle: np.ndarray, stretch: np.ndarray,
+                  L: np.ndarray, perm: np.ndarray, inverse: np.ndarray, atol: float, max_iter: int, m: int,
+                  samples: np.ndarray, g: np.ndarray, iterations: np.ndarray) -> None:
+    """The whole forward L-BFGS solve of each sample b in samples, in parallel (_lbfgs_sample):
+    X[b] ([B, N, 2]) is moved to the minimiser of Phi, g[b] receives grad Phi there and
+    iterations[b] the iterations taken. Arguments as objective's; L [B, n, w + 1] the samples'
+    banded factors (H0), perm / inverse their DOF permutation; atol (N), max_iter, m the
+    stopping rule, iteration limit and history size."""
+    for k in numba.prange(samples.shape[0]):
+        b = samples[k]
+        iterations[b] = _lbfgs_sample(X[b], Y[b], mass_h2, triangles, grad, w_corotated, muscle_of, w_muscle,
+                                      stretch, b, L[b], perm, inverse, atol, max_iter, m, g[b])

@@ -136,25 +136,62 @@ def _two_loop(g: np.ndarray, history: History, precondition, active: np.ndarray)
 def pd_solve(model: SolidModel, Y: np.ndarray, X0: np.ndarray, contraction: np.ndarray,
              E: np.ndarray) -> tuple[np.ndarray, ForwardInfo]:
     """q+ = argmin Phi for every sample. Y, X0: [B, N, 2]; contraction [n_act, B]; E [B].
-    Returns (X [B, N, 2], ForwardInfo). Converged samples stop moving while others iterate; the
-    preconditioner is built only if some sample needs an iteration (a start that is already
-    converged, e.g. a checkpoint recomputation's, costs one residual evaluation)."""
+    Returns (X [B, N, 2], ForwardInfo). The preconditioner is built only if some sample needs an
+    iteration (a start that is already converged, e.g. a checkpoint recomputation's, costs one
+    residual evaluation). Samples with the compiled objective and a banded lagged Newton factor
+    (all, but for a rare indefinite projected matrix, on models without the volume term) run
+    their whole solve compiled and in parallel (kernels.lbfgs_samples); the others run the
+    batched numpy iteration (_lbfgs)."""
     opts = model.options
     objective = Objective(model, Y, contraction, E)
-    precondition = None
-    B = Y.shape[0]
     X = X0.copy()
     phi, g = objective(X)
+    iterations = np.zeros(len(X), np.int64)
+    need = max_nodal_norm(g) > opts.atol
+    if need.any():
+        precondition = _preconditioner(model, X0, contraction, E)
+        compiled = need & _compiled(objective, precondition)
+        if compiled.any():
+            layout = model.newton_band.layout
+            kernels.lbfgs_samples(X, objective.Y, model.mass_h2, model.mesh_triangles, model.fem.grad,
+                                  objective.w_corotated, model.muscle_of, model.muscle_weight, objective.stretch,
+                                  precondition.lagged.L, layout.perm, layout.inverse, opts.atol, opts.max_iter,
+                                  opts.history, np.flatnonzero(compiled), g, iterations)
+        if (need & ~compiled).any():
+            X, g = _lbfgs(objective, precondition, X, phi, g, need & ~compiled, iterations)
+        if isinstance(precondition, LaggedNewton):
+            precondition.refresh(iterations)
+    X, g = _remove_net_residual(model, X, g)
     residual = max_nodal_norm(g)
-    iterations = np.zeros(B, np.int64)
+    converged = residual <= opts.atol
+    if not converged.all():
+        warnings.warn(f"PD step did not converge in {opts.max_iter} iterations "
+                      f"(max residual {residual.max():.3g} N > atol {opts.atol:g} N)", RuntimeWarning, stacklevel=3)
+    return X, ForwardInfo(iterations, residual, converged)
+
+
+def _compiled(objective: Objective, precondition) -> np.ndarray:
+    """[B] mask of the samples kernels.lbfgs_samples can solve: compiled objective and a banded
+    lagged Newton factor."""
+    if not (objective.fused and isinstance(precondition, LaggedNewton)):
+        return np.zeros(len(objective.E), bool)
+    return precondition.lagged.banded.copy()
+
+
+def _lbfgs(objective: Objective, precondition, X: np.ndarray, phi: np.ndarray, g: np.ndarray,
+           samples: np.ndarray, iterations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Batched L-BFGS (numpy, with the compiled objective and two-loop recursion where available)
+    for the samples of the [B] mask `samples`, from X (Phi phi [B], gradient g [B, N, 2]) until
+    each sample's residual is <= atol or max_iter; converged samples stop moving while others
+    iterate, the others in X and g are left as they are. Adds each sample's iterations to
+    `iterations` [B]; returns (X, g)."""
+    opts = objective.model.options
     history = History(opts.history, X)
     for _ in range(opts.max_iter):
-        active = residual > opts.atol
+        active = samples & (max_nodal_norm(g) > opts.atol)
         if not active.any():
             break
         iterations += active
-        if precondition is None:
-            precondition = _preconditioner(model, X0, contraction, E)
         d = _two_loop(g, history, precondition, active)
         slope = sample_dot(g, d)
         uphill = (slope >= 0) & active
@@ -165,16 +202,7 @@ def pd_solve(model: SolidModel, Y: np.ndarray, X0: np.ndarray, contraction: np.n
         X_new, phi_new, g_new = _line_search(objective, X, phi, g, d, slope, active)
         history.push(X_new, X, g_new, g)
         X, phi, g = X_new, phi_new, g_new
-        residual = max_nodal_norm(g)
-    if isinstance(precondition, LaggedNewton):
-        precondition.refresh(iterations)
-    X, g = _remove_net_residual(model, X, g)
-    residual = max_nodal_norm(g)
-    converged = residual <= opts.atol
-    if not converged.all():
-        warnings.warn(f"PD step did not converge in {opts.max_iter} iterations "
-                      f"(max residual {residual.max():.3g} N > atol {opts.atol:g} N)", RuntimeWarning, stacklevel=3)
-    return X, ForwardInfo(iterations, residual, converged)
+    return X, g
 
 
 def _preconditioner(model: SolidModel, X0: np.ndarray, contraction: np.ndarray, E: np.ndarray):
