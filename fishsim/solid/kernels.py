@@ -68,15 +68,14 @@ def _objective_sample(X, Y, mass_h2, triangles, grad, w_corotated, muscle_of, w_
 
 
 @numba.njit(cache=True, parallel=True)
-def objective(X: np.ndarray, Y: np.ndarray, mass_h2: np.ndarray, triangles: np.ndarray, grad: np.ndarray,
-              w_corotated: np.ndarray, muscle_of: np.ndarray, w_muscle: np.ndarray, stretch: np.ndarray,
-              samples: np.ndarray, g: np.ndarray) -> np.ndarray:
+def objective(X: np.ndarray, Y: np.ndarray, phi_args, samples: np.ndarray, g: np.ndarray) -> np.ndarray:
     """Phi [B] (J per unit depth), writing grad Phi into g [B, N, 2] (N per unit depth), for the
     given samples (indices; the others' entries are left as they are, Phi 0).
 
-    X, Y [B, N, 2]; mass_h2 [N]; triangles [T, 3]; grad [T, 3, 2] shape-function gradients;
-    w_corotated [T, B] = area 2 mu_s(E_b); muscle_of [T] muscle index or -1; w_muscle [n_act] =
-    k_m area; stretch [n_act, B] = 1 - contraction."""
+    X, Y [B, N, 2]; phi_args = (mass_h2 [N], triangles [T, 3], grad [T, 3, 2] shape-function
+    gradients, w_corotated [T, B] = area 2 mu_s(E_b), muscle_of [T] muscle index or -1,
+    w_muscle [n_act] = k_m area, stretch [n_act, B] = 1 - contraction)."""
+    mass_h2, triangles, grad, w_corotated, muscle_of, w_muscle, stretch = phi_args
     phi = np.zeros(X.shape[0])
     for k in numba.prange(samples.shape[0]):
         b = samples[k]
@@ -219,31 +218,38 @@ def newton_elements(alpha_R: np.ndarray, beta_R: np.ndarray, c: np.ndarray, w_co
                         grad, projected, H, Ke[e])
 
 
+@numba.njit(cache=True)
+def _newton_factor(newton, slot: np.ndarray, diagonal: np.ndarray, mass_diag: np.ndarray, projected: bool,
+                   b: int, L: np.ndarray) -> bool:
+    """Assemble sample b's Newton matrix (newton_elements' element matrices, `newton` its argument
+    tuple (alpha_R, ..., grad) without `projected`, plus diag(mass_diag)) straight into the band
+    L [n, w + 1] and factorise it (band_factor); returns whether it was positive definite.
+    slot [T, 6, 6]: flat band index of each element entry (-1 above the diagonal); diagonal
+    [2N]: that of each DOF's diagonal."""
+    alpha_R, beta_R, c, w_corotated, muscle_of, w_muscle, n0, n1, length, stretch, grad = newton
+    band = L.reshape(-1)
+    band[:] = 0.0
+    for i in range(diagonal.shape[0]):
+        band[diagonal[i]] += mass_diag[i]
+    H, Ke = np.empty((4, 4)), np.empty((6, 6))
+    for e in range(grad.shape[0]):
+        _element_newton(e, b, alpha_R, beta_R, c, w_corotated, muscle_of, w_muscle, n0, n1, length, stretch,
+                        grad, projected, H, Ke)
+        for r in range(6):
+            for s in range(6):
+                if slot[e, r, s] >= 0:
+                    band[slot[e, r, s]] += Ke[r, s]
+    return band_factor(L)
+
+
 @numba.njit(cache=True, parallel=True)
-def newton_factors(alpha_R: np.ndarray, beta_R: np.ndarray, c: np.ndarray, w_corotated: np.ndarray,
-                   muscle_of: np.ndarray, w_muscle: np.ndarray, n0: np.ndarray, n1: np.ndarray,
-                   length: np.ndarray, stretch: np.ndarray, grad: np.ndarray, projected: bool,
-                   slot: np.ndarray, diagonal: np.ndarray, mass_diag: np.ndarray, samples: np.ndarray,
-                   L: np.ndarray, ok: np.ndarray) -> None:
-    """For each sample b in samples (in parallel): assemble the Newton matrix (newton_elements'
-    element matrices plus diag(mass_diag)) straight into the band L[b] [n, w + 1] and factorise
-    it (banded.band_factor); ok[b] = it was positive definite. slot [T, 6, 6]: flat band index
-    of each element entry (-1 above the diagonal); diagonal [2N]: that of each DOF's diagonal."""
+def newton_factors(newton, projected: bool, slot: np.ndarray, diagonal: np.ndarray, mass_diag: np.ndarray,
+                   samples: np.ndarray, L: np.ndarray, ok: np.ndarray) -> None:
+    """For each sample b in samples (in parallel): its Newton matrix's banded factor in L[b]
+    [n, w + 1] (_newton_factor; exact, or `projected`); ok[b] = it was positive definite."""
     for k in numba.prange(samples.shape[0]):
         b = samples[k]
-        band = L[b].reshape(-1)
-        band[:] = 0.0
-        for i in range(diagonal.shape[0]):
-            band[diagonal[i]] += mass_diag[i]
-        H, Ke = np.empty((4, 4)), np.empty((6, 6))
-        for e in range(grad.shape[0]):
-            _element_newton(e, b, alpha_R, beta_R, c, w_corotated, muscle_of, w_muscle, n0, n1, length,
-                            stretch, grad, projected, H, Ke)
-            for r in range(6):
-                for s in range(6):
-                    if slot[e, r, s] >= 0:
-                        band[slot[e, r, s]] += Ke[r, s]
-        ok[b] = band_factor(L[b])
+        ok[b] = _newton_factor(newton, slot, diagonal, mass_diag, projected, b, L[b])
 
 
 @numba.njit(cache=True)
@@ -331,16 +337,24 @@ def _lbfgs_sample(X, Y, mass_h2, triangles, grad, w_corotated, muscle_of, w_musc
 
 
 @numba.njit(cache=True, parallel=True)
-def lbfgs_samples(X: np.ndarray, Y: np.ndarray, mass_h2: np.ndarray, triangles: np.ndarray, grad: np.ndarray,
-                  w_corotated: np.ndarray, muscle_of: np.ndarray, w_muscle: np.ndarray, stretch: np.ndarray,
-                  L: np.ndarray, perm: np.ndarray, inverse: np.ndarray, atol: float, max_iter: int, m: int,
-                  samples: np.ndarray, g: np.ndarray, iterations: np.ndarray) -> None:
-    """The whole forward L-BFGS solve of each sample b in samples, in parallel (_lbfgs_sample):
-    X[b] ([B, N, 2]) is moved to the minimiser of Phi, g[b] receives grad Phi there and
-    iterations[b] the iterations taken. Arguments as objective's; L [B, n, w + 1] the samples'
-    banded factors (H0), perm / inverse their DOF permutation; atol (N), max_iter, m the
-    stopping rule, iteration limit and history size."""
+def lbfgs_samples(X: np.ndarray, Y: np.ndarray, phi_args, L: np.ndarray, perm: np.ndarray, inverse: np.ndarray,
+                  newton, slot: np.ndarray, diagonal: np.ndarray, mass_diag: np.ndarray, stale: np.ndarray,
+                  banded: np.ndarray, atol: float, max_iter: int, m: int, samples: np.ndarray, g: np.ndarray,
+                  iterations: np.ndarray) -> None:
+    """The whole forward solve of each sample b in samples, in parallel: where stale[b], first
+    the banded factor L[b] of its Newton matrix (_newton_factor: the exact one, else the
+    projected one; banded[b] = one was positive definite, else the sample is skipped); then
+    L-BFGS with L[b] as H0 (_lbfgs_sample), moving X[b] ([B, N, 2]) to the minimiser of Phi, g[b]
+    receiving grad Phi there and iterations[b] the iterations taken. phi_args: objective's
+    arrays (mass_h2, triangles, grad, w_corotated, muscle_of, w_muscle, stretch); perm, inverse:
+    the band's DOF permutation; newton, slot, diagonal, mass_diag: _newton_factor's; atol (N),
+    max_iter, m: stopping rule, iteration limit, history size."""
+    mass_h2, triangles, grad, w_corotated, muscle_of, w_muscle, stretch = phi_args
     for k in numba.prange(samples.shape[0]):
         b = samples[k]
-        iterations[b] = _lbfgs_sample(X[b], Y[b], mass_h2, triangles, grad, w_corotated, muscle_of, w_muscle,
-                                      stretch, b, L[b], perm, inverse, atol, max_iter, m, g[b])
+        if stale[b]:
+            banded[b] = (_newton_factor(newton, slot, diagonal, mass_diag, False, b, L[b])
+                         or _newton_factor(newton, slot, diagonal, mass_diag, True, b, L[b]))
+        if banded[b]:
+            iterations[b] = _lbfgs_sample(X[b], Y[b], mass_h2, triangles, grad, w_corotated, muscle_of, w_muscle,
+                                          stretch, b, L[b], perm, inverse, atol, max_iter, m, g[b])

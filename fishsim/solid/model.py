@@ -162,7 +162,8 @@ class SolidModel:
     mass: [N] fem.mass + added_mass, the mass of the implicit-Euler step.
     muscles: [n_act] actuated element indices; muscle_of: [T] the inverse map (-1: passive).
     mesh_triangles: [T, 3] node indices (int64, contiguous, for the compiled kernels).
-    muscle_weight: [n_act] k_m area (Pa m^2).  mass_h2: [N] mass_i / h^2.
+    muscle_weight: [n_act] k_m area (Pa m^2).  mass_h2: [N] mass_i / h^2; mass_diag [2N] the same
+    per DOF 2i + a (the diagonal of M/h^2 in the Newton matrix).
     K0: [N, N] sparse, dA/dE.  K_muscle: [N, N] sparse.
     """
 
@@ -183,6 +184,7 @@ class SolidModel:
         self.added_mass = added_mass_ratio * self.fem.mass
         self.mass = self.fem.mass + self.added_mass
         self.mass_h2 = self.mass / self.h**2
+        self.mass_diag = np.repeat(self.mass_h2, 2)
         self.K0, self.K_muscle = self._stiffness_parts()
         self.stats = SolverStats()
         self.factors: dict[float, object] = {}   # E -> factorisation (preconditioner.py)

@@ -120,8 +120,8 @@ def newton_factors(model: SolidModel, p: elastic.Projections, samples: np.ndarra
     the samples. Returns ok [B]: the matrix was positive definite (False also for samples not
     factorised). Models without the volume term only (compiled element matrices)."""
     band, ok = model.newton_band, np.zeros(len(L), bool)
-    kernels.newton_factors(*elastic.newton_kernel_arrays(model, p), projected, band.slot, band.diagonal,
-                           np.repeat(model.mass_h2, 2), np.asarray(samples, np.int64), L, ok)
+    kernels.newton_factors(elastic.newton_kernel_arrays(model, p), projected, band.slot, band.diagonal,
+                           model.mass_diag, np.asarray(samples, np.int64), L, ok)
     return ok
 
 
@@ -143,34 +143,49 @@ class LaggedFactors:
         stale = np.flatnonzero(~self.valid)
         if not len(stale):
             return
-        p = elastic.project(model, elastic.deformation_gradients(model, elastic.to_columns(X)), contraction, E)
-        self.banded[stale] = False
-        for b in stale:
-            self.other.pop(int(b), None)
+        p = self.forget(model, X, contraction, E, stale)
         if p.volume is None:                       # compiled: exact, else projected, else LU
             self.banded |= newton_factors(model, p, stale, self.L)
             failed = stale[~self.banded[stale]]
             if len(failed):
                 self.banded |= newton_factors(model, p, failed, self.L, projected=True)
-            for b in stale[~self.banded[stale]]:
-                self.other[int(b)] = lu_factor(elastic.newton_matrix(model, p, int(b), projected=True))
         else:
             for b in stale:
-                self.other[int(b)] = (BandedCholesky.of(elastic.newton_matrix(model, p, int(b)))
-                                      or spd_factor(elastic.newton_matrix(model, p, int(b), projected=True)))
+                factor = BandedCholesky.of(elastic.newton_matrix(model, p, int(b)))
+                self.other[int(b)] = factor or spd_factor(elastic.newton_matrix(model, p, int(b), projected=True))
+        self.record(model, p, stale)
+
+    def forget(self, model: SolidModel, X: np.ndarray, contraction: np.ndarray, E: np.ndarray,
+               stale: np.ndarray) -> elastic.Projections:
+        """Drop the factors of the `stale` samples (indices); returns the projections at X
+        [B, N, 2] their new factors are built from."""
+        self.banded[stale] = False
+        for b in stale:
+            self.other.pop(int(b), None)
+        return elastic.project(model, elastic.deformation_gradients(model, elastic.to_columns(X)), contraction, E)
+
+    def record(self, model: SolidModel, p: elastic.Projections, stale: np.ndarray) -> None:
+        """Mark the refactorised `stale` samples valid; those whose Newton matrix (exact and
+        projected) was not banded-Cholesky factorisable get a sparse LU of the projected one."""
+        for b in stale[~self.banded[stale]]:
+            if int(b) not in self.other:
+                self.other[int(b)] = lu_factor(elastic.newton_matrix(model, p, int(b), projected=True))
         self.valid[stale] = True
 
 
 class LaggedNewton:
     """r -> K_b^-1 r per sample with the lagged Newton factors of `model.lagged` (refactorised
-    where stale); with `active` [B] only those samples are solved (the others are 0)."""
+    where stale, unless `refactorise` is False: solve.pd_solve's compiled path factorises
+    inside its kernel); with `active` [B] only those samples are solved (the others are 0)."""
 
-    def __init__(self, model: SolidModel, X: np.ndarray, contraction: np.ndarray, E: np.ndarray):
+    def __init__(self, model: SolidModel, X: np.ndarray, contraction: np.ndarray, E: np.ndarray,
+                 refactorise: bool = True):
         B = len(X)
         if model.lagged is None or len(model.lagged.valid) != B:
             model.lagged = LaggedFactors(model, B)
         self.lagged, self.model = model.lagged, model
-        self.lagged.refactorise(model, X, contraction, E)
+        if refactorise:
+            self.lagged.refactorise(model, X, contraction, E)
 
     def __call__(self, R: np.ndarray, active: np.ndarray | None = None) -> np.ndarray:
         R = np.ascontiguousarray(R, dtype=np.float64)

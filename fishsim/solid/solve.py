@@ -71,8 +71,9 @@ class Objective:
         self.model, self.Y, self.contraction, self.E = model, Y, contraction, E
         self.fused = not model.material.volume_term
         if self.fused:
-            self.w_corotated = np.ascontiguousarray(np.outer(model.fem.area * model.material.corotated_per_E, E))
-            self.stretch = np.ascontiguousarray(1.0 - contraction)
+            w_corotated = np.ascontiguousarray(np.outer(model.fem.area * model.material.corotated_per_E, E))
+            self.kernel_arrays = (model.mass_h2, model.mesh_triangles, model.fem.grad, w_corotated, model.muscle_of,
+                                  model.muscle_weight, np.ascontiguousarray(1.0 - contraction))
 
     def __call__(self, X: np.ndarray, samples: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(Phi [B] in J per unit depth, grad Phi [B, N, 2] in N per unit depth); with a [B] mask
@@ -82,9 +83,7 @@ class Objective:
         if self.fused:
             g = np.empty_like(X)
             which = np.arange(len(self.E)) if samples is None else np.flatnonzero(samples)
-            phi = kernels.objective(X, self.Y, model.mass_h2, model.mesh_triangles, model.fem.grad,
-                                    self.w_corotated, model.muscle_of, model.muscle_weight, self.stretch,
-                                    which, g)
+            phi = kernels.objective(X, self.Y, self.kernel_arrays, which, g)
             return phi, g
         Xc = elastic.to_columns(X)
         p = elastic.project(model, elastic.deformation_gradients(model, Xc), self.contraction, self.E)
@@ -149,16 +148,13 @@ def pd_solve(model: SolidModel, Y: np.ndarray, X0: np.ndarray, contraction: np.n
     iterations = np.zeros(len(X), np.int64)
     need = max_nodal_norm(g) > opts.atol
     if need.any():
-        precondition = _preconditioner(model, X0, contraction, E)
-        compiled = need & _compiled(objective, precondition)
-        if compiled.any():
-            layout = model.newton_band.layout
-            kernels.lbfgs_samples(X, objective.Y, model.mass_h2, model.mesh_triangles, model.fem.grad,
-                                  objective.w_corotated, model.muscle_of, model.muscle_weight, objective.stretch,
-                                  precondition.lagged.L, layout.perm, layout.inverse, opts.atol, opts.max_iter,
-                                  opts.history, np.flatnonzero(compiled), g, iterations)
-        if (need & ~compiled).any():
-            X, g = _lbfgs(objective, precondition, X, phi, g, need & ~compiled, iterations)
+        if objective.fused and opts.preconditioner == "lagged_newton":
+            precondition = _solve_compiled(objective, X0, X, g, need, iterations)
+            rest = need & ~precondition.lagged.banded
+        else:
+            precondition, rest = _preconditioner(model, X0, contraction, E), need
+        if rest.any():
+            X, g = _lbfgs(objective, precondition, X, phi, g, rest, iterations)
         if isinstance(precondition, LaggedNewton):
             precondition.refresh(iterations)
     X, g = _remove_net_residual(model, X, g)
@@ -170,12 +166,33 @@ def pd_solve(model: SolidModel, Y: np.ndarray, X0: np.ndarray, contraction: np.n
     return X, ForwardInfo(iterations, residual, converged)
 
 
-def _compiled(objective: Objective, precondition) -> np.ndarray:
-    """[B] mask of the samples kernels.lbfgs_samples can solve: compiled objective and a banded
-    lagged Newton factor."""
-    if not (objective.fused and isinstance(precondition, LaggedNewton)):
-        return np.zeros(len(objective.E), bool)
-    return precondition.lagged.banded.copy()
+def _solve_compiled(objective: Objective, X0: np.ndarray, X: np.ndarray, g: np.ndarray, need: np.ndarray,
+                    iterations: np.ndarray) -> LaggedNewton:
+    """kernels.lbfgs_samples on the `need` [B] samples, in place on X, g and iterations: each
+    sample's stale lagged Newton factor is rebuilt at X0 and its whole L-BFGS solve run compiled,
+    in parallel over the samples. Returns the lagged Newton preconditioner, whose `banded` [B]
+    marks the samples solved (the others, whose Newton matrix was not banded-Cholesky
+    factorisable, now have a sparse LU for the numpy iteration)."""
+    model, opts = objective.model, objective.model.options
+    precondition = LaggedNewton(model, X0, objective.contraction, objective.E, refactorise=False)
+    lagged = precondition.lagged
+    stale = np.flatnonzero(need & ~lagged.valid)
+    p = lagged.forget(model, X0, objective.contraction, objective.E, stale) if len(stale) else None
+    band = model.newton_band
+    kernels.lbfgs_samples(X, objective.Y, objective.kernel_arrays, lagged.L, band.layout.perm, band.layout.inverse,
+                          elastic.newton_kernel_arrays(model, p) if p is not None else _no_projections(model),
+                          band.slot, band.diagonal, model.mass_diag, ~lagged.valid & need, lagged.banded,
+                          opts.atol, opts.max_iter, opts.history, np.flatnonzero(need), g, iterations)
+    if p is not None:
+        lagged.record(model, p, stale)
+    return precondition
+
+
+def _no_projections(model: SolidModel) -> tuple:
+    """Stand-in for elastic.newton_kernel_arrays when no factor is rebuilt (same types, empty)."""
+    empty = np.zeros((0, 0))
+    return (empty, empty, empty, empty, model.muscle_of, model.muscle_weight, empty, empty, empty, empty,
+            model.fem.grad)
 
 
 def _lbfgs(objective: Objective, precondition, X: np.ndarray, phi: np.ndarray, g: np.ndarray,
