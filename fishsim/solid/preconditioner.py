@@ -129,13 +129,15 @@ class LaggedFactors:
     """The lagged Newton factors of a batch of B samples, kept on the model between steps
     (model.lagged): banded factors L [B, n, w + 1] where `banded`, else a SuperLU object in
     `other` (models with the volume term, or a projected matrix that failed Cholesky);
-    `valid` [B] False marks samples to refactorise at the next step's start."""
+    `valid` [B] False marks samples to refactorise at the next step's start; `iterations` [B]
+    the last step's L-BFGS iterations (the next step's cost estimate)."""
 
     def __init__(self, model: SolidModel, B: int):
         self.L = None if model.material.volume_term else model.newton_band.empty(B)
         self.banded = np.zeros(B, bool)
         self.valid = np.zeros(B, bool)
         self.other: dict[int, object] = {}
+        self.iterations = np.zeros(B, np.int64)
 
     def refactorise(self, model: SolidModel, X: np.ndarray, contraction: np.ndarray, E: np.ndarray) -> None:
         """Factorise the Newton matrix at positions X [B, N, 2] of every invalid sample: the exact
@@ -200,5 +202,7 @@ class LaggedNewton:
         return Z
 
     def refresh(self, iterations: np.ndarray) -> None:
-        """Mark samples whose step needed more than refresh_iterations for refactorisation."""
+        """Mark samples whose step needed more than refresh_iterations for refactorisation, and
+        keep the step's iterations as the next step's cost estimate."""
         self.lagged.valid &= iterations <= self.model.options.refresh_iterations
+        self.lagged.iterations = iterations.copy()

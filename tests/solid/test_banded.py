@@ -10,7 +10,7 @@ from fishsim.solid import SolidModel, elastic, kernels
 from fishsim.solid.banded import BandedCholesky, spd_factor
 from fishsim.solid.kernels import band_factor, band_solve
 from fishsim.solid.preconditioner import LaggedNewton, newton_factors, pd_matrix, rest_newton_matrix
-from fishsim.solid.solve import Objective, _lbfgs, _remove_net_residual, pd_solve
+from fishsim.solid.solve import Objective, _lbfgs, _remove_net_residual, balanced_order, pd_solve
 
 
 def test_banded_cholesky_solves_the_fish_matrices():
@@ -114,3 +114,15 @@ def test_compiled_forward_equals_the_numpy_iteration(coarse_mesh):
     # agree to 1e-16 m). Both meet atol; atol / min(m/h^2) = 5e-5 m is the residual's scale.
     assert np.abs(info.iterations - iterations).max() <= 1
     np.testing.assert_allclose(X, X_ref, rtol=0, atol=1e-7)
+
+
+def test_balanced_order_gives_each_thread_a_similar_cost():
+    """numba's static schedule cuts the sample list into equal contiguous chunks; the order
+    deals costly samples alternately so every chunk's total is close (here exactly equal)."""
+    samples = np.arange(10, 26)
+    cost = np.repeat([1, 3], 8)                         # the costly ones last, as in a sorted sweep
+    order = balanced_order(samples, cost, 2)
+    assert sorted(order) == list(samples)
+    chunks = cost[order - 10].reshape(2, 8).sum(1)
+    assert chunks[0] == chunks[1] == 16
+    assert sorted(balanced_order(samples[:3], cost[:3], 4)) == list(samples[:3])   # more threads than samples
