@@ -8,8 +8,11 @@ Forward (PHYSICS.md section 3): q+ = argmin Phi(q),
 by L-BFGS (DiffPD's solver) with a prefactorised initial inverse Hessian (preconditioner.py: the
 lagged Newton matrix by default; the rotated rest-shape Newton matrix; or DiffPD's PD matrix
 A(E), with which the first iteration is exactly one local-global step), Armijo backtracking,
-until the residual's largest nodal norm is <= atol. The objective and the two-loop recursion run
-compiled (kernels.py). The net residual sum_i g_i is then removed by a rigid translation of q+
+until the residual's largest nodal norm is <= atol. With the default preconditioner on models
+without the volume term, each sample's whole solve (its stale factor, then every iteration) is
+one compiled call, the batch's samples in parallel (kernels.lbfgs_samples); otherwise the
+batched numpy iteration (_lbfgs) runs, with the objective and two-loop recursion compiled where
+possible; both take the same steps up to the dot products' round-off. The net residual sum_i g_i is then removed by a rigid translation of q+
 (exact: f_int is translation invariant), so linear momentum is conserved to round-off whatever
 atol is.
 
