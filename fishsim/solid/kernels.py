@@ -278,10 +278,14 @@ def solve_samples(L: np.ndarray, perm: np.ndarray, inverse: np.ndarray, R: np.nd
 
 @numba.njit(cache=True)
 def _max_nodal_norm(g: np.ndarray) -> float:
-    """max_i |g_i| of one sample's [N, 2] nodal vectors."""
+    """max_i |g_i| of one sample's [N, 2] nodal vectors; NaN if any is (a blown-up sample then
+    stops iterating, as in the numpy path)."""
     largest = 0.0
     for i in range(g.shape[0]):
-        largest = max(largest, np.sqrt(g[i, 0] ** 2 + g[i, 1] ** 2))
+        norm = np.sqrt(g[i, 0] ** 2 + g[i, 1] ** 2)
+        if np.isnan(norm):
+            return norm
+        largest = max(largest, norm)
     return largest
 
 

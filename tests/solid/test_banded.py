@@ -3,6 +3,7 @@ straight from the element matrices), and an indefinite matrix falls back to Supe
 
 import numba
 import numpy as np
+import pytest
 import scipy.sparse as sp
 
 from fishsim.mesh import make_fish_mesh
@@ -126,3 +127,16 @@ def test_balanced_order_gives_each_thread_a_similar_cost():
     chunks = cost[order - 10].reshape(2, 8).sum(1)
     assert chunks[0] == chunks[1] == 16
     assert sorted(balanced_order(samples[:3], cost[:3], 4)) == list(samples[:3])   # more threads than samples
+
+
+def test_compiled_forward_stops_a_blown_up_sample(coarse_mesh):
+    """A sample whose target y is not finite stops after its first iteration (NaN residual) and is
+    reported unconverged, with a warning; the batch's other sample converges as usual."""
+    model = SolidModel(coarse_mesh)
+    rng = np.random.default_rng(4)
+    X0 = np.repeat(model.mesh.points[None], 2, axis=0) + 1e-4 * rng.standard_normal((2, model.n_nodes, 2))
+    Y = X0 + 1e-4 * rng.standard_normal(X0.shape)
+    Y[1, 3, 0] = np.inf
+    with pytest.warns(RuntimeWarning, match="did not converge"):
+        _, info = pd_solve(model, Y, X0, np.zeros((model.n_muscles, 2)), np.full(2, 6e5))
+    assert info.converged.tolist() == [True, False] and info.iterations[1] <= 1
