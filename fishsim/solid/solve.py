@@ -52,8 +52,6 @@ class ForwardInfo:
 
 def sample_dot(u: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Per-sample inner product [B] of two [B, N, 2] arrays."""
-    if len(u) == 1:                                       # one BLAS dot (the hot path)
-        return np.array([np.dot(u.ravel(), v.ravel())])
     return np.einsum("bij,bij->b", u, v)
 
 
