@@ -12,9 +12,9 @@ until the residual's largest nodal norm is <= atol. With the default preconditio
 without the volume term, each sample's whole solve (its stale factor, then every iteration) is
 one compiled call, the batch's samples in parallel (kernels.lbfgs_samples); otherwise the
 batched numpy iteration (_lbfgs) runs, with the objective and two-loop recursion compiled where
-possible; both take the same steps up to the dot products' round-off. The net residual sum_i g_i is then removed by a rigid translation of q+
-(exact: f_int is translation invariant), so linear momentum is conserved to round-off whatever
-atol is.
+possible; both take the same steps up to the dot products' round-off. The net residual sum_i g_i
+is then removed by a rigid translation of q+ (exact: f_int is translation invariant), so linear
+momentum is conserved to round-off whatever atol is.
 
 Adjoint: (A - dA) x = b with A - dA = M/h^2 - df_int/dq, the Newton matrix at q+ (symmetric,
 indefinite only under strong compression): by default a direct solve per sample of the assembled
@@ -178,9 +178,10 @@ def _solve_compiled(objective: Objective, X0: np.ndarray, X: np.ndarray, g: np.n
     model, opts = objective.model, objective.model.options
     precondition = LaggedNewton(model, X0, objective.contraction, objective.E, refactorise=False)
     lagged = precondition.lagged
-    stale = np.flatnonzero(need & ~lagged.valid)
+    rebuild = need & ~lagged.valid
+    stale = np.flatnonzero(rebuild)
     p = lagged.forget(model, X0, objective.contraction, objective.E, stale) if len(stale) else None
-    band, rebuild = model.newton_band, need & ~lagged.valid
+    band = model.newton_band
     samples = balanced_order(np.flatnonzero(need), (lagged.iterations + _FACTOR_COST * rebuild)[need],
                              numba.get_num_threads())
     kernels.lbfgs_samples(X, objective.Y, objective.kernel_arrays, lagged.L, band.layout.perm, band.layout.inverse,
