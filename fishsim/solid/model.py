@@ -22,6 +22,7 @@ import scipy.sparse as sp
 from fishsim.errors import ConfigError
 from fishsim.mesh.fish_mesh import FishMesh
 from fishsim.solid.fem import FemQuantities, NewtonBand, fem_quantities
+from fishsim.solid.packed import PackBand
 
 
 @dataclass(frozen=True)
@@ -198,6 +199,11 @@ class SolidModel:
     def newton_band(self) -> NewtonBand:
         """Band layout of the [2N, 2N] Newton matrices (built on first use)."""
         return NewtonBand.of(self.fem.pattern)
+
+    @functools.cached_property
+    def pack_band(self) -> PackBand:
+        """The Newton band of the lane-packed solver (packed.py; built on first use)."""
+        return PackBand(self.newton_band, self.mass_diag)
 
     @property
     def n_muscles(self) -> int:

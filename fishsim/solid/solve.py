@@ -34,7 +34,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from fishsim.solid import elastic, kernels
+from fishsim.solid import elastic, kernels, packed
 from fishsim.solid.banded import lu_factor, spd_factor
 from fishsim.solid.model import SolidModel
 from fishsim.solid.preconditioner import LaggedNewton, Preconditioner, newton_factors
@@ -149,6 +149,8 @@ def pd_solve(model: SolidModel, Y: np.ndarray, X0: np.ndarray, contraction: np.n
     phi, g = objective(X)
     iterations = np.zeros(len(X), np.int64)
     need = max_nodal_norm(g) > opts.atol
+    if objective.fused and opts.preconditioner == "lagged_newton" and need.sum() >= PACK_MIN:
+        need = need & ~_solve_packed(objective, X, g, need, iterations)
     if need.any():
         if objective.fused and opts.preconditioner == "lagged_newton":
             precondition = _solve_compiled(objective, X0, X, g, need, iterations)
@@ -166,6 +168,58 @@ def pd_solve(model: SolidModel, Y: np.ndarray, X0: np.ndarray, contraction: np.n
         warnings.warn(f"PD step did not converge in {opts.max_iter} iterations "
                       f"(max residual {residual.max():.3g} N > atol {opts.atol:g} N)", RuntimeWarning, stacklevel=3)
     return X, ForwardInfo(iterations, residual, converged)
+
+
+# Fewest samples to solve in lanes of packs (packed.py) rather than one per thread.
+PACK_MIN = 4
+
+
+def packs_of(samples: np.ndarray) -> np.ndarray:
+    """The samples (indices) dealt into packs [P, LANES] in order, the last pack padded with
+    copies of its last sample (their results are the same and are dropped)."""
+    P = -(-len(samples) // packed.LANES)
+    lanes = np.full(P * packed.LANES, samples[-1], np.int64)
+    lanes[:len(samples)] = samples
+    return lanes.reshape(P, packed.LANES)
+
+
+def to_packs(a: np.ndarray, lanes: np.ndarray) -> np.ndarray:
+    """Per-sample arrays [B, ...] -> the packs' [P, ..., LANES] (lanes [P, LANES] of packs_of)."""
+    return np.ascontiguousarray(np.moveaxis(a[lanes], 1, -1))
+
+
+def from_packs(a: np.ndarray, lanes: np.ndarray, out: np.ndarray) -> None:
+    """out[lanes] = the packs' a [P, ..., LANES] (inverse of to_packs)."""
+    out[lanes] = np.moveaxis(a, -1, 1)
+
+
+def pack_arrays(objective_arrays: tuple, lanes: np.ndarray) -> tuple:
+    """kernels.objective's arrays with the per-sample ones (w_corotated, stretch: [., B]) packed
+    [P, ., LANES]."""
+    mass_h2, triangles, grad, w_corotated, muscle_of, w_muscle, stretch = objective_arrays
+    return (mass_h2, triangles, grad, to_packs(w_corotated.T, lanes), muscle_of, w_muscle, to_packs(stretch.T, lanes))
+
+
+def _solve_packed(objective: Objective, X: np.ndarray, g: np.ndarray, need: np.ndarray,
+                  iterations: np.ndarray) -> np.ndarray:
+    """The `need` [B] samples' whole forward solves in lanes of packs (packed.lbfgs_packs: the
+    Newton matrix factorised at the start X, then L-BFGS in lock step), in place on X, g and
+    iterations. Returns the [B] mask of samples solved (those whose exact and projected Newton
+    matrices were both indefinite are left to the other paths)."""
+    model, opts = objective.model, objective.model.options
+    lanes = packs_of(np.flatnonzero(need))
+    band = model.pack_band
+    Xp, gp = to_packs(X, lanes), np.empty((len(lanes), *X.shape[1:], packed.LANES))
+    its, ok = np.zeros(lanes.shape), np.zeros(lanes.shape, bool)
+    packed.lbfgs_packs(Xp, to_packs(objective.Y, lanes), pack_arrays(objective.kernel_arrays, lanes), band.arrays,
+                       band.empty(len(lanes)), opts.atol, opts.max_iter, opts.history, gp, its, ok)
+    solved = lanes[ok]
+    from_packs(Xp, lanes, X)                          # lanes not solved have not moved
+    from_packs(gp, lanes, g)
+    iterations[lanes] = its
+    done = np.zeros(len(X), bool)
+    done[solved] = True
+    return done
 
 
 def _solve_compiled(objective: Objective, X0: np.ndarray, X: np.ndarray, g: np.ndarray, need: np.ndarray,
@@ -297,12 +351,12 @@ def newton_solve(model: SolidModel, p: elastic.Projections, X: np.ndarray, b: np
     method = method or model.options.backward_method
     B = b.shape[0]
     if method == "direct":
-        return _direct_solve(model, p, b, np.arange(B)), 0, B
+        return _direct_solve(model, p, X, b, np.arange(B)), 0, B
     x, ok, its = _pcg(NewtonOperator(model, p), Preconditioner(model, E, X, "rest_newton"), b,
                       model.options.backward_rtol, model.options.backward_max_iter)
     failed = np.flatnonzero(~ok)
     if len(failed) and method == "auto":
-        x[failed] = _direct_solve(model, p, b, failed)[failed]
+        x[failed] = _direct_solve(model, p, X, b, failed)[failed]
     elif len(failed):
         warnings.warn(f"adjoint PCG did not converge for {len(failed)} samples", RuntimeWarning, stacklevel=3)
     return x, its, len(failed) if method == "auto" else 0
@@ -340,19 +394,37 @@ def _pcg(apply_K, precondition, b: np.ndarray, rtol: float, max_iter: int):
     return x, done, it
 
 
-def _direct_solve(model: SolidModel, p: elastic.Projections, b: np.ndarray, samples: np.ndarray) -> np.ndarray:
-    """Direct solve of the assembled Newton matrix for the given samples of b [B, N, 2]: banded
-    Cholesky when it is positive definite (assembled, factorised and solved in parallel over the
-    samples), else sparse LU (banded.lu_factor)."""
+def _direct_solve(model: SolidModel, p: elastic.Projections, X: np.ndarray, b: np.ndarray,
+                  samples: np.ndarray) -> np.ndarray:
+    """Direct solve of the assembled Newton matrix at X [B, N, 2] (projections p) for the given
+    samples of b [B, N, 2]: banded Cholesky when it is positive definite (_banded_solve), else
+    sparse LU (banded.lu_factor)."""
     x = np.zeros(b.shape)
     if p.volume is None:
-        L = model.newton_band.empty(len(b))
-        banded = np.flatnonzero(newton_factors(model, p, samples, L))
-        layout = model.newton_band.layout
-        kernels.solve_samples(L, layout.perm, layout.inverse, np.ascontiguousarray(b), banded, x)
-        for s in np.setdiff1d(samples, banded):           # not positive definite
+        for s in np.setdiff1d(samples, _banded_solve(model, p, X, b, samples, x)):   # not positive definite
             x[s] = lu_factor(elastic.newton_matrix(model, p, int(s))).solve(b[s].reshape(-1)).reshape(-1, 2)
         return x
     for s in samples:
         x[s] = spd_factor(elastic.newton_matrix(model, p, int(s))).solve(b[s].reshape(-1)).reshape(-1, 2)
     return x
+
+
+def _banded_solve(model: SolidModel, p: elastic.Projections, X: np.ndarray, b: np.ndarray, samples: np.ndarray,
+                  x: np.ndarray) -> np.ndarray:
+    """x[s] = K_s^-1 b[s] for the samples whose Newton matrix K_s is positive definite, assembled,
+    factorised and solved by banded Cholesky in parallel over the samples (from PACK_MIN
+    samples on, eight per pack: packed.newton_solve_packs). Returns the samples solved."""
+    if len(samples) >= PACK_MIN:
+        lanes, band = packs_of(samples), model.pack_band
+        arrays = (model.mass_h2, model.mesh_triangles, model.fem.grad, to_packs(p.w_corotated.T, lanes),
+                  model.muscle_of, model.muscle_weight, to_packs(p.muscle[5].T, lanes))
+        Z, ok = np.empty((len(lanes), *b.shape[1:], packed.LANES)), np.zeros(lanes.shape, bool)
+        packed.newton_solve_packs(to_packs(X, lanes), to_packs(b, lanes), arrays, band.arrays,
+                                  band.empty(len(lanes)), Z, ok)
+        from_packs(Z, lanes, x)
+        return np.unique(lanes[ok])
+    L = model.newton_band.empty(len(b))
+    banded = np.flatnonzero(newton_factors(model, p, samples, L))
+    layout = model.newton_band.layout
+    kernels.solve_samples(L, layout.perm, layout.inverse, np.ascontiguousarray(b), banded, x)
+    return banded

@@ -1,0 +1,677 @@
+"""Lane-packed (SIMD) kernels of the PD solve: LANES = 8 samples per pack, in lock step, one
+sample per lane of an 8 x float64 vector (one AVX-512 register; two AVX2 ones elsewhere).
+
+A fish's solve is a long chain of small dependent operations (an element's 2 x 2 matrices, a
+band row's 40 entries), which one sample alone cannot fill a vector unit with; eight samples of
+the same mesh do exactly the same operations on different numbers, so each scalar operation of
+kernels.py becomes one vector operation here. Arrays of a pack put the lane index last:
+positions and forces [N, 2, LANES], the Newton band [n, w + 1, LANES], per-element weights
+[T, LANES]; one (vload) load reads an entry of all eight samples.
+
+numba does not vectorise such 8-wide lane loops by itself (its SLP vectoriser is off and the
+loop vectoriser judges 8 trips not worth it), so the vector is a numba type of its own, `Vec`,
+an LLVM <8 x double> value with the arithmetic operators, fma, sqrt, max/min, lane masks (1.0 /
+0.0 per lane) and `where`, each one vector instruction.
+
+Kernels (each a pack, prange over packs): `lbfgs_packs`, the whole forward solve of kernels.py's
+_lbfgs_sample for eight samples at a time, factorising each lane's Newton matrix at the start of
+every step; `newton_solve_packs`, the adjoint's direct solve. Per lane the arithmetic is the
+scalar kernels' up to round-off (a factor multiplies by 1 / sqrt(pivot) instead of dividing),
+and a lane's results do not depend on the other lanes: a lane that fails (indefinite matrix,
+NaN) is flagged alone. (All compiled code of this module lives in this file, so that numba's
+cache of it is invalidated whenever it changes.)
+"""
+
+from __future__ import annotations
+
+import operator
+
+import numba
+import numpy as np
+from llvmlite import ir
+from numba.core import cgutils, types
+from numba.extending import intrinsic, models, overload, register_model
+
+from fishsim.solid.energies import _TINY
+
+LANES = 8
+_VEC = ir.VectorType(ir.DoubleType(), LANES)
+_I32 = ir.IntType(32)
+
+
+class Vec(types.Type):
+    """numba type of an 8 x float64 SIMD value (LLVM <8 x double>)."""
+
+    def __init__(self):
+        super().__init__(name="Vec")
+
+
+vec = Vec()
+
+
+@register_model(Vec)
+class _VecModel(models.PrimitiveModel):
+    def __init__(self, dmm, fe_type):
+        super().__init__(dmm, fe_type, _VEC)
+
+
+def _is_f64_array(a) -> bool:
+    return isinstance(a, types.Array) and a.dtype == types.float64 and a.layout == "C"
+
+
+def _element_pointer(context, builder, array_type, array, index_type, index):
+    """Pointer to flat element `index` of a C-contiguous array, as a <8 x double>*."""
+    data = context.make_array(array_type)(context, builder, array).data
+    offset = context.cast(builder, index, index_type, types.intp)
+    return builder.bitcast(builder.gep(data, [offset]), _VEC.as_pointer())
+
+
+@intrinsic
+def vload(typingctx, a, i):
+    """The 8 values a.flat[i:i + 8] of a C-contiguous float64 array (no bounds check)."""
+    if _is_f64_array(a) and isinstance(i, types.Integer):
+        def codegen(context, builder, sig, args):
+            return builder.load(_element_pointer(context, builder, sig.args[0], args[0], sig.args[1], args[1]),
+                                align=8)
+        return vec(a, i), codegen
+    return None
+
+
+@intrinsic
+def vstore(typingctx, a, i, v):
+    """a.flat[i:i + 8] = v (no bounds check)."""
+    if _is_f64_array(a) and isinstance(i, types.Integer) and isinstance(v, Vec):
+        def codegen(context, builder, sig, args):
+            builder.store(args[2], _element_pointer(context, builder, sig.args[0], args[0], sig.args[1], args[1]),
+                          align=8)
+            return context.get_dummy_value()
+        return types.none(a, i, v), codegen
+    return None
+
+
+@intrinsic
+def splat(typingctx, x):
+    """A Vec from a scalar (every lane x) or a Vec (itself)."""
+    if isinstance(x, Vec):
+        return vec(x), lambda context, builder, sig, args: args[0]
+    if isinstance(x, (types.Float, types.Integer, types.Boolean)):
+        def codegen(context, builder, sig, args):
+            value = context.cast(builder, args[0], sig.args[0], types.float64)
+            one = builder.insert_element(ir.Constant(_VEC, ir.Undefined), value, ir.Constant(_I32, 0))
+            return builder.shuffle_vector(one, one, ir.Constant(ir.VectorType(_I32, LANES), [0] * LANES))
+        return vec(x), codegen
+    return None
+
+
+@intrinsic
+def lane(typingctx, v, k):
+    """Lane k of v, a float."""
+    if isinstance(v, Vec) and isinstance(k, types.Integer):
+        def codegen(context, builder, sig, args):
+            return builder.extract_element(args[0], builder.trunc(context.cast(builder, args[1], sig.args[1],
+                                                                               types.int64), _I32))
+        return types.float64(v, k), codegen
+    return None
+
+
+def _binary(a, b, emit):
+    if isinstance(a, Vec) and isinstance(b, Vec):
+        return vec(a, b), lambda context, builder, sig, args: emit(builder, *args)
+    return None
+
+
+@intrinsic
+def _add(typingctx, a, b):
+    return _binary(a, b, lambda builder, x, y: builder.fadd(x, y, flags=("contract",)))
+
+
+@intrinsic
+def _sub(typingctx, a, b):
+    return _binary(a, b, lambda builder, x, y: builder.fsub(x, y, flags=("contract",)))
+
+
+@intrinsic
+def _mul(typingctx, a, b):
+    return _binary(a, b, lambda builder, x, y: builder.fmul(x, y, flags=("contract",)))
+
+
+@intrinsic
+def _div(typingctx, a, b):
+    return _binary(a, b, lambda builder, x, y: builder.fdiv(x, y))
+
+
+def _llvm_call(builder, name, *args):
+    """Call the LLVM intrinsic `name` (e.g. llvm.sqrt) on <8 x double> arguments."""
+    function = cgutils.get_or_insert_function(builder.module, ir.FunctionType(_VEC, [_VEC] * len(args)),
+                                              f"{name}.v{LANES}f64")
+    return builder.call(function, args)
+
+
+@intrinsic
+def _max(typingctx, a, b):
+    return _binary(a, b, lambda builder, x, y: _llvm_call(builder, "llvm.maxnum", x, y))
+
+
+@intrinsic
+def _min(typingctx, a, b):
+    return _binary(a, b, lambda builder, x, y: _llvm_call(builder, "llvm.minnum", x, y))
+
+
+@intrinsic
+def _greater(typingctx, a, b):
+    return _binary(a, b, lambda builder, x, y: builder.uitofp(builder.fcmp_ordered(">", x, y), _VEC))
+
+
+@intrinsic
+def _greater_equal(typingctx, a, b):
+    return _binary(a, b, lambda builder, x, y: builder.uitofp(builder.fcmp_ordered(">=", x, y), _VEC))
+
+
+@intrinsic
+def vsqrt(typingctx, a):
+    """sqrt per lane."""
+    if isinstance(a, Vec):
+        return vec(a), lambda context, builder, sig, args: _llvm_call(builder, "llvm.sqrt", args[0])
+    return None
+
+
+@intrinsic
+def isnan(typingctx, a):
+    """Mask: 1.0 where the lane is NaN, else 0.0."""
+    if isinstance(a, Vec):
+        def codegen(context, builder, sig, args):
+            return builder.uitofp(builder.fcmp_unordered("uno", args[0], args[0]), _VEC)
+        return vec(a), codegen
+    return None
+
+
+@intrinsic
+def _fma(typingctx, a, b, c):
+    if isinstance(a, Vec) and isinstance(b, Vec) and isinstance(c, Vec):
+        return vec(a, b, c), lambda context, builder, sig, args: _llvm_call(builder, "llvm.fma", *args)
+    return None
+
+
+@intrinsic
+def _where(typingctx, m, a, b):
+    if isinstance(m, Vec) and isinstance(a, Vec) and isinstance(b, Vec):
+        def codegen(context, builder, sig, args):
+            chosen = builder.fcmp_ordered("!=", args[0], ir.Constant(_VEC, [0.0] * LANES))
+            return builder.select(chosen, args[1], args[2])
+        return vec(m, a, b), codegen
+    return None
+
+
+def _involves_vec(*args) -> bool:
+    return any(isinstance(a, Vec) for a in args)
+
+
+def _overload_binary(op, implementation):
+    @overload(op)
+    def _impl(a, b):
+        if _involves_vec(a, b):
+            return lambda a, b: implementation(splat(a), splat(b))
+        return None
+
+
+for _op, _implementation in ((operator.add, _add), (operator.sub, _sub), (operator.mul, _mul),
+                             (operator.truediv, _div), (operator.iadd, _add), (operator.isub, _sub),
+                             (operator.imul, _mul), (operator.itruediv, _div), (operator.gt, _greater),
+                             (operator.ge, _greater_equal)):
+    _overload_binary(_op, _implementation)
+
+
+@overload(operator.neg)
+def _neg(a):
+    if isinstance(a, Vec):
+        return lambda a: _sub(splat(0.0), a)
+    return None
+
+
+@overload(operator.lt)
+def _less(a, b):
+    if _involves_vec(a, b):
+        return lambda a, b: _greater(splat(b), splat(a))
+    return None
+
+
+@overload(operator.le)
+def _less_equal(a, b):
+    if _involves_vec(a, b):
+        return lambda a, b: _greater_equal(splat(b), splat(a))
+    return None
+
+
+@numba.njit(inline="always")
+def vmax(a, b):
+    """max per lane (the non-NaN one where one is NaN)."""
+    return _max(splat(a), splat(b))
+
+
+@numba.njit(inline="always")
+def vmin(a, b):
+    """min per lane (the non-NaN one where one is NaN)."""
+    return _min(splat(a), splat(b))
+
+
+@numba.njit(inline="always")
+def fma(a, b, c):
+    """a b + c per lane, one rounding."""
+    return _fma(splat(a), splat(b), splat(c))
+
+
+@numba.njit(inline="always")
+def where(mask, a, b):
+    """a where mask (1.0) else b, per lane."""
+    return _where(mask, splat(a), splat(b))
+
+
+@numba.njit(inline="always")
+def count(mask) -> float:
+    """Number of lanes set in a mask (sum of its lanes)."""
+    total = 0.0
+    for k in range(LANES):
+        total += lane(mask, k)
+    return total
+
+
+@numba.njit(inline="always")
+def vabs(a):
+    """|a| per lane."""
+    return vmax(a, -a)
+
+
+# ---------------------------------------------------------------------------------------------
+# Kernels on one pack. Arrays of a pack are C-contiguous with the lane index last and are
+# indexed flat: entry (2 i + a) of a nodal array [N, 2, LANES] starts at (2 i + a) LANES.
+
+
+@numba.njit(cache=True)
+def _deformation_gradient(X, triangles, grad, e):
+    """F of element e in the conformal-ready components (F00, F01, F10, F11), Vecs."""
+    k0, k1, k2 = triangles[e, 0], triangles[e, 1], triangles[e, 2]
+    x0, y0 = vload(X, 2 * k0 * LANES), vload(X, (2 * k0 + 1) * LANES)
+    x1, y1 = vload(X, 2 * k1 * LANES), vload(X, (2 * k1 + 1) * LANES)
+    x2, y2 = vload(X, 2 * k2 * LANES), vload(X, (2 * k2 + 1) * LANES)
+    F00 = x0 * grad[e, 0, 0] + x1 * grad[e, 1, 0] + x2 * grad[e, 2, 0]
+    F01 = x0 * grad[e, 0, 1] + x1 * grad[e, 1, 1] + x2 * grad[e, 2, 1]
+    F10 = y0 * grad[e, 0, 0] + y1 * grad[e, 1, 0] + y2 * grad[e, 2, 0]
+    F11 = y0 * grad[e, 0, 1] + y1 * grad[e, 1, 1] + y2 * grad[e, 2, 1]
+    return F00, F01, F10, F11
+
+
+@numba.njit(cache=True)
+def _objective(X, Y, mass_h2, triangles, grad, w_corotated, muscle_of, w_muscle, stretch, g):
+    """Phi of each lane (a Vec, J per unit depth), writing grad Phi into g: kernels'
+    _objective_sample on a pack. X, Y, g [N, 2, LANES]; w_corotated [T, LANES]; stretch
+    [n_act, LANES]; the other arrays as in kernels.objective."""
+    phi = splat(0.0)
+    for i in range(X.shape[0]):
+        for a in range(2):
+            o = (2 * i + a) * LANES
+            d = vload(X, o) - vload(Y, o)
+            vstore(g, o, mass_h2[i] * d)
+            phi += 0.5 * mass_h2[i] * d * d
+    for e in range(triangles.shape[0]):
+        F00, F01, F10, F11 = _deformation_gradient(X, triangles, grad, e)
+        alpha, beta = (F00 + F11) * 0.5, (F10 - F01) * 0.5
+        gamma, delta = (F00 - F11) * 0.5, (F01 + F10) * 0.5
+        c = vmax(vsqrt(alpha * alpha + beta * beta), _TINY)
+        ra, rb = alpha - alpha / c, beta - beta / c                 # F - R, conformal coordinates
+        w = vload(w_corotated, e * LANES)
+        phi += w * (ra * ra + rb * rb + gamma * gamma + delta * delta)
+        S00, S01 = w * (ra + gamma), w * (delta - rb)
+        S10, S11 = w * (rb + delta), w * (ra - gamma)
+        m = muscle_of[e]
+        if m >= 0:                                                  # muscle: F m - a F m / |F m|
+            length = vmax(vsqrt(F00 * F00 + F10 * F10), _TINY)
+            a_m = vload(stretch, m * LANES)
+            m0, m1 = F00 - a_m * F00 / length, F10 - a_m * F10 / length
+            phi += w_muscle[m] / 2 * (m0 * m0 + m1 * m1)
+            S00 += w_muscle[m] * m0
+            S10 += w_muscle[m] * m1
+        for k in range(3):                                          # dE/dx_ka = sum_j S_aj g_kj
+            o = 2 * triangles[e, k] * LANES
+            vstore(g, o, vload(g, o) + (S00 * grad[e, k, 0] + S01 * grad[e, k, 1]))
+            vstore(g, o + LANES, vload(g, o + LANES) + (S10 * grad[e, k, 0] + S11 * grad[e, k, 1]))
+    return phi
+
+
+@numba.njit(cache=True)
+def _newton_band(X, triangles, grad, w_corotated, muscle_of, w_muscle, stretch, projected, slot, diagonal,
+                 diagonal_values, L, H):
+    """Each lane's Newton matrix M/h^2 + sum_e G_e^T H_e G_e at X, assembled into the band L
+    [n, w + 1, LANES] (kernels._newton_factor's assembly with kernels._element_newton's element
+    matrices; the projections are computed here from X). `projected` (a lane mask) clamps c and
+    |F m| as elastic.stress_differential does; slot, diagonal, diagonal_values: PackBand's;
+    H [4 * 4 * LANES] scratch."""
+    band = L.reshape(-1)
+    band[:] = 0.0
+    for i in range(diagonal.shape[0]):
+        o = diagonal[i] * LANES
+        vstore(band, o, vload(band, o) + diagonal_values[i])
+    zero = splat(0.0)
+    for e in range(triangles.shape[0]):
+        F00, F01, F10, F11 = _deformation_gradient(X, triangles, grad, e)
+        alpha, beta = (F00 + F11) * 0.5, (F10 - F01) * 0.5
+        c = vmax(vsqrt(alpha * alpha + beta * beta), _TINY)
+        alpha_R, beta_R = alpha / c, beta / c
+        ce = where(projected, vmax(c, 1.0), c)
+        w = vload(w_corotated, e * LANES)
+        m = muscle_of[e]
+        n0, n1, length, a_m, w_m = zero, zero, zero, zero, 0.0
+        if m >= 0:
+            length = vmax(vsqrt(F00 * F00 + F10 * F10), _TINY)
+            n0, n1 = F00 / length, F10 / length
+            a_m = vload(stretch, m * LANES)
+            length = where(projected, vmax(length, a_m), length)
+            w_m = w_muscle[m]
+        for col in range(4):                                        # unit dF_aj, col = 2a + j
+            dF00, dF01 = 1.0 if col == 0 else 0.0, 1.0 if col == 1 else 0.0
+            dF10, dF11 = 1.0 if col == 2 else 0.0, 1.0 if col == 3 else 0.0
+            d_alpha, d_beta = (dF00 + dF11) / 2, (dF10 - dF01) / 2
+            d_gamma, d_delta = (dF00 - dF11) / 2, (dF01 + dF10) / 2
+            radial = alpha_R * d_alpha + beta_R * d_beta
+            c0 = w * (d_alpha - (d_alpha - radial * alpha_R) / ce)
+            c1 = w * (d_beta - (d_beta - radial * beta_R) / ce)
+            c2, c3 = w * d_gamma, w * d_delta
+            S00, S01, S10, S11 = c0 + c2, c3 - c1, c1 + c3, c0 - c2
+            if m >= 0:
+                rad = n0 * dF00 + n1 * dF10
+                S00 += w_m * (dF00 - a_m * (dF00 - rad * n0) / length)
+                S10 += w_m * (dF10 - a_m * (dF10 - rad * n1) / length)
+            vstore(H, col * LANES, S00)
+            vstore(H, (4 + col) * LANES, S01)
+            vstore(H, (8 + col) * LANES, S10)
+            vstore(H, (12 + col) * LANES, S11)
+        for r in range(6):                  # Ke[2k+a, 2l+b] = sum_ji g_kj H[2a+j, 2b+i] g_li
+            k, a = r // 2, r % 2
+            for s in range(6):
+                if slot[e, r, s] >= 0:
+                    l, b = s // 2, s % 2
+                    total = zero
+                    for j in range(2):
+                        for i in range(2):
+                            total += grad[e, k, j] * vload(H, ((2 * a + j) * 4 + 2 * b + i) * LANES) * grad[e, l, i]
+                    o = slot[e, r, s] * LANES
+                    vstore(band, o, vload(band, o) + total)
+
+
+@numba.njit(cache=True)
+def _factor(L, w):
+    """In place, each lane's band (L[j, i] = K_{j+i, j}, half-bandwidth w) -> its Cholesky factor
+    K = L L^T. Returns a lane mask: the matrix was positive definite (the other lanes' factors
+    are garbage, but do not disturb the rest).
+
+    Left-looking by panels of 4 columns: first every entry of the panel is reduced by the
+    columns left of it, in 4 x 4 tiles (per column k: 4 + 4 loads, 16 fmas, the accumulators in
+    registers), then the panel is factorised. L [n, W, LANES] needs n a multiple of 4 (identity
+    rows appended) and W >= w + 4 columns whose entries beyond w are 0: the tiles read up to 3
+    entries past a column's band (the zeros) rather than branch."""
+    n, width = L.shape[0], L.shape[1]
+    band = L.reshape(-1)
+    ok = splat(1.0)
+    for j0 in range(0, n, 4):
+        for r0 in range(j0, min(n, j0 + w + 4), 4):
+            _reduce_tile(band, width, w, j0, r0)
+        for b in range(4):
+            ok = ok * _factor_column(band, width, n, w, j0 + b, j0 + 4)
+    return ok
+
+
+@numba.njit(cache=True)
+def _reduce_tile(band, width, w, j0, r0):
+    """L[r0 + a, j0 + b] -= sum_{k < j0} L[r0 + a, k] L[j0 + b, k] for a, b < 4 (the entries of
+    the band only; r0 >= j0, both multiples of 4)."""
+    z = splat(0.0)
+    a00, a01, a02, a03, a10, a11, a12, a13 = z, z, z, z, z, z, z, z
+    a20, a21, a22, a23, a30, a31, a32, a33 = z, z, z, z, z, z, z, z
+    for k in range(max(0, r0 - w), j0):
+        row = (k * (width - 1) + r0) * LANES            # L[r0 + a, k] = band[k, r0 + a - k]
+        col = (k * (width - 1) + j0) * LANES            # L[j0 + b, k]
+        r_0, r_1 = vload(band, row), vload(band, row + LANES)
+        r_2, r_3 = vload(band, row + 2 * LANES), vload(band, row + 3 * LANES)
+        c_0, c_1 = vload(band, col), vload(band, col + LANES)
+        c_2, c_3 = vload(band, col + 2 * LANES), vload(band, col + 3 * LANES)
+        a00, a01, a02, a03 = fma(r_0, c_0, a00), fma(r_0, c_1, a01), fma(r_0, c_2, a02), fma(r_0, c_3, a03)
+        a10, a11, a12, a13 = fma(r_1, c_0, a10), fma(r_1, c_1, a11), fma(r_1, c_2, a12), fma(r_1, c_3, a13)
+        a20, a21, a22, a23 = fma(r_2, c_0, a20), fma(r_2, c_1, a21), fma(r_2, c_2, a22), fma(r_2, c_3, a23)
+        a30, a31, a32, a33 = fma(r_3, c_0, a30), fma(r_3, c_1, a31), fma(r_3, c_2, a32), fma(r_3, c_3, a33)
+    _subtract(band, width, w, r0, j0, a00, a01, a02, a03)
+    _subtract(band, width, w, r0 + 1, j0, a10, a11, a12, a13)
+    _subtract(band, width, w, r0 + 2, j0, a20, a21, a22, a23)
+    _subtract(band, width, w, r0 + 3, j0, a30, a31, a32, a33)
+
+
+@numba.njit(inline="always")
+def _subtract(band, width, w, r, j0, s0, s1, s2, s3):
+    """L[r, j0 + b] -= s_b where (r, j0 + b) is in the band's lower triangle."""
+    for b, s in enumerate((s0, s1, s2, s3)):
+        offset = r - j0 - b
+        if 0 <= offset <= w:
+            o = ((j0 + b) * width + offset) * LANES
+            vstore(band, o, vload(band, o) - s)
+
+
+@numba.njit(cache=True)
+def _factor_column(band, width, n, w, c, panel_end):
+    """Finish column c, already reduced by the columns left of its panel: L[c, c] = sqrt(pivot),
+    L[c+1:, c] /= L[c, c], then the panel's columns right of c (< panel_end) -= L[., c] L[., c]
+    (right-looking inside the panel). Returns the lane mask pivot > 0."""
+    oc = c * width * LANES
+    pivot = vload(band, oc)
+    good = pivot > 0.0
+    d = vsqrt(where(good, pivot, 1.0))
+    vstore(band, oc, d)
+    scale = 1.0 / d
+    m = min(w, n - 1 - c)
+    for i in range(1, m + 1):
+        vstore(band, oc + i * LANES, vload(band, oc + i * LANES) * scale)
+    for c2 in range(c + 1, panel_end):
+        shift = c2 - c
+        l = vload(band, oc + shift * LANES)
+        o2 = c2 * width * LANES
+        for i in range(m - shift + 1):               # L[c2 + i, c2] -= L[c2 + i, c] L[c2, c]
+            vstore(band, o2 + i * LANES, vload(band, o2 + i * LANES) - vload(band, oc + (shift + i) * LANES) * l)
+    return good
+
+
+@numba.njit(cache=True)
+def _solve(L, w, perm, inverse, r, z, x):
+    """z = K^-1 r per lane (r, z [N, 2, LANES], may be the same array) with the factor band L
+    (half-bandwidth w) under the DOF permutation perm (kernels._solve_sample); x [2N * LANES]
+    scratch."""
+    n, width = perm.shape[0], L.shape[1]
+    band, r, z = L.reshape(-1), r.reshape(-1), z.reshape(-1)
+    for j in range(n):
+        vstore(x, j * LANES, vload(r, perm[j] * LANES))
+    for j in range(n):                                              # forward, by columns
+        oj = j * width * LANES
+        xj = vload(x, j * LANES) / vload(band, oj)
+        vstore(x, j * LANES, xj)
+        for i in range(1, min(w, n - 1 - j) + 1):
+            o = (j + i) * LANES
+            vstore(x, o, vload(x, o) - vload(band, oj + i * LANES) * xj)
+    for j in range(n - 1, -1, -1):                                  # back, by dots
+        oj = j * width * LANES
+        s = vload(x, j * LANES)
+        for i in range(1, min(w, n - 1 - j) + 1):
+            s -= vload(band, oj + i * LANES) * vload(x, (j + i) * LANES)
+        vstore(x, j * LANES, s / vload(band, oj))
+    for dof in range(n):
+        vstore(z, dof * LANES, vload(x, inverse[dof] * LANES))
+
+
+@numba.njit(cache=True)
+def _dot(u, v):
+    """Per-lane inner product (a Vec) of two flat pack arrays, summed in index order."""
+    total = splat(0.0)
+    for o in range(0, u.shape[0], LANES):
+        total += vload(u, o) * vload(v, o)
+    return total
+
+
+@numba.njit(cache=True)
+def _max_nodal_norm(g):
+    """Per lane max_i |g_i| of a pack's [N, 2, LANES] nodal vectors; NaN in a lane with a NaN."""
+    largest, nan = splat(0.0), splat(0.0)
+    for i in range(g.shape[0]):
+        gx, gy = vload(g, 2 * i * LANES), vload(g, (2 * i + 1) * LANES)
+        norm = vsqrt(gx * gx + gy * gy)
+        largest, nan = vmax(largest, norm), vmax(nan, isnan(norm))
+    return where(nan, np.nan, largest)
+
+
+@numba.njit(cache=True)
+def _lbfgs_pack(X, Y, mass_h2, triangles, grad, w_corotated, muscle_of, w_muscle, stretch, slot, diagonal,
+                diagonal_values, w, perm, inverse, L, atol, max_iter, m, g, iterations, ok):
+    """The forward solve of a pack, in place on X [N, 2, LANES] (to the minimiser of each lane's
+    Phi; g receives grad Phi there): each lane's Newton matrix at the start X is factorised (the
+    exact one, else the projected one; ok [LANES] = one was positive definite, else the lane
+    does not move), then kernels._lbfgs_sample's L-BFGS runs on all lanes in lock step. A lane
+    stops (its direction becomes 0) once its residual is <= atol; it and lanes still searching
+    keep their own step lengths. iterations [LANES] receives each lane's iterations."""
+    c1, round_off = 1e-4, 64 * np.finfo(np.float64).eps
+    H = np.empty(16 * LANES)
+    lanes_ok = _factor_newton(X, triangles, grad, w_corotated, muscle_of, w_muscle, stretch, slot, diagonal,
+                              diagonal_values, w, L, H)
+    size = X.size
+    Xf, gf = X.reshape(-1), g.reshape(-1)
+    S, Yp = np.zeros((m, size)), np.zeros((m, size))                # pairs s, y; ring of m
+    rho, alphas = np.zeros((m, LANES)), np.zeros((m, LANES))
+    d, X_new, g_new, x = np.empty(size), np.empty(size), np.empty(size), np.empty(size)
+    Xn, gn, dn = X_new.reshape(X.shape), g_new.reshape(X.shape), d.reshape(X.shape)
+    phi = _objective(X, Y, mass_h2, triangles, grad, w_corotated, muscle_of, w_muscle, stretch, g)
+    taken = splat(0.0)
+    count_, head = 0, 0
+    for _ in range(max_iter):
+        active = lanes_ok * (_max_nodal_norm(g) > atol)
+        if count(active) == 0:
+            break
+        taken += active
+        d[:] = gf                                                   # d = -H g, two-loop recursion
+        for k in range(count_):
+            h = (head - 1 - k) % m
+            alpha = vload(rho, h * LANES) * _dot(S[h], d)
+            vstore(alphas, k * LANES, alpha)
+            for o in range(0, size, LANES):
+                vstore(d, o, vload(d, o) - alpha * vload(Yp[h], o))
+        _solve(L, w, perm, inverse, dn, dn, x)
+        for k in range(count_ - 1, -1, -1):
+            h = (head - 1 - k) % m
+            coefficient = vload(alphas, k * LANES) - vload(rho, h * LANES) * _dot(Yp[h], d)
+            for o in range(0, size, LANES):
+                vstore(d, o, vload(d, o) + coefficient * vload(S[h], o))
+        for o in range(0, size, LANES):
+            vstore(d, o, vload(d, o) * -active)
+        slope = _dot(gf, d)
+        uphill = active * (slope >= 0.0)
+        if count(uphill) > 0:                                       # not a descent direction: restart
+            for h in range(m):
+                vstore(rho, h * LANES, vload(rho, h * LANES) * (1.0 - uphill))
+            _solve(L, w, perm, inverse, g, gn, x)
+            for o in range(0, size, LANES):
+                vstore(d, o, where(uphill, -vload(g_new, o), vload(d, o)))
+            slope = _dot(gf, d)
+        t, accepted = splat(1.0), 1.0 - active                      # Armijo backtracking per lane
+        for halvings in range(31):
+            if halvings:
+                t = where(accepted, t, t * 0.5)
+            for o in range(0, size, LANES):
+                vstore(X_new, o, vload(Xf, o) + t * vload(d, o))
+            phi_new = _objective(Xn, Y, mass_h2, triangles, grad, w_corotated, muscle_of, w_muscle, stretch, gn)
+            accepted = vmax(accepted, phi_new - phi <= c1 * t * slope + round_off * vabs(phi))
+            if count(accepted) == LANES:
+                break
+        for o in range(0, size, LANES):                             # history: s, y, rho = 1 / s.y
+            vstore(S[head], o, vload(X_new, o) - vload(Xf, o))
+            vstore(Yp[head], o, vload(g_new, o) - vload(gf, o))
+        sy = _dot(S[head], Yp[head])
+        vstore(rho, head * LANES, where(sy > 1e-300, 1.0 / sy, 0.0))
+        head, count_ = (head + 1) % m, min(count_ + 1, m)
+        Xf[:] = X_new
+        gf[:] = g_new
+        phi = phi_new
+    for k in range(LANES):
+        iterations[k] = lane(taken, k)
+        ok[k] = lane(lanes_ok, k) > 0
+
+
+@numba.njit(cache=True)
+def _factor_newton(X, triangles, grad, w_corotated, muscle_of, w_muscle, stretch, slot, diagonal,
+                   diagonal_values, w, L, H):
+    """Each lane's Newton matrix at X assembled into L and factorised: the exact one, else (in
+    lanes where it is indefinite) the projected one. Returns the lanes with a factor."""
+    _newton_band(X, triangles, grad, w_corotated, muscle_of, w_muscle, stretch, splat(0.0), slot, diagonal,
+                 diagonal_values, L, H)
+    ok = _factor(L, w)
+    if count(ok) < LANES:
+        _newton_band(X, triangles, grad, w_corotated, muscle_of, w_muscle, stretch, 1.0 - ok, slot, diagonal,
+                     diagonal_values, L, H)
+        ok = _factor(L, w)
+    return ok
+
+
+@numba.njit(cache=True, parallel=True)
+def lbfgs_packs(X, Y, phi_args, band, L, atol, max_iter, m, g, iterations, ok):
+    """The forward solve of every pack p (in parallel): _lbfgs_pack on X[p], Y[p], g[p]
+    ([P, N, 2, LANES]) with the band L[p] [P, n, w + 1, LANES]; iterations, ok [P, LANES].
+    phi_args = (mass_h2, triangles, grad, w_corotated [P, T, LANES], muscle_of, w_muscle,
+    stretch [P, n_act, LANES]) as in kernels.objective; band: PackBand.arrays."""
+    mass_h2, triangles, grad, w_corotated, muscle_of, w_muscle, stretch = phi_args
+    slot, diagonal, diagonal_values, w, perm, inverse = band
+    for p in numba.prange(X.shape[0]):
+        _lbfgs_pack(X[p], Y[p], mass_h2, triangles, grad, w_corotated[p], muscle_of, w_muscle, stretch[p], slot,
+                    diagonal, diagonal_values, w, perm, inverse, L[p], atol, max_iter, m, g[p], iterations[p], ok[p])
+
+
+@numba.njit(cache=True, parallel=True)
+def newton_solve_packs(X, R, phi_args, band, L, Z, ok):
+    """Z[p] = K^-1 R[p] per lane ([P, N, 2, LANES]) with K the exact Newton matrix at X[p], for
+    every pack p in parallel; ok [P, LANES] = K was positive definite (else Z is garbage).
+    phi_args as in lbfgs_packs (its mass_h2 unused); band: PackBand.arrays."""
+    _, triangles, grad, w_corotated, muscle_of, w_muscle, stretch = phi_args
+    slot, diagonal, diagonal_values, w, perm, inverse = band
+    for p in numba.prange(X.shape[0]):
+        H, x = np.empty(16 * LANES), np.empty(R[p].size)
+        _newton_band(X[p], triangles, grad, w_corotated[p], muscle_of, w_muscle, stretch[p], splat(0.0), slot,
+                     diagonal, diagonal_values, L[p], H)
+        lanes_ok = _factor(L[p], w)
+        _solve(L[p], w, perm, inverse, R[p], Z[p], x)
+        for k in range(LANES):
+            ok[p, k] = lane(lanes_ok, k) > 0
+
+
+class PackBand:
+    """The Newton band of a pack for the mesh's band layout (fem.NewtonBand) and nodal masses:
+    rows padded to a multiple of 4 with identity rows, width w + 4 with zeros past w (as _factor
+    needs). slot [T, 6, 6] and diagonal [rows]: flat indices (of one lane) of the element
+    entries and of every row's diagonal, which starts at diagonal_values (M/h^2 per DOF, 1 for
+    the padding)."""
+
+    def __init__(self, newton_band, mass_diag: np.ndarray):
+        layout = newton_band.layout
+        self.w, n = layout.width, len(layout.perm)
+        self.rows, self.width = -(-n // 4) * 4, self.w + 4
+
+        def widened(flat: np.ndarray) -> np.ndarray:
+            column, offset = np.divmod(flat, self.w + 1)
+            return np.where(flat >= 0, column * self.width + offset, -1)
+
+        self.slot = np.ascontiguousarray(widened(newton_band.slot))
+        self.diagonal = np.concatenate([widened(newton_band.diagonal), np.arange(n, self.rows) * self.width])
+        self.diagonal_values = np.concatenate([mass_diag, np.ones(self.rows - n)])
+        self.arrays = (self.slot, self.diagonal, self.diagonal_values, self.w, layout.perm, layout.inverse)
+
+    def empty(self, packs: int) -> np.ndarray:
+        """Room for the factors of `packs` packs, [packs, rows, width, LANES], 64-byte aligned
+        (one vector per cache line)."""
+        return aligned_empty((packs, self.rows, self.width, LANES))
+
+
+def aligned_empty(shape: tuple) -> np.ndarray:
+    """np.empty(shape) of float64 starting on a 64-byte boundary."""
+    size = int(np.prod(shape))
+    buffer = np.empty(size + LANES)
+    start = (-buffer.ctypes.data % 64) // 8
+    return buffer[start:start + size].reshape(shape)
