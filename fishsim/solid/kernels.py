@@ -1,9 +1,9 @@
 """Compiled (numba) hot loops of the PD solve: the objective's energy and gradient, the L-BFGS two-
 loop recursion, the banded Cholesky factor and solves (banded.py's), the element Newton matrices
 and their assembly into banded factors, the per-sample banded solves on the solver's [B, N, 2]
-layout, and the whole forward L-BFGS solve of a sample (lbfgs_samples). (All compiled code lives
-in this one file: numba's cache of a function is invalidated only when the file defining it
-changes, not when a callee's does.)
+layout, and the whole forward L-BFGS solve of a sample (lbfgs_samples); packed.py has their
+8-lane versions for batches. (Each file's compiled code calls only that file's: numba's cache of a
+function is invalidated only when the file defining it changes, not when a callee's does.)
 
     Phi(X) = 1/(2 h^2) ||X - Y||_M^2 + E_int(X),   grad Phi = M/h^2 (X - Y) + G^T S(X)
 

@@ -83,15 +83,17 @@ class PDOptions:
     backward_rtol: adjoint stopping rule, |(A - dA) x - b|_max <= backward_rtol |b|_max.
     backward_max_iter: preconditioned CG iterations before a direct sparse solve takes over.
     backward_method: 'direct' (default: per sample, the assembled Newton matrix factorised by
-        banded Cholesky, in parallel over the samples, LU if it is indefinite; bench_solid on
-        the default fish, 2 cores: B = 1 1.5 ms per step, B = 16 11.5 ms), 'auto' (batched PCG
+        banded Cholesky, in parallel over the samples, eight per SIMD pack from 4 samples on, LU
+        if it is indefinite; bench_solid on the default fish, 2 cores: B = 1 1.4-2.5 ms per
+        step, B = 16 4.6-6.8 ms), 'auto' (batched PCG
         preconditioned with 'rest_newton', direct for samples where it fails; ~41 iterations,
         16.8 ms and 248 ms when last measured) or 'pcg'.
     preconditioner: initial inverse Hessian H0 of the forward L-BFGS:
         'lagged_newton' (default): per sample, the Newton matrix (exact where positive definite,
         else its projection) factorised at the start of a step and kept for the following steps
         until a step needs more than `refresh_iterations` iterations (then refactorised at the
-        next step's start);
+        next step's start); batches of 4 or more samples (solved eight per SIMD pack, in lock
+        step) refactorise at every step's start instead, which costs a pack little;
         'rest_newton': the Newton matrix of the rest shape, M/h^2 + K(rest), rotated per sample
         into the best-fit rigid frame of the current shape, factorised once per E;
         'pd': DiffPD's per-axis PD matrix A(E), factorised once per E.
@@ -101,7 +103,8 @@ class PDOptions:
         The adjoint CG is always preconditioned with 'rest_newton' (shared by the batch).
     refresh_iterations: see 'lagged_newton'. 8 (was 15 while factorising cost SuperLU's ~9 ms; the
         banded Cholesky takes ~0.8 ms): with the rollout's predicted start, B = 1 takes 10.1
-        iterations per step, B = 16 10.7 per sample (20 for the slowest); 12 and 16 measured
+        iterations per step, B = 16 10.7 per sample (20 for the slowest) when it still used
+        lagged factors (its packs now take 8.8, 13.5 for the slowest); 12 and 16 measured
         within this machine's 10-30 % noise (B = 1 4.5 / 5.1 ms, B = 16 42 / 44 ms against
         5.1 / 41 ms at 8).
     """

@@ -662,11 +662,15 @@ class PackBand:
         self.diagonal = np.concatenate([widened(newton_band.diagonal), np.arange(n, self.rows) * self.width])
         self.diagonal_values = np.concatenate([mass_diag, np.ones(self.rows - n)])
         self.arrays = (self.slot, self.diagonal, self.diagonal_values, self.w, layout.perm, layout.inverse)
+        self._room = None
 
     def empty(self, packs: int) -> np.ndarray:
         """Room for the factors of `packs` packs, [packs, rows, width, LANES], 64-byte aligned
-        (one vector per cache line)."""
-        return aligned_empty((packs, self.rows, self.width, LANES))
+        (one vector per cache line). The room is kept and reused by the next call (so a step
+        does not fault in ~6 MB of fresh pages per pack): a caller's factors live until then."""
+        if self._room is None or len(self._room) < packs:
+            self._room = aligned_empty((packs, self.rows, self.width, LANES))
+        return self._room[:packs]
 
 
 def aligned_empty(shape: tuple) -> np.ndarray:

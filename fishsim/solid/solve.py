@@ -9,16 +9,19 @@ by L-BFGS (DiffPD's solver) with a prefactorised initial inverse Hessian (precon
 lagged Newton matrix by default; the rotated rest-shape Newton matrix; or DiffPD's PD matrix
 A(E), with which the first iteration is exactly one local-global step), Armijo backtracking,
 until the residual's largest nodal norm is <= atol. With the default preconditioner on models
-without the volume term, each sample's whole solve (its stale factor, then every iteration) is
-one compiled call, the batch's samples in parallel (kernels.lbfgs_samples); otherwise the
-batched numpy iteration (_lbfgs) runs, with the objective and two-loop recursion compiled where
-possible; both take the same steps up to the dot products' round-off. The net residual sum_i g_i
+without the volume term the whole solve is compiled: from PACK_MIN samples on, eight samples per
+pack in the SIMD lanes, in lock step, each with the Newton matrix factorised afresh at the
+step's start (packed.lbfgs_packs); below that, one sample per thread with its lagged factor
+(kernels.lbfgs_samples). Otherwise the batched numpy iteration (_lbfgs) runs, with the
+objective and two-loop recursion compiled where possible. All take the same steps for the same
+H0 up to the dot products' round-off. The net residual sum_i g_i
 is then removed by a rigid translation of q+ (exact: f_int is translation invariant), so linear
 momentum is conserved to round-off whatever atol is.
 
 Adjoint: (A - dA) x = b with A - dA = M/h^2 - df_int/dq, the Newton matrix at q+ (symmetric,
 indefinite only under strong compression): by default a direct solve per sample of the assembled
-2N x 2N matrix (banded Cholesky, sparse LU if indefinite); or ('auto' / 'pcg') batched CG
+2N x 2N matrix (banded Cholesky, eight samples per pack from PACK_MIN on; sparse LU if
+indefinite); or ('auto' / 'pcg') batched CG
 preconditioned with the rotated rest-shape Newton matrix, direct for samples where CG fails.
 
 Layout: nodal vectors are [B, N, 2] arrays, one sample contiguous (the compiled kernels work on
@@ -139,10 +142,11 @@ def pd_solve(model: SolidModel, Y: np.ndarray, X0: np.ndarray, contraction: np.n
     """q+ = argmin Phi for every sample. Y, X0: [B, N, 2]; contraction [n_act, B]; E [B].
     Returns (X [B, N, 2], ForwardInfo). The preconditioner is built only if some sample needs an
     iteration (a start that is already converged, e.g. a checkpoint recomputation's, costs one
-    residual evaluation). Samples with the compiled objective and a banded lagged Newton factor
-    (all, but for a rare indefinite projected matrix, on models without the volume term) run
-    their whole solve compiled and in parallel (kernels.lbfgs_samples); the others run the
-    batched numpy iteration (_lbfgs)."""
+    residual evaluation). On models without the volume term, with the default preconditioner,
+    the samples run their whole solve compiled: in packs from PACK_MIN samples on
+    (_solve_packed), else per sample (_solve_compiled), which also takes any sample whose Newton
+    matrix neither the packs nor it could factorise by banded Cholesky to the batched numpy
+    iteration (_lbfgs)."""
     opts = model.options
     objective = Objective(model, Y, contraction, E)
     X = X0.copy()
@@ -170,7 +174,9 @@ def pd_solve(model: SolidModel, Y: np.ndarray, X0: np.ndarray, contraction: np.n
     return X, ForwardInfo(iterations, residual, converged)
 
 
-# Fewest samples to solve in lanes of packs (packed.py) rather than one per thread.
+# Fewest samples to solve in lanes of packs (packed.py) rather than one per thread. Default fish,
+# 2 cores, forward / backward ms per step, packs against one sample per thread: B = 4 11-13 /
+# 3.3-4.9 against 12-13 / 4.5-5.4; B = 8 10.5 / 3.9-4.2 against 21 / 6.4-7.9.
 PACK_MIN = 4
 
 
