@@ -422,8 +422,8 @@ def _banded_solve(model: SolidModel, p: elastic.Projections, X: np.ndarray, b: n
     samples on, eight per pack: packed.newton_solve_packs). Returns the samples solved."""
     if len(samples) >= PACK_MIN:
         lanes, band = packs_of(samples), model.pack_band
-        arrays = (model.mass_h2, model.mesh_triangles, model.fem.grad, to_packs(p.w_corotated.T, lanes),
-                  model.muscle_of, model.muscle_weight, to_packs(p.muscle[5].T, lanes))
+        arrays = pack_arrays((model.mass_h2, model.mesh_triangles, model.fem.grad, p.w_corotated, model.muscle_of,
+                              model.muscle_weight, p.muscle[5]), lanes)
         Z, ok = np.empty((len(lanes), *b.shape[1:], packed.LANES)), np.zeros(lanes.shape, bool)
         packed.newton_solve_packs(to_packs(X, lanes), to_packs(b, lanes), arrays, band.arrays,
                                   band.empty(len(lanes)), Z, ok)
