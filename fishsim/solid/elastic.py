@@ -93,6 +93,11 @@ def project(model: SolidModel, Z: np.ndarray, contraction: np.ndarray, E: np.nda
                        model.muscle_weight[:, None])
 
 
+def projections_at(model: SolidModel, X: np.ndarray, contraction: np.ndarray, E: np.ndarray) -> Projections:
+    """project() at positions X [B, N, 2]."""
+    return project(model, deformation_gradients(model, to_columns(X)), contraction, E)
+
+
 def _elastic_residuals(p: Projections):
     """Conformal coordinates of F - R and F - D (None without the volume term)."""
     al, be, ga, de = p.F

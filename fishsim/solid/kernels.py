@@ -365,3 +365,38 @@ def lbfgs_samples(X: np.ndarray, Y: np.ndarray, phi_args, L: np.ndarray, perm: n
         if banded[b]:
             iterations[b] = _lbfgs_sample(X[b], Y[b], mass_h2, triangles, grad, w_corotated, muscle_of, w_muscle,
                                           stretch, b, L[b], perm, inverse, atol, max_iter, m, g[b])
+
+
+@numba.njit(cache=True, parallel=True)
+def parameter_gradients(X: np.ndarray, lam: np.ndarray, triangles: np.ndarray, grad: np.ndarray,
+                        w_per_E: np.ndarray, muscle_of: np.ndarray, w_muscle: np.ndarray, grad_u: np.ndarray,
+                        grad_E: np.ndarray) -> None:
+    """The adjoint's parameter gradients, dL/dtheta = -lambda^T d(grad Phi)/dtheta at q+ = X, for
+    every sample (in parallel), from X and lambda [B, N, 2] (models without the volume term):
+
+        dL/dE_b = -sum_e <G_e lambda, dS_e/dE>,  dS_e/dE = w_per_E_e (F - R) (conformal parts),
+        dL/du_m = -w_muscle_m <(G_e lambda) m, F m / |F m|>    (S_fiber = w (F m - (1 - u) n)),
+
+    into grad_E [B] (per Pa) and grad_u [B, n_act]; w_per_E [T] = area 2 mu_s / E."""
+    for b in numba.prange(X.shape[0]):
+        total = 0.0
+        for e in range(triangles.shape[0]):
+            k0, k1, k2 = triangles[e, 0], triangles[e, 1], triangles[e, 2]
+            F00 = X[b, k0, 0] * grad[e, 0, 0] + X[b, k1, 0] * grad[e, 1, 0] + X[b, k2, 0] * grad[e, 2, 0]
+            F01 = X[b, k0, 0] * grad[e, 0, 1] + X[b, k1, 0] * grad[e, 1, 1] + X[b, k2, 0] * grad[e, 2, 1]
+            F10 = X[b, k0, 1] * grad[e, 0, 0] + X[b, k1, 1] * grad[e, 1, 0] + X[b, k2, 1] * grad[e, 2, 0]
+            F11 = X[b, k0, 1] * grad[e, 0, 1] + X[b, k1, 1] * grad[e, 1, 1] + X[b, k2, 1] * grad[e, 2, 1]
+            D00 = lam[b, k0, 0] * grad[e, 0, 0] + lam[b, k1, 0] * grad[e, 1, 0] + lam[b, k2, 0] * grad[e, 2, 0]
+            D01 = lam[b, k0, 0] * grad[e, 0, 1] + lam[b, k1, 0] * grad[e, 1, 1] + lam[b, k2, 0] * grad[e, 2, 1]
+            D10 = lam[b, k0, 1] * grad[e, 0, 0] + lam[b, k1, 1] * grad[e, 1, 0] + lam[b, k2, 1] * grad[e, 2, 0]
+            D11 = lam[b, k0, 1] * grad[e, 0, 1] + lam[b, k1, 1] * grad[e, 1, 1] + lam[b, k2, 1] * grad[e, 2, 1]
+            alpha, beta = (F00 + F11) / 2, (F10 - F01) / 2
+            gamma, delta = (F00 - F11) / 2, (F01 + F10) / 2
+            c = max(np.sqrt(alpha * alpha + beta * beta), _TINY)
+            ra, rb = alpha - alpha / c, beta - beta / c
+            total += w_per_E[e] * (D00 * (ra + gamma) + D01 * (delta - rb) + D10 * (rb + delta) + D11 * (ra - gamma))
+            m = muscle_of[e]
+            if m >= 0:
+                length = max(np.sqrt(F00 * F00 + F10 * F10), _TINY)
+                grad_u[b, m] = -w_muscle[m] * (D00 * F00 + D10 * F10) / length
+        grad_E[b] = -total

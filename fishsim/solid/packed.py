@@ -400,23 +400,100 @@ def _newton_band(X, triangles, grad, w_corotated, muscle_of, w_muscle, stretch, 
 @numba.njit(cache=True)
 def _factor(L, w):
     """In place, each lane's band (L[j, i] = K_{j+i, j}, half-bandwidth w) -> its Cholesky factor
-    K = L L^T. Returns a lane mask: the matrix was positive definite (the other lanes' factors
+    K = L L^T, the diagonal stored as 1 / L_jj (multiplications instead of slow vector
+    divisions in the factor and the solves). Returns a lane mask: the matrix was positive definite (the other lanes' factors
     are garbage, but do not disturb the rest).
 
-    Left-looking by panels of 4 columns: first every entry of the panel is reduced by the
-    columns left of it, in 4 x 4 tiles (per column k: 4 + 4 loads, 16 fmas, the accumulators in
-    registers), then the panel is factorised. L [n, W, LANES] needs n a multiple of 4 (identity
-    rows appended) and W >= w + 4 columns whose entries beyond w are 0: the tiles read up to 3
-    entries past a column's band (the zeros) rather than branch."""
+    Up-looking by blocks of 4 rows: each 4 x 4 tile of the rows' band entries is first reduced
+    by the columns left of it (per column k: 4 + 4 loads, 16 fmas, the accumulators in
+    registers), then finished by a small triangular solve with its columns' diagonal block (the
+    diagonal tile: a 4 x 4 Cholesky). The block's own rows (11 kB) stay in the L1 cache while
+    its tiles are done. L [n, W, LANES] needs n a multiple of 4 (identity rows appended) and
+    W >= w + 4 columns whose entries beyond w are 0: the tiles read up to 3 entries past a
+    column's band (the zeros) rather than branch."""
     n, width = L.shape[0], L.shape[1]
     band = L.reshape(-1)
     ok = splat(1.0)
-    for j0 in range(0, n, 4):
-        for r0 in range(j0, min(n, j0 + w + 4), 4):
+    for r0 in range(0, n, 4):
+        for j0 in range(max(0, (r0 - w - 3) // 4 * 4), r0, 4):
             _reduce_tile(band, width, w, j0, r0)
-        for b in range(4):
-            ok = ok * _factor_column(band, width, n, w, j0 + b, j0 + 4)
+            _finish_tile(band, width, w, j0, r0)
+        _reduce_tile(band, width, w, r0, r0)
+        ok = ok * _finish_diagonal(band, width, r0)
     return ok
+
+
+@numba.njit(cache=True)
+def _finish_tile(band, width, w, j0, r0):
+    """L[r, c] = (A[r, c] - sum_{j0 <= k < c} L[r, k] L[c, k]) / L_cc for the tile's rows
+    r = r0 + a and columns c = j0 + b < r0 (A: the entry reduced by the columns left of j0): a
+    forward substitution per row with the columns' diagonal block. Entries past the band are
+    0 and stay 0; a tile reaching past the band's padding takes the guarded path."""
+    if r0 - j0 > width - 4:
+        _finish_tile_guarded(band, width, w, j0, r0)
+        return
+    d0, d1 = vload(band, j0 * width * LANES), vload(band, (j0 + 1) * width * LANES)
+    d2, d3 = vload(band, (j0 + 2) * width * LANES), vload(band, (j0 + 3) * width * LANES)
+    o0, o1, o2 = j0 * width * LANES, (j0 + 1) * width * LANES, (j0 + 2) * width * LANES
+    l10, l20, l30 = vload(band, o0 + LANES), vload(band, o0 + 2 * LANES), vload(band, o0 + 3 * LANES)
+    l21, l31, l32 = vload(band, o1 + LANES), vload(band, o1 + 2 * LANES), vload(band, o2 + LANES)
+    for a in range(4):
+        r = r0 + a
+        p0 = (j0 * width + r - j0) * LANES
+        p1 = ((j0 + 1) * width + r - j0 - 1) * LANES
+        p2 = ((j0 + 2) * width + r - j0 - 2) * LANES
+        p3 = ((j0 + 3) * width + r - j0 - 3) * LANES
+        x0 = vload(band, p0) * d0
+        x1 = (vload(band, p1) - x0 * l10) * d1
+        x2 = (vload(band, p2) - x0 * l20 - x1 * l21) * d2
+        x3 = (vload(band, p3) - x0 * l30 - x1 * l31 - x2 * l32) * d3
+        vstore(band, p0, x0)
+        vstore(band, p1, x1)
+        vstore(band, p2, x2)
+        vstore(band, p3, x3)
+
+
+@numba.njit(cache=True)
+def _finish_tile_guarded(band, width, w, j0, r0):
+    """_finish_tile entry by entry, skipping entries outside the band."""
+    for a in range(4):
+        r = r0 + a
+        for b in range(4):
+            c = j0 + b
+            if r - c > w:
+                continue
+            o = (c * width + r - c) * LANES
+            s = vload(band, o)
+            for k in range(j0, c):
+                if r - k <= w:
+                    s -= vload(band, (k * width + r - k) * LANES) * vload(band, (k * width + c - k) * LANES)
+            vstore(band, o, s * vload(band, c * width * LANES))
+
+
+@numba.njit(cache=True)
+def _finish_diagonal(band, width, r0):
+    """Cholesky of the reduced 4 x 4 diagonal block of rows r0..r0 + 3 (diagonal stored as
+    1 / L_jj); returns the lane mask of positive pivots."""
+    good = splat(1.0)
+    for b in range(4):
+        c = r0 + b
+        oc = c * width * LANES
+        pivot = vload(band, oc)
+        for k in range(r0, c):
+            l_ck = vload(band, (k * width + c - k) * LANES)
+            pivot -= l_ck * l_ck
+        positive = pivot > 0.0
+        good = good * positive
+        inverse = 1.0 / vsqrt(where(positive, pivot, 1.0))
+        vstore(band, oc, inverse)
+        for a in range(b + 1, 4):
+            r = r0 + a
+            o = (c * width + r - c) * LANES
+            s = vload(band, o)
+            for k in range(r0, c):
+                s -= vload(band, (k * width + r - k) * LANES) * vload(band, (k * width + c - k) * LANES)
+            vstore(band, o, s * inverse)
+    return good
 
 
 @numba.njit(cache=True)
@@ -454,32 +531,9 @@ def _subtract(band, width, w, r, j0, s0, s1, s2, s3):
 
 
 @numba.njit(cache=True)
-def _factor_column(band, width, n, w, c, panel_end):
-    """Finish column c, already reduced by the columns left of its panel: L[c, c] = sqrt(pivot),
-    L[c+1:, c] /= L[c, c], then the panel's columns right of c (< panel_end) -= L[., c] L[., c]
-    (right-looking inside the panel). Returns the lane mask pivot > 0."""
-    oc = c * width * LANES
-    pivot = vload(band, oc)
-    good = pivot > 0.0
-    d = vsqrt(where(good, pivot, 1.0))
-    vstore(band, oc, d)
-    scale = 1.0 / d
-    m = min(w, n - 1 - c)
-    for i in range(1, m + 1):
-        vstore(band, oc + i * LANES, vload(band, oc + i * LANES) * scale)
-    for c2 in range(c + 1, panel_end):
-        shift = c2 - c
-        l = vload(band, oc + shift * LANES)
-        o2 = c2 * width * LANES
-        for i in range(m - shift + 1):               # L[c2 + i, c2] -= L[c2 + i, c] L[c2, c]
-            vstore(band, o2 + i * LANES, vload(band, o2 + i * LANES) - vload(band, oc + (shift + i) * LANES) * l)
-    return good
-
-
-@numba.njit(cache=True)
 def _solve(L, w, perm, inverse, r, z, x):
-    """z = K^-1 r per lane (r, z [N, 2, LANES], may be the same array) with the factor band L
-    (half-bandwidth w) under the DOF permutation perm (kernels._solve_sample); x [2N * LANES]
+    """z = K^-1 r per lane (r, z [N, 2, LANES], may be the same array) with _factor's band L
+    (half-bandwidth w, diagonal 1 / L_jj) under the DOF permutation perm (kernels._solve_sample); x [2N * LANES]
     scratch."""
     n, width = perm.shape[0], L.shape[1]
     band, r, z = L.reshape(-1), r.reshape(-1), z.reshape(-1)
@@ -487,7 +541,7 @@ def _solve(L, w, perm, inverse, r, z, x):
         vstore(x, j * LANES, vload(r, perm[j] * LANES))
     for j in range(n):                                              # forward, by columns
         oj = j * width * LANES
-        xj = vload(x, j * LANES) / vload(band, oj)
+        xj = vload(x, j * LANES) * vload(band, oj)
         vstore(x, j * LANES, xj)
         for i in range(1, min(w, n - 1 - j) + 1):
             o = (j + i) * LANES
@@ -497,7 +551,7 @@ def _solve(L, w, perm, inverse, r, z, x):
         s = vload(x, j * LANES)
         for i in range(1, min(w, n - 1 - j) + 1):
             s -= vload(band, oj + i * LANES) * vload(x, (j + i) * LANES)
-        vstore(x, j * LANES, s / vload(band, oj))
+        vstore(x, j * LANES, s * vload(band, oj))
     for dof in range(n):
         vstore(z, dof * LANES, vload(x, inverse[dof] * LANES))
 

@@ -164,7 +164,7 @@ class LaggedFactors:
         self.banded[stale] = False
         for b in stale:
             self.other.pop(int(b), None)
-        return elastic.project(model, elastic.deformation_gradients(model, elastic.to_columns(X)), contraction, E)
+        return elastic.projections_at(model, X, contraction, E)
 
     def record(self, model: SolidModel, p: elastic.Projections, stale: np.ndarray) -> None:
         """Mark the refactorised `stale` samples valid; those whose Newton matrix (exact and

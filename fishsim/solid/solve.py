@@ -76,9 +76,7 @@ class Objective:
         self.model, self.Y, self.contraction, self.E = model, Y, contraction, E
         self.fused = not model.material.volume_term
         if self.fused:
-            w_corotated = np.ascontiguousarray(np.outer(model.fem.area * model.material.corotated_per_E, E))
-            self.kernel_arrays = (model.mass_h2, model.mesh_triangles, model.fem.grad, w_corotated, model.muscle_of,
-                                  model.muscle_weight, np.ascontiguousarray(1.0 - contraction))
+            self.kernel_arrays = kernel_arrays(model, contraction, E)
 
     def __call__(self, X: np.ndarray, samples: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(Phi [B] in J per unit depth, grad Phi [B, N, 2] in N per unit depth); with a [B] mask
@@ -96,6 +94,13 @@ class Objective:
         MD = model.mass_h2[None, :, None] * (X - self.Y)
         grad = MD + elastic.from_columns(model.fem.G.T @ S.reshape(-1, Xc.shape[1]))
         return sample_dot(X - self.Y, MD) / 2 + energy, grad
+
+
+def kernel_arrays(model: SolidModel, contraction: np.ndarray, E: np.ndarray) -> tuple:
+    """The arrays kernels.objective takes (its phi_args) for contraction [n_act, B] and E [B]."""
+    w_corotated = np.ascontiguousarray(np.outer(model.fem.area * model.material.corotated_per_E, E))
+    return (model.mass_h2, model.mesh_triangles, model.fem.grad, w_corotated, model.muscle_of, model.muscle_weight,
+            np.ascontiguousarray(1.0 - contraction))
 
 
 class History:
@@ -350,19 +355,21 @@ class NewtonOperator:
         return self.model.mass_h2[None, :, None] * V + KV
 
 
-def newton_solve(model: SolidModel, p: elastic.Projections, X: np.ndarray, b: np.ndarray, E: np.ndarray,
+def newton_solve(model: SolidModel, X: np.ndarray, contraction: np.ndarray, E: np.ndarray, b: np.ndarray,
                  method: str | None = None) -> tuple[np.ndarray, int, int]:
-    """x = (A - dA)^-1 b for every sample (b, x: [B, N, 2]) at positions X [B, N, 2] with projections
-    p. Returns (x, CG iterations, number of samples solved directly)."""
+    """x = (A - dA)^-1 b for every sample (b, x: [B, N, 2]) with the Newton matrix at positions
+    X [B, N, 2] (contraction [n_act, B], E [B]). Returns (x, CG iterations, number of samples
+    solved directly)."""
     method = method or model.options.backward_method
     B = b.shape[0]
     if method == "direct":
-        return _direct_solve(model, p, X, b, np.arange(B)), 0, B
-    x, ok, its = _pcg(NewtonOperator(model, p), Preconditioner(model, E, X, "rest_newton"), b,
-                      model.options.backward_rtol, model.options.backward_max_iter)
+        return _direct_solve(model, X, contraction, E, b, np.arange(B)), 0, B
+    x, ok, its = _pcg(NewtonOperator(model, elastic.projections_at(model, X, contraction, E)),
+                      Preconditioner(model, E, X, "rest_newton"), b, model.options.backward_rtol,
+                      model.options.backward_max_iter)
     failed = np.flatnonzero(~ok)
     if len(failed) and method == "auto":
-        x[failed] = _direct_solve(model, p, X, b, failed)[failed]
+        x[failed] = _direct_solve(model, X, contraction, E, b, failed)[failed]
     elif len(failed):
         warnings.warn(f"adjoint PCG did not converge for {len(failed)} samples", RuntimeWarning, stacklevel=3)
     return x, its, len(failed) if method == "auto" else 0
@@ -400,37 +407,40 @@ def _pcg(apply_K, precondition, b: np.ndarray, rtol: float, max_iter: int):
     return x, done, it
 
 
-def _direct_solve(model: SolidModel, p: elastic.Projections, X: np.ndarray, b: np.ndarray,
+def _direct_solve(model: SolidModel, X: np.ndarray, contraction: np.ndarray, E: np.ndarray, b: np.ndarray,
                   samples: np.ndarray) -> np.ndarray:
-    """Direct solve of the assembled Newton matrix at X [B, N, 2] (projections p) for the given
-    samples of b [B, N, 2]: banded Cholesky when it is positive definite (_banded_solve), else
-    sparse LU (banded.lu_factor)."""
+    """Direct solve of the assembled Newton matrix at X [B, N, 2] for the given samples of b
+    [B, N, 2]: banded Cholesky when it is positive definite (_banded_solve), else sparse LU
+    (banded.lu_factor)."""
     x = np.zeros(b.shape)
-    if p.volume is None:
-        for s in np.setdiff1d(samples, _banded_solve(model, p, X, b, samples, x)):   # not positive definite
-            x[s] = lu_factor(elastic.newton_matrix(model, p, int(s))).solve(b[s].reshape(-1)).reshape(-1, 2)
+    if model.material.volume_term:
+        p = elastic.projections_at(model, X, contraction, E)
+        for s in samples:
+            x[s] = spd_factor(elastic.newton_matrix(model, p, int(s))).solve(b[s].reshape(-1)).reshape(-1, 2)
         return x
-    for s in samples:
-        x[s] = spd_factor(elastic.newton_matrix(model, p, int(s))).solve(b[s].reshape(-1)).reshape(-1, 2)
+    rest = np.setdiff1d(samples, _banded_solve(model, X, contraction, E, b, samples, x))   # not positive definite
+    if len(rest):
+        p = elastic.projections_at(model, X, contraction, E)
+        for s in rest:
+            x[s] = lu_factor(elastic.newton_matrix(model, p, int(s))).solve(b[s].reshape(-1)).reshape(-1, 2)
     return x
 
 
-def _banded_solve(model: SolidModel, p: elastic.Projections, X: np.ndarray, b: np.ndarray, samples: np.ndarray,
-                  x: np.ndarray) -> np.ndarray:
+def _banded_solve(model: SolidModel, X: np.ndarray, contraction: np.ndarray, E: np.ndarray, b: np.ndarray,
+                  samples: np.ndarray, x: np.ndarray) -> np.ndarray:
     """x[s] = K_s^-1 b[s] for the samples whose Newton matrix K_s is positive definite, assembled,
     factorised and solved by banded Cholesky in parallel over the samples (from PACK_MIN
     samples on, eight per pack: packed.newton_solve_packs). Returns the samples solved."""
     if len(samples) >= PACK_MIN:
         lanes, band = packs_of(samples), model.pack_band
-        arrays = pack_arrays((model.mass_h2, model.mesh_triangles, model.fem.grad, p.w_corotated, model.muscle_of,
-                              model.muscle_weight, p.muscle[5]), lanes)
         Z, ok = np.empty((len(lanes), *b.shape[1:], packed.LANES)), np.zeros(lanes.shape, bool)
-        packed.newton_solve_packs(to_packs(X, lanes), to_packs(b, lanes), arrays, band.arrays,
+        packed.newton_solve_packs(to_packs(X, lanes), to_packs(b, lanes),
+                                  pack_arrays(kernel_arrays(model, contraction, E), lanes), band.arrays,
                                   band.empty(len(lanes)), Z, ok)
         from_packs(Z, lanes, x)
         return np.unique(lanes[ok])
     L = model.newton_band.empty(len(b))
-    banded = np.flatnonzero(newton_factors(model, p, samples, L))
+    banded = np.flatnonzero(newton_factors(model, elastic.projections_at(model, X, contraction, E), samples, L))
     layout = model.newton_band.layout
     kernels.solve_samples(L, layout.perm, layout.inverse, np.ascontiguousarray(b), banded, x)
     return banded

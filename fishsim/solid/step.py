@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from fishsim.errors import SimulationBlowUp
-from fishsim.solid import elastic
+from fishsim.solid import elastic, kernels
 from fishsim.solid.model import SolidModel
 from fishsim.solid.solve import ForwardInfo, newton_solve, pd_solve
 
@@ -46,17 +46,31 @@ def forward_step(model: SolidModel, q, qdot, contraction, f_ext, E, start=None) 
 def adjoint_gradients(model: SolidModel, q_next, contraction, E, grad_q_next, grad_qdot_next):
     """numpy backward of one step. Returns (dL/dq, dL/dqdot, dL/du [B, n_act], dL/df_ext, dL/dE [B])."""
     h = model.h
-    X = elastic.to_columns(q_next)
-    p = elastic.project(model, elastic.deformation_gradients(model, X), np.ascontiguousarray(contraction.T), E)
+    contraction = np.ascontiguousarray(contraction.T)
     b = np.ascontiguousarray(grad_q_next + grad_qdot_next / h)
-    lam, its, direct = newton_solve(model, p, q_next, b, E)
+    lam, its, direct = newton_solve(model, q_next, contraction, E, b)
     model.stats.record_backward(its, direct)
+    grad_u, grad_E = parameter_gradients(model, q_next, contraction, E, lam)
+    mass = model.mass[None, :, None]
+    return mass / h**2 * lam - grad_qdot_next / h, mass / h * lam, grad_u, lam, grad_E
+
+
+def parameter_gradients(model: SolidModel, q_next: np.ndarray, contraction: np.ndarray, E: np.ndarray,
+                        lam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(dL/du [B, n_act], dL/dE [B]) = -lambda^T d(grad Phi)/d(u, E) at q+ (q_next, lam [B, N, 2];
+    contraction [n_act, B]): compiled (kernels.parameter_gradients) on models without the
+    volume term, else from the projections in numpy."""
+    if not model.material.volume_term:
+        grad_u, grad_E = np.empty((len(lam), model.n_muscles)), np.empty(len(lam))
+        kernels.parameter_gradients(np.ascontiguousarray(q_next), np.ascontiguousarray(lam), model.mesh_triangles,
+                                    model.fem.grad, model.fem.area * model.material.corotated_per_E,
+                                    model.muscle_of, model.muscle_weight, grad_u, grad_E)
+        return grad_u, grad_E
+    p = elastic.projections_at(model, q_next, contraction, E)
     dZ = elastic.deformation_gradients(model, elastic.to_columns(lam))   # G lambda, Z layout
     dS0, dS1 = elastic.fiber_stress_per_contraction(p)
     grad_u = -(dZ[0, model.muscles, 0] * dS0 + dZ[0, model.muscles, 1] * dS1).T
-    grad_E = -(dZ * elastic.stress_per_E(model, p)).sum(axis=(0, 1, 2))
-    mass = model.mass[None, :, None]
-    return mass / h**2 * lam - grad_qdot_next / h, mass / h * lam, grad_u, lam, grad_E
+    return grad_u, -(dZ * elastic.stress_per_E(model, p)).sum(axis=(0, 1, 2))
 
 
 class PDStepFunction(torch.autograd.Function):

@@ -1,10 +1,12 @@
-"""The compiled forward objective (kernels.objective) against the numpy local step it fuses."""
+"""The compiled forward objective (kernels.objective) and adjoint parameter gradients against the
+numpy local step they fuse."""
 
 import numpy as np
 import pytest
 
 from fishsim.solid import SolidMaterial, SolidModel, elastic
 from fishsim.solid.solve import Objective
+from fishsim.solid.step import parameter_gradients
 
 
 def _deformed_batch(model, rng, angles):
@@ -66,3 +68,22 @@ def test_compiled_newton_matrix_equals_numpy_element_hessians(coarse_mesh, proje
         Ke = Ge.transpose(0, 2, 1) @ elastic.element_hessians(model, p, sample, projected) @ Ge
         K_ref = model.fem.pattern.assemble(Ke, np.repeat(model.mass_h2, 2)).toarray()
         np.testing.assert_allclose(K, K_ref, rtol=0, atol=1e-12 * np.abs(K_ref).max())
+
+
+def test_compiled_parameter_gradients_equal_the_numpy_formulas(coarse_mesh):
+    """kernels.parameter_gradients (step.parameter_gradients without the volume term) equals
+    -lambda^T d(grad Phi)/d(u, E) from the projections: dS/du = w n on the fiber column,
+    dS/dE = elastic.stress_per_E."""
+    model = SolidModel(coarse_mesh)
+    rng = np.random.default_rng(8)
+    B = 3
+    X = np.repeat(model.mesh.points[None], B, axis=0) * [0.97, 1.0] + 1e-4 * rng.standard_normal((B, model.n_nodes, 2))
+    lam = rng.standard_normal(X.shape)
+    contraction, E = rng.uniform(0, 0.3, (model.n_muscles, B)), np.array([3e5, 6e5, 9e5])
+    grad_u, grad_E = parameter_gradients(model, X, contraction, E, lam)
+    p = elastic.projections_at(model, X, contraction, E)
+    dZ = elastic.deformation_gradients(model, elastic.to_columns(lam))
+    dS0, dS1 = elastic.fiber_stress_per_contraction(p)
+    np.testing.assert_allclose(grad_u, -(dZ[0, model.muscles, 0] * dS0 + dZ[0, model.muscles, 1] * dS1).T,
+                               rtol=1e-10, atol=1e-12 * np.abs(grad_u).max())
+    np.testing.assert_allclose(grad_E, -(dZ * elastic.stress_per_E(model, p)).sum(axis=(0, 1, 2)), rtol=1e-10)
