@@ -5,8 +5,8 @@ A fish's solve is a long chain of small dependent operations (an element's 2 x 2
 band row's 40 entries), which one sample alone cannot fill a vector unit with; eight samples of
 the same mesh do exactly the same operations on different numbers, so each scalar operation of
 kernels.py becomes one vector operation here. Arrays of a pack put the lane index last:
-positions and forces [N, 2, LANES], the Newton band [n, w + 1, LANES], per-element weights
-[T, LANES]; one (vload) load reads an entry of all eight samples.
+positions and forces [N, 2, LANES], the Newton band [rows, w + 4, LANES] (PackBand), per-element
+weights [T, LANES]; one (vload) load reads an entry of all eight samples.
 
 numba does not vectorise such 8-wide lane loops by itself (its SLP vectoriser is off and the
 loop vectoriser judges 8 trips not worth it), so the vector is a numba type of its own, `Vec`,
@@ -16,10 +16,10 @@ an LLVM <8 x double> value with the arithmetic operators, fma, sqrt, max/min, la
 Kernels (each a pack, prange over packs): `lbfgs_packs`, the whole forward solve of kernels.py's
 _lbfgs_sample for eight samples at a time, factorising each lane's Newton matrix at the start of
 every step; `newton_solve_packs`, the adjoint's direct solve. Per lane the arithmetic is the
-scalar kernels' up to round-off (a factor multiplies by 1 / sqrt(pivot) instead of dividing),
-and a lane's results do not depend on the other lanes: a lane that fails (indefinite matrix,
-NaN) is flagged alone. (All compiled code of this module lives in this file, so that numba's
-cache of it is invalidated whenever it changes.)
+scalar kernels' up to round-off (the factor is computed in another order and keeps 1 / L_jj on
+its diagonal), and a lane's results do not depend on the other lanes: a lane that fails
+(indefinite matrix, NaN) is flagged alone. (The compiled code here calls only this file's, so
+that numba's cache of it is invalidated whenever it changes.)
 """
 
 from __future__ import annotations
@@ -288,7 +288,7 @@ def vabs(a):
 
 @numba.njit(cache=True)
 def _deformation_gradient(X, triangles, grad, e):
-    """F of element e in the conformal-ready components (F00, F01, F10, F11), Vecs."""
+    """F of element e from the pack's positions X: (F00, F01, F10, F11), Vecs."""
     k0, k1, k2 = triangles[e, 0], triangles[e, 1], triangles[e, 2]
     x0, y0 = vload(X, 2 * k0 * LANES), vload(X, (2 * k0 + 1) * LANES)
     x1, y1 = vload(X, 2 * k1 * LANES), vload(X, (2 * k1 + 1) * LANES)
