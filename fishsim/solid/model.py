@@ -84,8 +84,8 @@ class PDOptions:
     backward_max_iter: preconditioned CG iterations before a direct sparse solve takes over.
     backward_method: 'direct' (default: per sample, the assembled Newton matrix factorised by
         banded Cholesky, in parallel over the samples, eight per SIMD pack from 4 samples on, LU
-        if it is indefinite; bench_solid on the default fish, 2 cores: B = 1 1.4-2.5 ms per
-        step, B = 16 3.8-5.6 ms), 'auto' (batched PCG
+        if it is indefinite; bench_solid on the default fish, 2 cores: B = 1 1.3-2.5 ms per
+        step, B = 16 3.5-5.6 ms), 'auto' (batched PCG
         preconditioned with 'rest_newton', direct for samples where it fails; ~41 iterations,
         16.8 ms and 248 ms when last measured) or 'pcg'.
     preconditioner: initial inverse Hessian H0 of the forward L-BFGS:
