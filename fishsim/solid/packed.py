@@ -10,8 +10,8 @@ weights [T, LANES]; one (vload) load reads an entry of all eight samples.
 
 numba does not vectorise such 8-wide lane loops by itself (its SLP vectoriser is off and the
 loop vectoriser judges 8 trips not worth it), so the vector is a numba type of its own, `Vec`,
-an LLVM <8 x double> value with the arithmetic operators, fma, sqrt, max/min, lane masks (1.0 /
-0.0 per lane) and `where`, each one vector instruction.
+an LLVM <8 x double> value with the arithmetic operators (+, -, *, /, +=, -=, >, >=, <=),
+fma, sqrt, max, lane masks (1.0 / 0.0 per lane) and `where`, each one vector instruction.
 
 Kernels (each a pack, prange over packs): `lbfgs_packs`, the whole forward solve of kernels.py's
 _lbfgs_sample for eight samples at a time, factorising each lane's Newton matrix at the start of
@@ -153,11 +153,6 @@ def _max(typingctx, a, b):
 
 
 @intrinsic
-def _min(typingctx, a, b):
-    return _binary(a, b, lambda builder, x, y: _llvm_call(builder, "llvm.minnum", x, y))
-
-
-@intrinsic
 def _greater(typingctx, a, b):
     return _binary(a, b, lambda builder, x, y: builder.uitofp(builder.fcmp_ordered(">", x, y), _VEC))
 
@@ -216,8 +211,7 @@ def _overload_binary(op, implementation):
 
 for _op, _implementation in ((operator.add, _add), (operator.sub, _sub), (operator.mul, _mul),
                              (operator.truediv, _div), (operator.iadd, _add), (operator.isub, _sub),
-                             (operator.imul, _mul), (operator.itruediv, _div), (operator.gt, _greater),
-                             (operator.ge, _greater_equal)):
+                             (operator.gt, _greater), (operator.ge, _greater_equal)):
     _overload_binary(_op, _implementation)
 
 
@@ -225,13 +219,6 @@ for _op, _implementation in ((operator.add, _add), (operator.sub, _sub), (operat
 def _neg(a):
     if isinstance(a, Vec):
         return lambda a: _sub(splat(0.0), a)
-    return None
-
-
-@overload(operator.lt)
-def _less(a, b):
-    if _involves_vec(a, b):
-        return lambda a, b: _greater(splat(b), splat(a))
     return None
 
 
@@ -246,12 +233,6 @@ def _less_equal(a, b):
 def vmax(a, b):
     """max per lane (the non-NaN one where one is NaN)."""
     return _max(splat(a), splat(b))
-
-
-@numba.njit(inline="always")
-def vmin(a, b):
-    """min per lane (the non-NaN one where one is NaN)."""
-    return _min(splat(a), splat(b))
 
 
 @numba.njit(inline="always")
@@ -533,8 +514,8 @@ def _subtract(band, width, w, r, j0, s0, s1, s2, s3):
 @numba.njit(cache=True)
 def _solve(L, w, perm, inverse, r, z, x):
     """z = K^-1 r per lane (r, z [N, 2, LANES], may be the same array) with _factor's band L
-    (half-bandwidth w, diagonal 1 / L_jj) under the DOF permutation perm (kernels._solve_sample); x [2N * LANES]
-    scratch."""
+    (half-bandwidth w, diagonal 1 / L_jj) under the DOF permutation perm
+    (kernels._solve_sample); x [2N * LANES] scratch."""
     n, width = perm.shape[0], L.shape[1]
     band, r, z = L.reshape(-1), r.reshape(-1), z.reshape(-1)
     for j in range(n):

@@ -158,10 +158,11 @@ def pd_solve(model: SolidModel, Y: np.ndarray, X0: np.ndarray, contraction: np.n
     phi, g = objective(X)
     iterations = np.zeros(len(X), np.int64)
     need = max_nodal_norm(g) > opts.atol
-    if objective.fused and opts.preconditioner == "lagged_newton" and need.sum() >= PACK_MIN:
+    compiled = objective.fused and opts.preconditioner == "lagged_newton"
+    if compiled and need.sum() >= PACK_MIN:
         need = need & ~_solve_packed(objective, X, g, need, iterations)
     if need.any():
-        if objective.fused and opts.preconditioner == "lagged_newton":
+        if compiled:
             precondition = _solve_compiled(objective, X0, X, g, need, iterations)
             rest = need & ~precondition.lagged.banded
         else:
@@ -224,13 +225,12 @@ def _solve_packed(objective: Objective, X: np.ndarray, g: np.ndarray, need: np.n
     its, ok = np.zeros(lanes.shape), np.zeros(lanes.shape, bool)
     packed.lbfgs_packs(Xp, to_packs(objective.Y, lanes), pack_arrays(objective.kernel_arrays, lanes), band.arrays,
                        band.empty(len(lanes)), opts.atol, opts.max_iter, opts.history, gp, its, ok)
-    solved = lanes[ok]
     from_packs(Xp, lanes, X)                          # lanes not solved have not moved
     from_packs(gp, lanes, g)
     iterations[lanes] = its
-    done = np.zeros(len(X), bool)
-    done[solved] = True
-    return done
+    solved = np.zeros(len(X), bool)
+    solved[lanes[ok]] = True
+    return solved
 
 
 def _solve_compiled(objective: Objective, X0: np.ndarray, X: np.ndarray, g: np.ndarray, need: np.ndarray,
