@@ -29,6 +29,18 @@ from fishsim.solid.energies import _TINY
 
 
 @numba.njit(cache=True)
+def _deformation_gradient(X, triangles, grad, e):
+    """(F00, F01, F10, F11) of element e for one sample's nodal values X [N, 2] (F = G_e X)."""
+    k0, k1, k2 = triangles[e, 0], triangles[e, 1], triangles[e, 2]
+    x0, x1, x2 = X[k0, 0], X[k1, 0], X[k2, 0]
+    y0, y1, y2 = X[k0, 1], X[k1, 1], X[k2, 1]
+    return (x0 * grad[e, 0, 0] + x1 * grad[e, 1, 0] + x2 * grad[e, 2, 0],
+            x0 * grad[e, 0, 1] + x1 * grad[e, 1, 1] + x2 * grad[e, 2, 1],
+            y0 * grad[e, 0, 0] + y1 * grad[e, 1, 0] + y2 * grad[e, 2, 0],
+            y0 * grad[e, 0, 1] + y1 * grad[e, 1, 1] + y2 * grad[e, 2, 1])
+
+
+@numba.njit(cache=True)
 def _objective_sample(X, Y, mass_h2, triangles, grad, w_corotated, muscle_of, w_muscle, stretch, b, g) -> float:
     """Phi of one sample (X, Y, g: its [N, 2] arrays; b its column in w_corotated and stretch),
     writing grad Phi into g."""
@@ -41,12 +53,7 @@ def _objective_sample(X, Y, mass_h2, triangles, grad, w_corotated, muscle_of, w_
     for e in range(triangles.shape[0]):
         k0, k1, k2 = triangles[e, 0], triangles[e, 1], triangles[e, 2]
         m = muscle_of[e]
-        x0, x1, x2 = X[k0, 0], X[k1, 0], X[k2, 0]
-        y0, y1, y2 = X[k0, 1], X[k1, 1], X[k2, 1]
-        F00 = x0 * grad[e, 0, 0] + x1 * grad[e, 1, 0] + x2 * grad[e, 2, 0]
-        F01 = x0 * grad[e, 0, 1] + x1 * grad[e, 1, 1] + x2 * grad[e, 2, 1]
-        F10 = y0 * grad[e, 0, 0] + y1 * grad[e, 1, 0] + y2 * grad[e, 2, 0]
-        F11 = y0 * grad[e, 0, 1] + y1 * grad[e, 1, 1] + y2 * grad[e, 2, 1]
+        F00, F01, F10, F11 = _deformation_gradient(X, triangles, grad, e)
         alpha, beta = (F00 + F11) / 2, (F10 - F01) / 2
         gamma, delta = (F00 - F11) / 2, (F01 + F10) / 2
         c = max(np.sqrt(alpha * alpha + beta * beta), _TINY)
@@ -381,15 +388,8 @@ def parameter_gradients(X: np.ndarray, lam: np.ndarray, triangles: np.ndarray, g
     for b in numba.prange(X.shape[0]):
         total = 0.0
         for e in range(triangles.shape[0]):
-            k0, k1, k2 = triangles[e, 0], triangles[e, 1], triangles[e, 2]
-            F00 = X[b, k0, 0] * grad[e, 0, 0] + X[b, k1, 0] * grad[e, 1, 0] + X[b, k2, 0] * grad[e, 2, 0]
-            F01 = X[b, k0, 0] * grad[e, 0, 1] + X[b, k1, 0] * grad[e, 1, 1] + X[b, k2, 0] * grad[e, 2, 1]
-            F10 = X[b, k0, 1] * grad[e, 0, 0] + X[b, k1, 1] * grad[e, 1, 0] + X[b, k2, 1] * grad[e, 2, 0]
-            F11 = X[b, k0, 1] * grad[e, 0, 1] + X[b, k1, 1] * grad[e, 1, 1] + X[b, k2, 1] * grad[e, 2, 1]
-            D00 = lam[b, k0, 0] * grad[e, 0, 0] + lam[b, k1, 0] * grad[e, 1, 0] + lam[b, k2, 0] * grad[e, 2, 0]
-            D01 = lam[b, k0, 0] * grad[e, 0, 1] + lam[b, k1, 0] * grad[e, 1, 1] + lam[b, k2, 0] * grad[e, 2, 1]
-            D10 = lam[b, k0, 1] * grad[e, 0, 0] + lam[b, k1, 1] * grad[e, 1, 0] + lam[b, k2, 1] * grad[e, 2, 0]
-            D11 = lam[b, k0, 1] * grad[e, 0, 1] + lam[b, k1, 1] * grad[e, 1, 1] + lam[b, k2, 1] * grad[e, 2, 1]
+            F00, F01, F10, F11 = _deformation_gradient(X[b], triangles, grad, e)
+            D00, D01, D10, D11 = _deformation_gradient(lam[b], triangles, grad, e)
             alpha, beta = (F00 + F11) / 2, (F10 - F01) / 2
             gamma, delta = (F00 - F11) / 2, (F01 + F10) / 2
             c = max(np.sqrt(alpha * alpha + beta * beta), _TINY)
