@@ -5,8 +5,9 @@ lane whose exact Newton matrix is indefinite), its whole forward solve, a blown-
 import numba
 import numpy as np
 import pytest
+import torch
 
-from fishsim.solid import SolidModel, elastic, kernels, packed
+from fishsim.solid import PDOptions, SolidModel, elastic, kernels, packed, pd_step, rest_state
 from fishsim.solid.packed import LANES, fma, isnan, lane, splat, vabs, vload, vmax, vsqrt, vstore, where
 from fishsim.solid.preconditioner import newton_factors
 from fishsim.solid.solve import (
@@ -117,3 +118,29 @@ def test_packed_forward_stops_a_blown_up_lane(coarse_mesh):
     with pytest.warns(RuntimeWarning, match="did not converge"):
         _, info = pd_solve(model, Y, X0, contraction, E)
     assert info.converged.tolist() == [True, False, True, True, True] and info.iterations[1] <= 1
+
+
+def test_packed_batch_step_equals_per_sample_steps(coarse_mesh):
+    """pd_step on 6 samples (one padded pack, forward and adjoint) against each sample alone (the
+    per-sample path): the same q+, qdot+ and gradients of a loss w.r.t. q, qdot, activation,
+    f_ext and E, to the tight solver tolerance."""
+    model = SolidModel(coarse_mesh, options=PDOptions(atol=1e-8, backward_rtol=1e-12))
+    g = torch.Generator().manual_seed(5)
+    B = 6
+    q, qdot = rest_state(model, B)
+    qdot = qdot + 0.02 * torch.randn(qdot.shape, generator=g)
+    u = 0.2 * torch.rand((B, model.n_muscles), generator=g)
+    f = 1e-3 * torch.randn(q.shape, generator=g)
+    E = torch.tensor([6e5, 3e5, 6e5, 9e5, 4e5, 7e5])
+    weights = torch.randn((B, model.n_nodes, 2), generator=g)
+
+    def outputs(sl):
+        inputs = [x[sl].clone().requires_grad_() for x in (q, qdot, u, f, E)]
+        q_next, qdot_next = pd_step(model, *inputs)
+        loss = (weights[sl] * q_next).sum() + 0.1 * (weights[sl] * qdot_next).sum()
+        return [q_next.detach(), qdot_next.detach(), *torch.autograd.grad(loss, inputs)]
+
+    batch = outputs(slice(None))
+    for b in range(B):
+        for x, y in zip(batch, outputs(slice(b, b + 1))):
+            torch.testing.assert_close(x[b:b + 1], y, atol=1e-9 * max(1.0, y.abs().max().item()), rtol=1e-6)
