@@ -23,7 +23,6 @@ from fishsim.errors import ConfigError
 from fishsim.fluid.hydronet.train import TrainConfig
 from fishsim.fluid.pressure import PRESSURES
 from fishsim.render.config import RenderConfig
-from fishsim.solid.controller import DEFAULT_C
 from fishsim.solid.model import PDOptions, SolidMaterial
 
 
@@ -50,10 +49,16 @@ class FishConfig:
     actuator_x_range: list[float] = field(default_factory=lambda: [0.05, 0.95])
     tail_tip_width: float | None = None
     mesh_file: str | None = None
+    muscles: str = "layer"
+    muscle_thickness: float = 0.3
 
     def validate(self) -> None:
         _positive(**{"fish.length": self.length, "fish.edge_length": self.edge_length,
                      "fish.actuator_spacing": self.actuator_spacing})
+        _require(self.muscles in ("layer", "paper"),
+                 f"fish.muscles must be 'layer' or 'paper' (got '{self.muscles}')")
+        _require(math.isfinite(self.muscle_thickness) and 0 < self.muscle_thickness <= 1,
+                 f"fish.muscle_thickness is a fraction of the local half-width in (0, 1] (got {self.muscle_thickness})")
         _require(self.profile in ("kern", "polynomial"),
                  f"fish.profile must be 'kern' or 'polynomial' (got '{self.profile}')")
         _require(0 < self.min_angle <= 33.8,
@@ -89,18 +94,21 @@ class SolidConfig:
 class ControllerConfig:
     """The paper's travelling-wave controller h(X, t) = C v(X) sin(gamma X + omega t)(1 - e^(-t/t_a)).
 
-    frequency: f = omega / (2 pi) in Hz.  amplitude: C in 1/m (h is a muscle contraction).
+    frequency: f = omega / (2 pi) in Hz.  amplitude: C in 1/m (h is a muscle contraction); null:
+        the value calibrated for ``fish.muscles`` (12.6 for the layer, 35 for the paper's stations;
+        fishsim/solid/controller.py).
     wave_number: gamma in rad/m (null: 2 pi / L, one wavelength per body).  t_a: ramp time, s.
     """
 
     frequency: float = 5.0
-    amplitude: float = DEFAULT_C
+    amplitude: float | None = None
     wave_number: float | None = None
     t_a: float = 0.2
 
     def validate(self) -> None:
         _positive(**{"controller.frequency": self.frequency, "controller.t_a": self.t_a})
-        _require(self.amplitude >= 0, f"controller.amplitude must be >= 0 (got {self.amplitude})")
+        _require(self.amplitude is None or self.amplitude >= 0,
+                 f"controller.amplitude must be >= 0 or null (got {self.amplitude})")
         _require(self.wave_number is None or self.wave_number > 0, "controller.wave_number must be > 0")
 
 

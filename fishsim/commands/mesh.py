@@ -28,6 +28,17 @@ def build_fish_mesh(fish: FishConfig):
     )
 
 
+def build_muscles(fish: FishConfig, mesh):
+    """The muscle layout a config asks for (fishsim.solid.muscles): ``fish.muscles=layer`` (the
+    default, a layer of ``fish.muscle_thickness`` times the local half-width along each side within
+    ``fish.actuator_x_range``) or ``paper`` (the mesher's stations)."""
+    from fishsim.solid.muscles import layer_muscles, station_muscles
+
+    if fish.muscles == "paper":
+        return station_muscles(mesh)
+    return layer_muscles(mesh, fish.muscle_thickness, tuple(fish.actuator_x_range))
+
+
 def run(cfg: MeshCommandConfig) -> dict:
     """Mesh, write, preview; print and return the mesh statistics."""
     from fishsim.io.mesh_io import write_mesh

@@ -13,7 +13,7 @@ from rich.markup import escape
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
 
-from fishsim.commands.mesh import build_fish_mesh
+from fishsim.commands.mesh import build_fish_mesh, build_muscles
 from fishsim.config import SimulateConfig, to_yaml
 from fishsim.errors import ConfigError, FishsimError
 from fishsim.fluid.factory import fluid_params, make_fluid, make_tank
@@ -22,7 +22,7 @@ from fishsim.io.outdir import make_out_dir, resolve_output
 from fishsim.io.trajectory import TrajectoryWriter, trajectory_series
 from fishsim.rollout import METRICS, Swimmer, SwimParams, rollout
 from fishsim.solid import SolidModel
-from fishsim.solid.controller import WaveController
+from fishsim.solid.controller import WaveController, calibrated_amplitude
 
 
 @dataclass
@@ -43,7 +43,8 @@ def build_episode(cfg: SimulateConfig) -> Episode:
     mesh = build_fish_mesh(cfg.fish)
     fluid = make_fluid(cfg.fluid, device)
     solid = SolidModel(mesh, cfg.solid.material, h=cfg.h, options=cfg.solid.pd,
-                       added_mass_ratio=cfg.coupling.added_mass_ratio if fluid is not None else 0.0)
+                       added_mass_ratio=cfg.coupling.added_mass_ratio if fluid is not None else 0.0,
+                       muscles=build_muscles(cfg.fish, mesh))
     walls = make_tank(cfg.fluid, device) if fluid is not None else None
     swimmer = Swimmer(solid, fluid, cfg.coupling, walls)
     params = batch_params(cfg, mesh.length, device)
@@ -65,7 +66,8 @@ def batch_params(cfg: SimulateConfig, length: float, device) -> SwimParams:
         return torch.tensor(values * (B // len(values)), dtype=torch.float64, device=device)
 
     gamma = c.wave_number if c.wave_number is not None else 2 * math.pi / length
-    controller = WaveController(C=per_fish(b.amplitude, c.amplitude),
+    C = c.amplitude if c.amplitude is not None else calibrated_amplitude(cfg.fish.muscles)
+    controller = WaveController(C=per_fish(b.amplitude, C),
                                 omega=2 * math.pi * per_fish(b.frequency, c.frequency),
                                 gamma=per_fish(b.wave_number, gamma), t_a=c.t_a)
     E = per_fish(b.youngs_modulus, cfg.solid.material.youngs_modulus)

@@ -8,14 +8,22 @@ the wave travels head -> tail with speed omega / gamma. h is a muscle contractio
 so C has units 1/m: the tail's contraction amplitude is C L / 10.
 
 Antagonistic mapping: top muscles (Y > 0) contract by max(0, h), bottom muscles by max(0, -h);
-h > 0 shortens the top side and bends the body towards +Y there.
+h > 0 shortens the top side and bends the body towards +Y there. A layer element holding both
+(the thin tail, muscles.py) contracts by top_share max(0, h) + (1 - top_share) max(0, -h). X of
+a muscle is its element's centroid.
 
-Default amplitude C = 35 1/m (largest contraction of the default fish's muscles 0.36; the
-envelope's tail value C L/10 = 0.7 lies behind the first muscle at X = 0.05 L): calibrated in
-vacuum at 5 Hz with the default material (E = 6e5 Pa, k_m = E, no volume term) on the default
-fish (make_fish_mesh(), 1181 nodes): the tail tip's peak-to-peak lateral excursion after the ramp
-(t in 1.0-1.2 s) is 30.0 mm = 0.15 L, the middle of PHYSICS.md's 0.1-0.2 L (re-check in water
-once the fluid is coupled: added mass and drag change it).
+Calibrated amplitudes, one per muscle model (muscles.py), each in vacuum at 5 Hz with the default
+material (E = 6e5 Pa, k_m = E, no volume term) on the default fish (make_fish_mesh(), 2 mm edges,
+1181 nodes), so that the tail tip's peak-to-peak lateral excursion over the second half of a
+120-frame episode (`fishsim simulate fluid=none frames=120`'s summary) is 30.0 mm = 0.15 L, the
+middle of PHYSICS.md's 0.1-0.2 L:
+- DEFAULT_C = 12.6 1/m for the default muscle layer (thickness 0.3 of the local half-width,
+  X in [0.05, 0.95] L): 30.0 mm (29.8 mm at 12.5); largest contraction 0.22, at X = 0.05 L.
+  The stroke converges under refinement: 28.2 / 30.0 / 30.9 / 31.4 mm at 3 / 2 / 1.4 / 1 mm
+  edges (README, benchmarks/study_solid_convergence.py).
+- PAPER_C = 35 1/m for the paper's station muscles (largest contraction 0.36; the envelope's tail
+  value C L/10 = 0.7 lies behind the first muscle at X = 0.05 L): 30.0 mm on the default mesh
+  only (45.6 / 30.1 / 16.7 / 9.2 mm at 3 / 2 / 1.4 / 1 mm edges).
 """
 
 from __future__ import annotations
@@ -23,14 +31,19 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import numpy as np
 import torch
 
-from fishsim.mesh.fish_mesh import ACTUATOR_TOP
 from fishsim.solid.model import SolidModel
 
-# Calibrated amplitude (1/m): tail peak-to-peak excursion 30.0 mm = 0.15 L at 5 Hz in vacuum.
-DEFAULT_C = 35.0
+# Calibrated amplitudes (1/m): tail peak-to-peak excursion 30.0 mm = 0.15 L at 5 Hz in vacuum on
+# the default mesh (module docstring), with the default muscle layer and with the paper's stations.
+DEFAULT_C = 12.6
+PAPER_C = 35.0
+
+
+def calibrated_amplitude(muscles: str) -> float:
+    """The calibrated C (1/m) of a muscle model: 'layer' (DEFAULT_C) or 'paper' (PAPER_C)."""
+    return PAPER_C if muscles == "paper" else DEFAULT_C
 
 
 def envelope(X: torch.Tensor, length: float) -> torch.Tensor:
@@ -49,8 +62,11 @@ def wave_signal(X: torch.Tensor, t, C: torch.Tensor, omega: torch.Tensor, gamma:
 
 
 def antagonistic_contraction(h: torch.Tensor, top: torch.Tensor) -> torch.Tensor:
-    """Contraction [B, n]: max(0, h) for top muscles (top [n] bool), max(0, -h) for bottom ones."""
-    return torch.where(top[None, :], torch.relu(h), torch.relu(-h))
+    """Contraction [B, n]: max(0, h) for top muscles, max(0, -h) for bottom ones; top [n] is a bool
+    mask or each muscle's top share s in [0, 1] (s max(0, h) + (1 - s) max(0, -h))."""
+    if top.dtype == torch.bool:
+        return torch.where(top[None, :], torch.relu(h), torch.relu(-h))
+    return top[None, :] * torch.relu(h) + (1 - top[None, :]) * torch.relu(-h)
 
 
 @dataclass(frozen=True)
@@ -78,10 +94,12 @@ class WaveController:
         X = torch.as_tensor(model.fem.centroid_X[model.muscles], dtype=self.C.dtype, device=self.C.device)
         return (self.C[:, None] * envelope(X, model.mesh.length)[None, :]).amax(1)
 
-    def contraction(self, model: SolidModel, t) -> torch.Tensor:
+    def contraction(self, model: SolidModel, t, top_share: torch.Tensor | None = None) -> torch.Tensor:
         """Muscle contraction [B, n_act] of `model`'s muscles at time t (s); X of a muscle is its
-        element centroid's material X."""
+        element centroid's material X. top_share [n_act]: the muscles' top shares (default the
+        model's; pass a tensor to differentiate through them, e.g. muscles.layer_fractions')."""
         X = torch.as_tensor(model.fem.centroid_X[model.muscles], dtype=self.C.dtype, device=self.C.device)
-        top = torch.as_tensor(np.asarray(model.mesh.actuator)[model.muscles] == ACTUATOR_TOP, device=self.C.device)
+        if top_share is None:
+            top_share = torch.as_tensor(model.muscle_top_share, dtype=self.C.dtype, device=self.C.device)
         h = wave_signal(X, t, self.C, self.omega, self.gamma, model.mesh.length, self.t_a)
-        return antagonistic_contraction(h, top)
+        return antagonistic_contraction(h, top_share)

@@ -6,7 +6,8 @@ The projective-dynamics global matrix (PHYSICS.md section 3) is, per axis ("per-
 
 with W the per-row PD weights: every F row of element e gets E area_e / (1 + nu) (= 2 mu_s area,
 co-rotated) plus E area_e nu / ((1 + nu)(1 - 2 nu)) (= lambda_s area, volume term, if enabled),
-and the fiber row (j = 0, fiber m = (1, 0)) of a muscle element gets k_m area_e. A does not depend
+and the fiber row (j = 0, fiber m = (1, 0)) of a muscle element gets k_m area_e f_e (f_e its area
+fraction inside the muscle layers, 1 for the paper's stations; muscles.py). A does not depend
 on q or on the activations, so it is factorised once per distinct E and reused every step
 (fishsim.solid.preconditioner builds and caches the factorisations).
 """
@@ -22,6 +23,7 @@ import scipy.sparse as sp
 from fishsim.errors import ConfigError
 from fishsim.mesh.fish_mesh import FishMesh
 from fishsim.solid.fem import FemQuantities, NewtonBand, fem_quantities
+from fishsim.solid.muscles import MuscleLayout, station_muscles
 from fishsim.solid.packed import PackBand
 
 
@@ -155,6 +157,10 @@ class SolverStats:
         self.backward_direct_total += direct
 
 
+# Spring constant of an anchored node, in units of E (SolidModel's anchors).
+ANCHOR_STIFFNESS = 1e6
+
+
 class SolidModel:
     """Mesh, material, time step and precomputed operators of the PD solid (read-only after
     construction, except for the factorisation caches `factors` and `lagged` and the
@@ -163,30 +169,43 @@ class SolidModel:
     fem: FemQuantities of the mesh (fem.mass: the fish's own lumped masses).
     added_mass: [N] added_mass_ratio * fem.mass, extra nodal mass (kg per unit depth) of the
         integrator: the coupling's added-mass stabilisation (fishsim.coupling.added_mass).
-    mass: [N] fem.mass + added_mass, the mass of the implicit-Euler step.
+    mass: [N] fem.mass + added_mass (+ the anchors' mass), the mass of the implicit-Euler step.
+    muscle_layout: the MuscleLayout (muscles.py): the paper's stations of mesh.actuator by
+        default, or a muscle layer (muscles.layer_muscles).
     muscles: [n_act] actuated element indices; muscle_of: [T] the inverse map (-1: passive).
+    muscle_top_share: [n_act] share of each muscle on the top side (controller.py).
     mesh_triangles: [T, 3] node indices (int64, contiguous, for the compiled kernels).
-    muscle_weight: [n_act] k_m area (Pa m^2).  mass_h2: [N] mass_i / h^2; mass_diag [2N] the same
-    per DOF 2i + a (the diagonal of M/h^2 in the Newton matrix).
+    muscle_weight: [n_act] k_m area fraction (Pa m^2).  mass_h2: [N] mass_i / h^2; mass_diag [2N]
+    the same per DOF 2i + a (the diagonal of M/h^2 in the Newton matrix).
     K0: [N, N] sparse, dA/dE.  K_muscle: [N, N] sparse.
+    anchors: [k] nodes held in place (a clamp, for validation cases such as a cantilever): each
+        gets an extra mass ANCHOR_STIFFNESS E h^2 (kg per unit depth), so that its inertia
+        m / h^2 acts as a spring of stiffness ANCHOR_STIFFNESS E (N/m per unit depth) towards
+        its free flight; a finite force moves it ~1e-6 of what it moves an elastic node.
     """
 
     def __init__(self, mesh: FishMesh, material: SolidMaterial = SolidMaterial(),
                  h: float = 0.01, options: PDOptions = PDOptions(),
-                 added_mass_ratio: float = 0.0):
+                 added_mass_ratio: float = 0.0, muscles: MuscleLayout | None = None,
+                 anchors: np.ndarray | None = None):
         if not h > 0:
             raise ConfigError(f"time step h must be positive, got {h}")
         self.mesh, self.material, self.h, self.options = mesh, material, float(h), options
         self.fem: FemQuantities = fem_quantities(mesh, material.density)
-        self.muscles = np.asarray(mesh.actuated, np.int64)
-        self.muscle_weight = material.muscle_stiffness * self.fem.area[self.muscles]
+        self.muscle_layout = station_muscles(mesh) if muscles is None else muscles
+        self.muscles = np.asarray(self.muscle_layout.elements, np.int64)
+        self.muscle_top_share = np.asarray(self.muscle_layout.top_share, np.float64)
+        self.muscle_weight = material.muscle_stiffness * self.fem.area[self.muscles] * self.muscle_layout.fraction
         self.muscle_of = np.full(self.fem.n_elements, -1, np.int64)      # element -> muscle index
         self.muscle_of[self.muscles] = np.arange(len(self.muscles))
         self.mesh_triangles = np.ascontiguousarray(mesh.triangles, np.int64)
         if not added_mass_ratio >= 0:
             raise ConfigError(f"added_mass_ratio must be >= 0, got {added_mass_ratio}")
         self.added_mass = added_mass_ratio * self.fem.mass
-        self.mass = self.fem.mass + self.added_mass
+        self.anchors = np.zeros(0, np.int64) if anchors is None else np.unique(np.asarray(anchors, np.int64))
+        anchor_mass = np.zeros_like(self.fem.mass)
+        anchor_mass[self.anchors] = ANCHOR_STIFFNESS * material.youngs_modulus * self.h**2
+        self.mass = self.fem.mass + self.added_mass + anchor_mass
         self.mass_h2 = self.mass / self.h**2
         self.mass_diag = np.repeat(self.mass_h2, 2)
         self.K0, self.K_muscle = self._stiffness_parts()

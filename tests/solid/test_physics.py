@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from fishsim.solid import PDOptions, SolidModel, elastic, pd_step, rest_state
-from fishsim.solid.controller import WaveController
+from fishsim.solid.controller import PAPER_C, WaveController
 
 TIGHT = PDOptions(atol=1e-8, backward_rtol=1e-12)   # ~1e-10 of the nodal forces
 
@@ -48,7 +48,7 @@ def test_rest_state_stays_at_rest(model):
 
 
 def test_internal_actuation_conserves_linear_momentum(model):
-    ctrl = WaveController.default(model.mesh.length)
+    ctrl = WaveController.default(model.mesh.length, C=PAPER_C)
     q, qdot = rest_state(model)
     qdot = qdot + torch.tensor([0.03, -0.01])                        # drifting fish
     p0 = momentum(model, qdot)
@@ -116,7 +116,7 @@ def test_batch_equals_per_sample(coarse_mesh):
 
 def test_actuated_fish_shows_a_head_to_tail_travelling_wave(coarse_mesh):
     model = SolidModel(coarse_mesh)
-    ctrl = WaveController.default(coarse_mesh.length)
+    ctrl = WaveController.default(coarse_mesh.length, C=PAPER_C)
     L, f = coarse_mesh.length, 5.0
     stations = np.linspace(0.0, 0.9, 10) * L
     P = coarse_mesh.points
