@@ -52,7 +52,7 @@ class MuscleLayout:
 
     elements: [n_act] int64 element indices of the muscles.
     fraction: [n_act] area fraction of each element inside the muscle layers (weight k_m A_e
-        fraction; 1 for the paper's stations).
+        fraction; 1 for the paper's stations; 0 allowed: a muscle of no strength).
     top_share: [n_act] share of the element's muscle on the top side (Y > 0): its contraction is
         top_share max(0, h) + (1 - top_share) max(0, -h) (1 or 0 for pure top / bottom muscles).
     """
@@ -65,8 +65,8 @@ class MuscleLayout:
         n = len(self.elements)
         if self.fraction.shape != (n,) or self.top_share.shape != (n,):
             raise ValueError("MuscleLayout arrays must all have shape [n_act]")
-        if n and not (np.all(self.fraction > 0) and np.all(self.fraction <= 1 + 1e-12)):
-            raise ValueError("muscle area fractions must lie in (0, 1]")
+        if n and not (np.all(self.fraction >= 0) and np.all(self.fraction <= 1 + 1e-12)):
+            raise ValueError("muscle area fractions must lie in [0, 1]")
 
 
 def station_muscles(mesh: FishMesh) -> MuscleLayout:
@@ -86,16 +86,37 @@ def check_layer(thickness: float, x_range) -> None:
                           f"got {list(x_range)}")
 
 
-def layer_muscles(mesh: FishMesh, thickness: float, x_range=(0.05, 0.95)) -> MuscleLayout:
+def layer_muscles(mesh: FishMesh, thickness: float, x_range=(0.05, 0.95),
+                  elements: np.ndarray | None = None) -> MuscleLayout:
     """The muscle layers of `mesh` (module docstring): every element with a share of its area in
     the top or bottom layer of `thickness` (fraction of the local half-width, in (0, 1]) between
-    X = x_range[0] L and x_range[1] L."""
+    X = x_range[0] L and x_range[1] L; or, if `elements` is given, exactly those elements (some
+    perhaps with fraction 0: e.g. the layer's elements at a larger thickness, so that models at
+    nearby thicknesses share one muscle list)."""
     check_layer(thickness, x_range)
-    f_top, f_bot = (f.numpy() for f in layer_fractions(mesh, torch.tensor(float(thickness), dtype=torch.float64),
-                                                       x_range))
+    t = torch.tensor(float(thickness), dtype=torch.float64)
+    f_top, f_bot = (f.numpy() for f in layer_fractions(mesh, t, x_range))
     total = f_top + f_bot
-    elements = np.flatnonzero(total > _MIN_FRACTION)
-    return MuscleLayout(elements, np.minimum(total[elements], 1.0), f_top[elements] / total[elements])
+    if elements is None:
+        elements = np.flatnonzero(total > _MIN_FRACTION)
+    elements = np.asarray(elements, np.int64)
+    f_top, total = f_top[elements], total[elements]
+    share = np.where(total > 0, f_top / np.where(total > 0, total, 1.0), 0.5)
+    return MuscleLayout(elements, np.minimum(total, 1.0), share)
+
+
+def layer_weights(model, thickness: torch.Tensor, x_range=(0.05, 0.95)) -> tuple[torch.Tensor, torch.Tensor]:
+    """(muscle_weight [n_act] in Pa m^2, top_share [n_act]) of `model`'s muscles (a SolidModel
+    built with layer_muscles at this thickness and x_range) as torch functions of `thickness`
+    (a scalar tensor): k_m A_e (f_top + f_bot) and f_top / (f_top + f_bot). Pass them to
+    pd_step(muscle_weight=...) and WaveController.contraction(top_share=...) to differentiate a
+    loss with respect to the layer's thickness (a co-design parameter)."""
+    f_top, f_bot = layer_fractions(model.mesh, thickness, x_range, model.muscles)
+    total = f_top + f_bot
+    area = torch.as_tensor(model.fem.area[model.muscles])
+    share = torch.where(total > 0, f_top / torch.where(total > 0, total, torch.ones_like(total)),
+                        torch.full_like(total, 0.5))
+    return model.material.muscle_stiffness * area * total, share
 
 
 def layer_fractions(mesh: FishMesh, thickness: torch.Tensor, x_range=(0.05, 0.95),

@@ -73,12 +73,25 @@ def parameter_gradients(model: SolidModel, q_next: np.ndarray, contraction: np.n
     return grad_u, -(dZ * elastic.stress_per_E(model, p)).sum(axis=(0, 1, 2))
 
 
+def muscle_weight_gradient(model: SolidModel, q_next: np.ndarray, contraction: np.ndarray,
+                           grad_u: np.ndarray) -> np.ndarray:
+    """dL/dw [n_act] (summed over the batch) for the muscles' PD weights w, from dL/du [B, n_act]
+    at q+ [B, N, 2] (contraction [B, n_act]): the fiber stress S = w (|F m| - a) n gives
+    dS/dw = (|F m| - a) n = dS/du (|F m| - a) / w, so dL/dw = dL/du (|F m| - a) / w."""
+    Z = elastic.deformation_gradients(model, elastic.to_columns(q_next))
+    stretch = np.hypot(Z[0, model.muscles, 0], Z[0, model.muscles, 1]).T           # |F m| [B, n_act]
+    w = model.muscle_weight
+    safe = np.where(w > 0, w, 1.0)
+    return np.where(w > 0, (grad_u * (stretch - (1.0 - contraction)) / safe).sum(0), 0.0)
+
+
 class PDStepFunction(torch.autograd.Function):
-    """(q, qdot, contraction, f_ext, E, start) -> (q+, qdot+); backward by the adjoint (module
-    doc). ``start`` (L-BFGS's initial guess, or None) is not differentiated."""
+    """(q, qdot, contraction, f_ext, E, start, muscle_weight) -> (q+, qdot+); backward by the
+    adjoint (module doc). ``start`` (L-BFGS's initial guess, or None) is not differentiated;
+    ``muscle_weight`` ([n_act], or None) carries the model's muscle weights for their gradient."""
 
     @staticmethod
-    def forward(ctx, model, q, qdot, contraction, f_ext, E, start=None):
+    def forward(ctx, model, q, qdot, contraction, f_ext, E, start=None, muscle_weight=None):
         f = None if f_ext is None else _np(f_ext)
         start = None if start is None else _np(start)
         q_next, qdot_next, info = forward_step(model, _np(q), _np(qdot), _np(contraction), f, _np(E), start)
@@ -86,7 +99,7 @@ class PDStepFunction(torch.autograd.Function):
         if not (np.isfinite(q_next).all() and np.isfinite(qdot_next).all()):
             raise SimulationBlowUp("PD step produced non-finite positions; reduce the time step, the "
                                    "activation or the external force, or raise E")
-        ctx.model, ctx.has_f_ext = model, f_ext is not None
+        ctx.model, ctx.has_f_ext, ctx.weight_like = model, f_ext is not None, muscle_weight
         out_q, out_qdot = (torch.as_tensor(x, dtype=q.dtype, device=q.device) for x in (q_next, qdot_next))
         ctx.save_for_backward(out_q, contraction, E)
         return out_q, out_qdot
@@ -103,7 +116,12 @@ class PDStepFunction(torch.autograd.Function):
         out = [torch.as_tensor(g, dtype=t.dtype, device=t.device) for g, t in zip(grads, like)]
         if not ctx.has_f_ext:
             out[3] = None
-        return (None, *out, None)
+        grad_w = None
+        if ctx.needs_input_grad[7]:
+            w = ctx.weight_like
+            grad_w = torch.as_tensor(muscle_weight_gradient(ctx.model, _np(q_next), _np(contraction), grads[2]),
+                                     dtype=w.dtype, device=w.device)
+        return (None, *out, None, grad_w)
 
 
 def predicted_start(q: torch.Tensor, qdot: torch.Tensor, qdot_prev: torch.Tensor, h: float) -> torch.Tensor:
@@ -129,7 +147,7 @@ def _batch_E(model: SolidModel, E, B: int, like: torch.Tensor) -> torch.Tensor:
 
 def pd_step(model: SolidModel, q: torch.Tensor, qdot: torch.Tensor, contraction: torch.Tensor,
             f_ext: torch.Tensor | None = None, E=None, return_info: bool = False,
-            start: torch.Tensor | None = None):
+            start: torch.Tensor | None = None, muscle_weight: torch.Tensor | None = None):
     """Advance a batch of fish by one implicit-Euler PD step of length model.h.
 
     q, qdot: [B, N, 2] positions (m) and velocities (m/s).
@@ -142,6 +160,10 @@ def pd_step(model: SolidModel, q: torch.Tensor, qdot: torch.Tensor, contraction:
     start: [B, N, 2] positions L-BFGS starts from (default: the free flight q + h qdot); it
     changes q+ only within the solver's tolerance (a checkpoint recomputation passes the
     forward pass's q+, which is then returned without an iteration).
+    muscle_weight: [n_act] tensor equal to model.muscle_weight (Pa m^2; the solve uses the
+        model's), passed to differentiate through the weights, e.g. muscles.layer_weights of a
+        layer thickness that requires grad (the muscles are shared by the batch, so its gradient
+        sums over the samples).
     Raises SimulationBlowUp if the step produces non-finite values.
     """
     if q.ndim != 3 or q.shape[1:] != (model.n_nodes, 2) or qdot.shape != q.shape:
@@ -158,8 +180,12 @@ def pd_step(model: SolidModel, q: torch.Tensor, qdot: torch.Tensor, contraction:
     E = _batch_E(model, E, B, q)
     if start is not None and start.shape != q.shape:
         raise ValueError(f"start must have shape {tuple(q.shape)}, got {tuple(start.shape)}")
+    if muscle_weight is not None and (muscle_weight.shape != (model.n_muscles,) or not np.allclose(
+            _np(muscle_weight), model.muscle_weight, rtol=1e-12, atol=0)):
+        raise ValueError("muscle_weight must equal model.muscle_weight (shape [n_act]); build a model with "
+                         "those muscles instead")
     q_next, qdot_next = PDStepFunction.apply(model, q, qdot, contraction, f_ext, E,
-                                             None if start is None else start.detach())
+                                             None if start is None else start.detach(), muscle_weight)
     if return_info:
         stats = model.stats
         return q_next, qdot_next, ForwardInfo(stats.forward_iterations, stats.forward_residual,

@@ -68,3 +68,48 @@ def test_forward_preconditioners_agree(tiny_mesh, preconditioner):
     a = pd_step(ref, q0, qdot0, u[0], f[0], E)[0]
     b = pd_step(other, q0, qdot0, u[0], f[0], E)[0]
     torch.testing.assert_close(a, b, atol=1e-10, rtol=0)
+
+
+def _layer_loss(mesh, elements, weights, thickness, C, omega, gamma, E, differentiable: bool):
+    """Tail-and-body loss after STEPS steps of the layer-muscled fish driven by the wave
+    controller from t = 0.3 s (the ramp mostly done)."""
+    from fishsim.solid.controller import WaveController
+    from fishsim.solid.muscles import layer_muscles, layer_weights
+
+    model = SolidModel(mesh, options=PDOptions(**TIGHT),
+                       muscles=layer_muscles(mesh, float(thickness.detach()), elements=elements))
+    w, share = layer_weights(model, thickness) if differentiable else (None, None)
+    ctrl = WaveController(C, omega, gamma)
+    q, qdot = rest_state(model, len(C))
+    for k in range(STEPS):
+        u = ctrl.contraction(model, 0.3 + k * model.h, top_share=share)
+        q, qdot = pd_step(model, q, qdot, u, None, E, muscle_weight=w)
+    return (weights[0] * q).sum() + 0.01 * (weights[1] * qdot).sum()
+
+
+def test_layer_gradients_wrt_controller_E_and_thickness_match_finite_differences(tiny_mesh):
+    """d loss / d(C, omega, gamma, E, layer thickness) through the muscle layer: the adjoint (with
+    the thickness reaching the muscles' weights and top shares) against central differences.
+    The muscle list is the layer's at a larger thickness, so that both sides of the difference
+    share it (elements outside the layer at the nominal thickness have weight 0)."""
+    from fishsim.solid.muscles import layer_muscles
+
+    g = torch.Generator().manual_seed(3)
+    elements = layer_muscles(tiny_mesh, 0.45).elements
+    weights = (torch.randn((2, tiny_mesh.n_nodes, 2), generator=g), torch.randn((2, tiny_mesh.n_nodes, 2), generator=g))
+    args = [torch.tensor(0.3), torch.tensor([12.6, 15.0]), torch.tensor([31.4, 25.0]), torch.tensor([31.4, 28.0]),
+            torch.tensor([6e5, 4e5])]
+    leaves = [a.clone().requires_grad_() for a in args]
+    _layer_loss(tiny_mesh, elements, weights, *leaves, differentiable=True).backward()
+    eps = {"thickness": 1e-5, "C": 1e-4, "omega": 1e-4, "gamma": 1e-4, "E": 1.0}
+    for i, name in enumerate(eps):
+        d = torch.randn(args[i].shape, generator=g)
+        d = d / d.norm()
+        plus = [a + eps[name] * d if j == i else a for j, a in enumerate(args)]
+        minus = [a - eps[name] * d if j == i else a for j, a in enumerate(args)]
+        with torch.no_grad():
+            fd = (_layer_loss(tiny_mesh, elements, weights, *plus, differentiable=False)
+                  - _layer_loss(tiny_mesh, elements, weights, *minus, differentiable=False)) / (2 * eps[name])
+        adjoint = (leaves[i].grad * d).sum()
+        assert abs(fd.item()) > 1e-8, name                       # the parameter does act
+        assert adjoint.item() == pytest.approx(fd.item(), rel=1e-4), name

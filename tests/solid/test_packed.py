@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from fishsim.solid import PDOptions, SolidModel, elastic, kernels, packed, pd_step, rest_state
+from fishsim.solid.muscles import layer_muscles
 from fishsim.solid.packed import LANES, fma, isnan, lane, splat, vabs, vload, vmax, vsqrt, vstore, where
 from fishsim.solid.preconditioner import newton_factors
 from fishsim.solid.solve import (
@@ -120,11 +121,14 @@ def test_packed_forward_stops_a_blown_up_lane(coarse_mesh):
     assert info.converged.tolist() == [True, False, True, True, True] and info.iterations[1] <= 1
 
 
-def test_packed_batch_step_equals_per_sample_steps(coarse_mesh):
+@pytest.mark.parametrize("muscles", ["paper", "layer"])
+def test_packed_batch_step_equals_per_sample_steps(coarse_mesh, muscles):
     """pd_step on 6 samples (one padded pack, forward and adjoint) against each sample alone (the
     per-sample path): the same q+, qdot+ and gradients of a loss w.r.t. q, qdot, activation,
-    f_ext and E, to the tight solver tolerance."""
-    model = SolidModel(coarse_mesh, options=PDOptions(atol=1e-8, backward_rtol=1e-12))
+    f_ext and E, to the tight solver tolerance; with the paper's station muscles and with the
+    muscle layer (per-element weights from partial area fractions, elements of both sides)."""
+    layout = layer_muscles(coarse_mesh, 0.3) if muscles == "layer" else None
+    model = SolidModel(coarse_mesh, options=PDOptions(atol=1e-8, backward_rtol=1e-12), muscles=layout)
     g = torch.Generator().manual_seed(5)
     B = 6
     q, qdot = rest_state(model, B)
