@@ -148,6 +148,9 @@ class FluidConfig:
     wall_y, wall_x: thickness of the solid wall bands in cells (bottom/top, left/right).
     inflow: x-velocity (m/s) imposed in the left/right bands (0: closed tank).
     refinement: numerical solver only, internal grid dx / r and sub-steps h / r.
+    substeps: numerical solver only, sub-steps per frame on the r = 1 grid (r times more on the
+        refined one); a floor that the CFL safety net raises per fish only for runaway speeds.
+    penalization_iterations: numerical solver only, penalize -> project passes per stage (K).
     model_file: hydronet only, a trained model (best.pt); null: the shipped fishsim/assets/hydronet.pt.
     bf16: hydronet only, run the U-Net trunk in bfloat16 (faster on CPUs with AMX and on GPUs).
     pressure: hydronet only, "recovered" (the pressure that best satisfies the momentum equation for
@@ -165,6 +168,8 @@ class FluidConfig:
     wall_x: int = 5
     inflow: float = 0.0
     refinement: int = 1
+    substeps: int = 8
+    penalization_iterations: int = 2
     model_file: str | None = None
     bf16: bool = False
     pressure: str = "recovered"
@@ -178,6 +183,9 @@ class FluidConfig:
         _require(0 <= self.wall_y < self.H // 4 and 0 <= self.wall_x < self.W // 4,
                  "fluid.wall_y / fluid.wall_x must be >= 0 and leave room for the fluid")
         _require(self.refinement in (1, 2, 4), f"fluid.refinement must be 1, 2 or 4 (got {self.refinement})")
+        _require(1 <= self.substeps <= 64, f"fluid.substeps must be in [1, 64] (got {self.substeps})")
+        _require(1 <= self.penalization_iterations <= 16,
+                 f"fluid.penalization_iterations must be in [1, 16] (got {self.penalization_iterations})")
         _require(self.pressure in PRESSURES,
                  f"fluid.pressure must be recovered or network (got '{self.pressure}')")
         _require(0 < self.pressure_tol < 1, f"fluid.pressure_tol must be in (0, 1) (got {self.pressure_tol})")

@@ -10,10 +10,11 @@ which grows by M_a / M every frame when M_a > M: the classic added-mass instabil
 bodies.  Measured on the default fish (M = 0.23 kg/m, rho_s = 100 kg/m^3) in rho_f = 50 kg/m^3
 (a rigid 2.5 Hz, 5 mm oscillation, least-squares fit F = -M_a a - c v of the IBM force;
 tests/test_rollout.py::test_added_mass_of_the_fish_lies_in_the_stable_window): heave
-M_a = 2.0 M with the numerical fluid, 5.7 M with HydroNet and its recovered pressure
-(fishsim/fluid/pressure.py; 1.6 M with the network's own pressure); surge 0.07 M and 0.03 M.
-Unstabilised, the lateral force alternates sign every frame and the numerical fluid's run blows
-up after ~1 s at the calibrated stroke (frame 103 at 5 Hz).
+M_a = 7.4 M with the numerical fluid at its defaults (2 penalisation passes x 8 sub-steps; 5.4 M
+with 1 x 4, whose leaky penalisation lets the pressure jump through the body; a 2D plate of the
+fish's length has rho_f pi (L/2)^2 = 6.8 M), 5.7 M with HydroNet and its recovered pressure
+(fishsim/fluid/pressure.py); surge 0.08 M and 0.06 M.  Unstabilised, the lateral force
+alternates sign every frame and the run blows up.
 
 The fix (an artificial added mass): the integrator gets an extra mass M^ and the part of the
 fluid force it predicts moves to the implicit side,
@@ -29,12 +30,14 @@ an M^ far above M + M_a (e.g. lumped on the light surface nodes, where tangentia
 added mass) acts as negative damping.
 
 M^ = ratio * M node by node (``SolidModel(..., added_mass_ratio=)``; isotropic, so the PD
-matrices keep their per-axis structure and are still factorised once).  Default ratio = 2.5:
-inside both fluids' heave windows (numerical 0.5 <= M^/M <= 3.0, HydroNet 2.35 <= M^/M <= 6.7).
-It is above the surge window's mass-spring bound (M^/M <= 1.07), but the surge modes show no
-growth: over a 300-frame 7 Hz episode the share of the thrust's spectral energy above 35 Hz is
-0.3 % (numerical) and 2.7 % (HydroNet), against 0.4 % and 11 % with ratio 1 (HydroNet's lateral
-force: 1.7 % vs 5.7 %).
+matrices keep their per-axis structure and are still factorised once).  Default ratio = 5:
+inside both fluids' heave windows (numerical 3.2 <= M^/M <= 8.4, HydroNet 2.35 <= M^/M <= 6.7).
+It is above the surge window's mass-spring bound (M^/M <= 1.08), but a free surge mode (no
+spring) only relaxes: a_t+1 = (M^ - M_a)/(M + M^) a_t + f/(M + M^), a low-pass of the thrust's
+2f oscillation that keeps its mean.  The ratio is not a free knob: the lag it leaves,
+(M^ - M_a)(a_t - a_t+1), is O(h) but not small at 5-7 Hz (omega h = 0.3-0.44); on the
+numerical fluid's 120-frame frequency study (3 / 5 / 7 Hz) ratios 2.5 / 3.5 / 5 / 6.5 give
+25.9-25.3 / 73.0-73.6 / 134-149 mm: within 2.5 % at 3 and 5 Hz, 11 % at 7 Hz (README).
 """
 
 from __future__ import annotations

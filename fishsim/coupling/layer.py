@@ -75,7 +75,7 @@ class CouplingConfig:
     force_mode: str = PER_NODE
     fix_lateral: bool = False
     n_burn_in: int = 20
-    added_mass_ratio: float = 2.5
+    added_mass_ratio: float = 5.0
     k_nearest: int = 12
 
     def __post_init__(self):

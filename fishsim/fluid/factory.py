@@ -28,7 +28,8 @@ def make_fluid(cfg, device=None) -> FluidModel | None:
     if cfg.model == "numerical":
         from fishsim.fluid.numerical import NumericalFluid
 
-        return NumericalFluid(make_grid(cfg), refinement=cfg.refinement)
+        return NumericalFluid(make_grid(cfg), refinement=cfg.refinement, substeps=cfg.substeps,
+                              penalization_iterations=cfg.penalization_iterations)
     if cfg.model == "hydronet":
         from fishsim.fluid.hydronet import HydroNetFluid, load_hydronet
         from fishsim.fluid.pressure import RecoveryConfig
