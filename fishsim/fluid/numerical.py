@@ -49,7 +49,6 @@ potential, so successive steps keep the fine-scale flow; a plain ``FluidState`` 
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import torch
