@@ -1,4 +1,4 @@
-"""Solid (projective dynamics) timings on the default fish: forward / backward ms per step at
+"""Solid (projective dynamics) timings on the default fish (default muscle layer): forward / backward ms per step at
 B = 1 and B = 16, PD iterations per step, mesh size and minimum angle, and the tail excursion the
 default controller amplitude was calibrated to (5 Hz, vacuum). `run() -> dict` for the `make bench` driver;
 `python benchmarks/bench_solid.py` prints the dict as JSON.
@@ -23,6 +23,7 @@ from fishsim.mesh import make_fish_mesh, mesh_quality
 from fishsim.solid import SolidModel, pd_step, predicted_start, rest_state
 from fishsim.solid.controller import WaveController
 from fishsim.solid.model import SolverStats
+from fishsim.solid.muscles import layer_muscles
 
 
 def _controller(batch: int, length: float) -> WaveController:
@@ -96,7 +97,7 @@ def run(steps: int = 20, warmup: int = 40, repeats: int = 7) -> dict:
     `repeats`, the machine is shared), iterations per step."""
     torch.set_num_threads(1)
     mesh = make_fish_mesh()
-    model = SolidModel(mesh)
+    model = SolidModel(mesh, muscles=layer_muscles(mesh, 0.3))          # the default muscles
     out = {"nodes": model.n_nodes, "elements": mesh.n_elements, "actuated": model.n_muscles,
            "min_angle_deg": round(mesh_quality(mesh)["min_angle"], 2),
            "atol_N": model.options.atol, "backward_rtol": model.options.backward_rtol,
