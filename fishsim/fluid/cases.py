@@ -33,6 +33,11 @@ GHIA_RE100 = [
     (0.0547, -0.03717), (0.0000, 0.00000),
 ]  # fmt: skip
 
+# The published benchmarks step by the CFL bound alone with one penalisation pass (the scheme
+# they were validated with); the sub-step floor of the defaults is set for the swimming frame
+# (h = 0.01 s, 2.5 mm cells) and would multiply these cases' cost by up to 4.
+BENCHMARK_STEPPING = {"substeps": 1, "penalization_iterations": 1}
+
 
 # ----------------------------------------------------------------------------------------------
 # Helpers
@@ -123,7 +128,7 @@ def taylor_green(N: int = 32, U: float = 1.0, nu: float = 0.01, h: float = 0.02,
     i = torch.arange(N + 1, dtype=dtype) * dx
     y, x = torch.meshgrid(i, i, indexing="ij")
     a = (U * torch.sin(x) * torch.sin(y))[None, None]
-    m = NumericalFluid(g, walls=G.FREE_SLIP)
+    m = NumericalFluid(g, walls=G.FREE_SLIP, **BENCHMARK_STEPPING)
     s = FluidState(a, torch.zeros(1, 1, N, N, dtype=dtype))
     bd = Boundary(torch.zeros(1, 1, N, N, dtype=dtype), torch.zeros(1, 2, N, N, dtype=dtype))
     pr = FluidParams(torch.tensor([1.0], dtype=dtype), torch.tensor([nu], dtype=dtype), h)
@@ -159,7 +164,7 @@ def lid_driven_cavity(N: int = 64, steps: int = 1200, h: float = 0.01, dtype=tor
     by the wall values 0 and 1, interpolated linearly to Ghia's heights.  Units: lid speed, side.
     """
     g = Grid(N, N, 1.0 / N)
-    m = NumericalFluid(g, walls=G.WallBC(u_top=1.0))
+    m = NumericalFluid(g, walls=G.WallBC(u_top=1.0), **BENCHMARK_STEPPING)
     s = m.initial_state(1, dtype=dtype)
     bd = Boundary(torch.zeros(1, 1, N, N, dtype=dtype), torch.zeros(1, 2, N, N, dtype=dtype))
     pr = FluidParams(torch.tensor([1.0], dtype=dtype), torch.tensor([0.01], dtype=dtype), h)
@@ -213,7 +218,7 @@ def cylinder_wake(
     spin = torch.stack([-(c[..., 1] - yc), c[..., 0] - xc])[None].to(dtype) * body * 0.5
     inflow = G.channel(g, U, thickness_y=0, thickness_x=4, dtype=dtype)
     spinning, fixed = G.union(inflow, Boundary(body, spin)), G.union(inflow, Boundary(body, 0 * spin))
-    m = NumericalFluid(g, walls=G.FREE_SLIP)
+    m = NumericalFluid(g, walls=G.FREE_SLIP, **BENCHMARK_STEPPING)
     y = (torch.arange(g.H + 1, dtype=dtype) * dx)[None, None, :, None]
     a0 = (U * y).expand(1, 1, g.H + 1, g.W + 1)
     s = FluidState(a0 - a0.mean(), torch.zeros(1, 1, g.H, g.W, dtype=dtype))

@@ -13,6 +13,7 @@ from fishsim.coupling.ibm import ibm_force
 from fishsim.fluid import grid as G
 from fishsim.fluid.base import Boundary, FluidParams, Grid
 from fishsim.fluid.cases import (
+    BENCHMARK_STEPPING,
     CYLINDER_CI,
     control_volume_force,
     cylinder_wake,
@@ -43,7 +44,7 @@ def test_towed_disc_penalization_force_balances_fluid_momentum():
     g = Grid(48, 120, 2.5e-3)
     rho, mu, U, R = 50.0, 1e-3, 0.1, 0.01
     tank = G.closed_tank(g, 2, 2, dtype=D)
-    m = NumericalFluid(g)
+    m = NumericalFluid(g, **BENCHMARK_STEPPING)
     pr = FluidParams(torch.tensor([rho], dtype=D), torch.tensor([mu], dtype=D), 0.01)
     rows, cols = (8, 40), (16, 80)
     region = torch.zeros(1, 1, g.H, g.W, dtype=D)
@@ -89,7 +90,7 @@ def _rigid_disc_forces(U, amp_y, freq, steps):
     g = Grid(48, 120, 2.5e-3)
     rho, mu, R, w = 50.0, 1e-3, 0.01, 2 * math.pi * freq
     tank = G.closed_tank(g, 2, 2, dtype=D)
-    m = NumericalFluid(g)
+    m = NumericalFluid(g, **BENCHMARK_STEPPING)
     pr = FluidParams(torch.tensor([rho], dtype=D), torch.tensor([mu], dtype=D), 0.01)
     region = torch.zeros(1, 1, g.H, g.W, dtype=D)
     region[..., 8:40, 16:80] = 1
