@@ -132,7 +132,7 @@ def _cylinder(kw: dict) -> dict:
 
 def validation(large: bool = True) -> dict:
     """Validation figures of the numerical fluid (fishsim.fluid.cases; references in
-    VALIDATION.md), each with its resolution and wall time [s], single-threaded (as the tests
+    docs/validation.md), each with its resolution and wall time [s], single-threaded (as the tests
     run; torch's intra-op threads only contend with other work at these sizes), float64 except
     the cylinder (float32):
 

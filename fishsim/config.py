@@ -38,7 +38,7 @@ def _positive(**values: float) -> None:
 
 @dataclass
 class FishConfig:
-    """The fish body and its mesh (PHYSICS.md section 2); see ``fishsim.mesh.make_fish_mesh``."""
+    """The fish body and its mesh (docs/physics.md section 2); see ``fishsim.mesh.make_fish_mesh``."""
 
     length: float = 0.2
     profile: str = "kern"
@@ -140,7 +140,7 @@ class BatchConfig:
 
 @dataclass
 class FluidConfig:
-    """The fluid and its tank (PHYSICS.md section 4).
+    """The fluid and its tank (docs/physics.md section 4).
 
     model: none (vacuum) | numerical (the reference solver) | hydronet (the trained U-Net).
     rho: density, kg/m^3 (per unit area in 2D), in [10, 50]; mu: dynamic viscosity, Pa s.

@@ -1,6 +1,6 @@
 """The coupled swimmer and its batched, checkpointed episode: the one loop every command reuses.
 
-One frame (PHYSICS.md section 1, h = 0.01 s):
+One frame (docs/physics.md section 1, h = 0.01 s):
 
 1. solid (q_t, qdot_t) -> soft mask b_t and boundary velocity v_d,t  (fish united with the walls)
 2. fluid model (a_t, p_t, b_t, v_d,t) -> (a_t+1, p_t+1)             (HydroNet or numerical)

@@ -1,4 +1,4 @@
-"""Differentiable solid-fluid coupling (paper Sec. 3.3, PHYSICS.md section 7).
+"""Differentiable solid-fluid coupling (paper Sec. 3.3, docs/physics.md section 7).
 
 solid -> fluid: ``soft_mask`` (b), ``boundary_velocity`` (v_d), on a band of cells around the body.
 fluid -> solid: ``ibm_force`` (pressure forces on surface nodes), ``fext_from_surface`` (modes,

@@ -1,6 +1,6 @@
 """Added-mass stabilisation of the explicit (partitioned) fluid-solid coupling.
 
-The coupled step (PHYSICS.md section 1) is explicit: the pressure that pushes the solid in frame
+The coupled step (docs/physics.md section 1) is explicit: the pressure that pushes the solid in frame
 t+1 is the fluid's answer to the body velocities of frame t.  A body accelerating by a in a fluid
 feels a pressure force -M_a a (added mass M_a), so per mode the explicit scheme solves
 

@@ -1,4 +1,4 @@
-"""Geometry of the fish's surface polyline (PHYSICS.md section 7).
+"""Geometry of the fish's surface polyline (docs/physics.md section 7).
 
 The surface is the closed counter-clockwise polyline ``qs`` [B, S, 2] (x, y) in metres,
 node k joined to node k+1 (indices mod S).  Segment k runs from ``q^k`` to ``q^{k+1}``.

@@ -1,4 +1,4 @@
-"""The coupling layer: solid -> fluid (b, v_d) and fluid -> solid (f_ext) (PHYSICS.md section 7).
+"""The coupling layer: solid -> fluid (b, v_d) and fluid -> solid (f_ext) (docs/physics.md section 7).
 
     solid_to_fluid(q, qdot, surface, grid, cfg) -> Boundary(b, v_d)     step 1 of the coupled step
     fluid_to_solid(q, p, boundary, surface, grid, cfg, step) -> f_ext   step 3

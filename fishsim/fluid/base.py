@@ -1,6 +1,6 @@
 """The one fluid contract shared by HydroNet and the numerical solver.
 
-Grid and array conventions (PHYSICS.md section 4; all lengths in metres, times in seconds):
+Grid and array conventions (docs/physics.md section 4; all lengths in metres, times in seconds):
 
 * The tank is a box of H x W square cells of side ``dx``; ``x`` runs along the columns
   (index j, the long side), ``y`` along the rows (index i).  Cell (i, j) spans

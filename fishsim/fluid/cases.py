@@ -1,4 +1,4 @@
-"""Validation cases of the numerical fluid (PHYSICS.md section 6; reference data in VALIDATION.md).
+"""Validation cases of the numerical fluid (docs/physics.md section 6; reference data in docs/validation.md).
 
 Drivers shared by the tests (tests/fluid) and the benchmark (benchmarks/bench_fluid.py), each
 returning the measured numbers:

@@ -1,6 +1,6 @@
 """MAC-grid stencils in physical units, shared by HydroNet's loss and the numerical solver.
 
-Layout (``fishsim.fluid.base``; PHYSICS.md section 4): H x W cells of side ``dx`` [m], row index i
+Layout (``fishsim.fluid.base``; docs/physics.md section 4): H x W cells of side ``dx`` [m], row index i
 along y, column index j along x, every field ``[B, C, rows, cols]``:
 
 * ``a``  [B, 1, H+1, W+1]  vector potential at vertices ``(j dx, i dx)``                    [m^2/s]
@@ -164,7 +164,7 @@ def _laplacian5(q: Tensor, dx: float) -> Tensor:
 
 def laplacian_faces(v: Faces, dx: float, walls: WallBC = NO_SLIP) -> Faces:
     """Component-wise 5-point Laplacian lap v on the faces, 1/(m s); wall ghosts from ``walls``.
-    The discrete mode sin(k x) cos(k y) has eigenvalue -(8/dx^2) sin^2(k dx/2) (VALIDATION.md)."""
+    The discrete mode sin(k x) cos(k y) has eigenvalue -(8/dx^2) sin^2(k dx/2) (docs/validation.md)."""
     vx, vy = pad_faces(v, walls, 1)
     return _laplacian5(vx, dx), _laplacian5(vy, dx)
 

@@ -1,5 +1,5 @@
 """Numerical reference fluid: incompressible Navier-Stokes by projection on the MAC grid
-(PHYSICS.md section 6), implementing the ``FluidModel`` contract.
+(docs/physics.md section 6), implementing the ``FluidModel`` contract.
 
 One step advances (a, p) by h with n sub-steps of dt = h / n, each a Heun (SSP-RK2) step whose
 two stages are the same three phases (Chorin projection with Brinkman penalization):

@@ -1,4 +1,4 @@
-"""The incompressible Navier-Stokes momentum residual (PHYSICS.md section 5), written once.
+"""The incompressible Navier-Stokes momentum residual (docs/physics.md section 5), written once.
 
     R = rho [ (v_new - v_old) / h + (vbar . grad) vbar ] + grad p_new - mu lap vbar,
     vbar = (v_old + v_new) / 2                                  (IMEX, Wandel et al. 2021)

@@ -11,7 +11,7 @@ ACTUATOR_NONE, ACTUATOR_TOP, ACTUATOR_BOTTOM = 0, 1, 2
 
 @dataclass(frozen=True)
 class FishMesh:
-    """A triangulated 2D fish in its material frame (PHYSICS.md section 2).
+    """A triangulated 2D fish in its material frame (docs/physics.md section 2).
 
     points: [N, 2] float64 node positions (X, Y) in metres; X in [0, L] along the body with
         X = 0 at the tail and X = L at the head, Y lateral (top: Y > 0).

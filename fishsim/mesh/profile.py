@@ -1,4 +1,4 @@
-"""Half-width profiles w(X) of the 2D fish and their validation (PHYSICS.md section 2).
+"""Half-width profiles w(X) of the 2D fish and their validation (docs/physics.md section 2).
 
 A profile is a vectorised callable ``w(X) -> half-width``: X [...] in metres along the body
 (X = 0 at the tail, X = L at the head), w [...] in metres, the body occupying |Y| <= w(X).

@@ -1,6 +1,6 @@
 """Triangulate the fish profile: outline, quality triangles, surface polyline, actuator groups.
 
-Pipeline of `make_fish_mesh` (PHYSICS.md section 2, paper App. A Fig. 9):
+Pipeline of `make_fish_mesh` (docs/physics.md section 2, paper App. A Fig. 9):
   profile w(X) -> closed ccw outline (denser at the round head and the thin tail)
   -> Triangle quality mesh (min angle, max area sqrt(3)/4 h^2) -> ccw triangles
   -> surface polyline (the boundary edges chained ccw) -> actuator groups (spaced surface
@@ -234,7 +234,7 @@ def make_fish_mesh(length: float = 0.2, profile="kern", poly_coeffs=None, edge_l
                    min_angle: float = 30.0, n_outline: int | None = None,
                    actuator_spacing: float = 4e-3, actuator_x_range: tuple[float, float] = (0.05, 0.95),
                    tail_tip_width: float | None = None) -> FishMesh:
-    """Triangulated fish of length L in its material frame (PHYSICS.md section 2).
+    """Triangulated fish of length L in its material frame (docs/physics.md section 2).
 
     length: L in metres (X = 0 tail, X = L head).
     profile: "kern" (Kern & Koumoutsakos 2006), "polynomial" (coefficients `poly_coeffs` of

@@ -1,4 +1,4 @@
-"""Differentiable projective-dynamics solid (PHYSICS.md section 3; DiffPD, Du et al. 2021).
+"""Differentiable projective-dynamics solid (docs/physics.md section 3; DiffPD, Du et al. 2021).
 
     model = SolidModel(mesh, SolidMaterial(), h=0.01)
     q, qdot = rest_state(model, batch=B)

@@ -14,7 +14,7 @@ uniaxial one, E' = 4 mu' (lambda' + mu') / (lambda' + 2 mu'):
 - default (no volume term): lambda' = 0, E' = 2 mu_s = E / (1 + nu) = 413.8 kPa for the fish's
   E = 6e5 Pa, nu = 0.45, and the in-plane Poisson ratio is 0. Plane stress (E) and plane strain
   (E / (1 - nu^2)) do not apply as such: they are what a 3D material with (E, nu) gives, while
-  this 2D energy has no lambda term at all (PHYSICS.md section 3: the volume term is optional);
+  this 2D energy has no lambda term at all (docs/physics.md section 3: the volume term is optional);
   with lambda' = 0 the plane-stress and plane-strain reductions coincide at E' = 2 mu'.
 - with the volume term: E' = 700.3 kPa (between plane stress 600 and plane strain 752.4 kPa).
 

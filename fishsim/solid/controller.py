@@ -16,7 +16,7 @@ Calibrated amplitudes, one per muscle model (muscles.py), each in vacuum at 5 Hz
 material (E = 6e5 Pa, k_m = E, no volume term) on the default fish (make_fish_mesh(), 2 mm edges,
 1181 nodes), so that the tail tip's peak-to-peak lateral excursion over the second half of a
 120-frame episode (`fishsim simulate fluid=none frames=120`'s summary) is 30.0 mm = 0.15 L, the
-middle of PHYSICS.md's 0.1-0.2 L:
+middle of docs/physics.md's 0.1-0.2 L:
 - DEFAULT_C = 12.6 1/m for the default muscle layer (thickness 0.3 of the local half-width,
   X in [0.05, 0.95] L): 30.0 mm (29.8 mm at 12.5); largest contraction 0.22, at X = 0.05 L.
   The stroke converges under refinement: 28.2 / 30.0 / 30.9 / 31.4 mm at 3 / 2 / 1.4 / 1 mm

@@ -1,6 +1,6 @@
 """Projective-dynamics energies of one element: projections P(F) and their differentials dP[dF].
 
-Every PD energy is E_i = w_i / 2 ||G_i q - P_i(G_i q)||^2 (PHYSICS.md section 3). In 2D a
+Every PD energy is E_i = w_i / 2 ||G_i q - P_i(G_i q)||^2 (docs/physics.md section 3). In 2D a
 [2, 2] matrix splits into a conformal part (a scaled rotation) and an anticonformal part
 (a scaled reflection), which makes both the polar rotation and the closest det-1 matrix closed
 forms. With F = [[F00, F01], [F10, F11]]:

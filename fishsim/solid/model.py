@@ -1,6 +1,6 @@
 """The solid model: material, solver options, and everything precomputed from the mesh.
 
-The projective-dynamics global matrix (PHYSICS.md section 3) is, per axis ("per-axis split"),
+The projective-dynamics global matrix (docs/physics.md section 3) is, per axis ("per-axis split"),
 
     A(E) = M / h^2 + G^T diag(W(E)) G = M / h^2 + K_muscle + E K0          [N, N]
 

@@ -1,6 +1,6 @@
 """Which elements are muscles, how strong, and on which side: the muscle layout of a fish.
 
-Two models (PHYSICS.md section 2):
+Two models (docs/physics.md section 2):
 
 - `station_muscles` (the paper's, ``fish.muscles=paper``): the elements the mesher marked in
   `FishMesh.actuator`, one surface element per station, whole (weight fraction 1), top or bottom.

@@ -1,6 +1,6 @@
 """Forward and adjoint solves of one implicit-Euler PD step, batched over samples (numpy, CPU).
 
-Forward (PHYSICS.md section 3): q+ = argmin Phi(q),
+Forward (docs/physics.md section 3): q+ = argmin Phi(q),
 
     Phi(q) = 1/(2 h^2) ||q - y||_M^2 + E_int(q),   y = q_t + h qdot_t + h^2 M^-1 f_ext,
     grad Phi = M/h^2 (q - y) - f_int(q)            (the force residual, N per unit depth),

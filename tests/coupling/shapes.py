@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-L = 0.2  # fish length (m), PHYSICS.md section 2
+L = 0.2  # fish length (m), docs/physics.md section 2
 
 
 def ellipse(n: int, centre=(0.2, 0.125), axes=(0.05, 0.02), phase: float = 0.0) -> torch.Tensor:
@@ -16,7 +16,7 @@ def ellipse(n: int, centre=(0.2, 0.125), axes=(0.05, 0.02), phase: float = 0.0) 
 
 
 def fish_half_width(X: np.ndarray) -> np.ndarray:
-    """Kern & Koumoutsakos profile w(s), s = L - X (PHYSICS.md section 2)."""
+    """Kern & Koumoutsakos profile w(s), s = L - X (docs/physics.md section 2)."""
     s = L - X
     wh = sb = 0.04 * L
     st, wt = 0.95 * L, 0.01 * L

@@ -1,4 +1,4 @@
-"""Physics validations of the numerical fluid against published data (VALIDATION.md).
+"""Physics validations of the numerical fluid against published data (docs/validation.md).
 
 Slow ones are marked; all are sized for CI on 2 cores (see each docstring for the measured
 numbers and for the full-size runs recorded once)."""
@@ -68,7 +68,7 @@ def test_towed_disc_penalization_force_balances_fluid_momentum():
 def test_cylinder_re100_strouhal_and_drag_in_published_bands():
     """CI version of the Re = 100 cylinder (``CYLINDER_CI``: 16 cells per D on 24 D x 32 D,
     blockage 1/32, h = 0.1 D/U, t = 120, last 40): Strouhal number and mean drag in the published
-    bands of VALIDATION.md.  Measured: St 0.171, C_D 1.48, C_L amplitude 0.32 (~2.5 min
+    bands of docs/validation.md.  Measured: St 0.171, C_D 1.48, C_L amplitude 0.32 (~2.5 min
     single-threaded).  On this domain C_D falls with resolution (10 cells/D 1.52, 12: 1.51,
     14: 1.50, 16: 1.48, 20: 1.46; St 0.167, 0.169, 0.170, 0.171, 0.173); on 16 D x 8 D
     (blockage 1/8) 10 cells/D gave St 0.177, C_D 1.67.  The force is the penalization force

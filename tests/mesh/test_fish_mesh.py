@@ -1,4 +1,4 @@
-"""Fish profile and triangulation (fishsim.mesh): PHYSICS.md section 2, paper Fig. 9."""
+"""Fish profile and triangulation (fishsim.mesh): docs/physics.md section 2, paper Fig. 9."""
 
 import itertools
 

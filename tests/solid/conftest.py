@@ -1,5 +1,5 @@
 """Test meshes for the solid: `make_fish_mesh` at a coarse resolution for the physics tests, and
-`profile_mesh`, a tiny independent triangulation of the PHYSICS.md section 2 profile built with
+`profile_mesh`, a tiny independent triangulation of the docs/physics.md section 2 profile built with
 `triangle`, for the finite-difference gradient checks (48 nodes: fast and well resolved by FD).
 """
 
@@ -13,7 +13,7 @@ from fishsim.mesh.fish_mesh import ACTUATOR_BOTTOM, ACTUATOR_NONE, ACTUATOR_TOP,
 
 
 def kern_half_width(X: np.ndarray, length: float) -> np.ndarray:
-    """Half-width w(X) [m] of the Kern & Koumoutsakos profile, X = 0 at the tail (PHYSICS.md 2)."""
+    """Half-width w(X) [m] of the Kern & Koumoutsakos profile, X = 0 at the tail (docs/physics.md 2)."""
     s = length - X
     wh = sb = 0.04 * length
     st, wt = 0.95 * length, 0.01 * length
