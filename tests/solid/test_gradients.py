@@ -32,17 +32,22 @@ def _loss(model, weights, q0, qdot0, u, f, E):
 EPS = {"q0": 1e-6, "qdot0": 1e-4, "u": 1e-4, "f": 1e-4, "E": 1.0}
 
 
+def _central_difference(loss, args, i, eps, g):
+    """(random unit direction d for args[i], central difference of loss along d with step eps)."""
+    d = torch.randn(args[i].shape, generator=g)
+    d = d / d.norm()
+    plus = [a + eps * d if j == i else a for j, a in enumerate(args)]
+    minus = [a - eps * d if j == i else a for j, a in enumerate(args)]
+    with torch.no_grad():
+        return d, (loss(*plus) - loss(*minus)) / (2 * eps)
+
+
 def _check(model, tol=1e-4):
     args, weights, g = _problem(model)
     leaves = [a.clone().requires_grad_() for a in args]
     _loss(model, weights, *leaves).backward()
     for i, name in enumerate(EPS):
-        d = torch.randn(args[i].shape, generator=g)
-        d = d / d.norm()
-        plus = [a + EPS[name] * d if j == i else a for j, a in enumerate(args)]
-        minus = [a - EPS[name] * d if j == i else a for j, a in enumerate(args)]
-        with torch.no_grad():
-            fd = (_loss(model, weights, *plus) - _loss(model, weights, *minus)) / (2 * EPS[name])
+        d, fd = _central_difference(lambda *x: _loss(model, weights, *x), args, i, EPS[name], g)
         adjoint = (leaves[i].grad * d).sum()
         assert adjoint.item() == pytest.approx(fd.item(), rel=tol), name
 
@@ -102,14 +107,11 @@ def test_layer_gradients_wrt_controller_E_and_thickness_match_finite_differences
     leaves = [a.clone().requires_grad_() for a in args]
     _layer_loss(tiny_mesh, elements, weights, *leaves, differentiable=True).backward()
     eps = {"thickness": 1e-5, "C": 1e-4, "omega": 1e-4, "gamma": 1e-4, "E": 1.0}
+    def loss(*x):
+        return _layer_loss(tiny_mesh, elements, weights, *x, differentiable=False)
+
     for i, name in enumerate(eps):
-        d = torch.randn(args[i].shape, generator=g)
-        d = d / d.norm()
-        plus = [a + eps[name] * d if j == i else a for j, a in enumerate(args)]
-        minus = [a - eps[name] * d if j == i else a for j, a in enumerate(args)]
-        with torch.no_grad():
-            fd = (_layer_loss(tiny_mesh, elements, weights, *plus, differentiable=False)
-                  - _layer_loss(tiny_mesh, elements, weights, *minus, differentiable=False)) / (2 * eps[name])
+        d, fd = _central_difference(loss, args, i, eps[name], g)
         adjoint = (leaves[i].grad * d).sum()
         assert abs(fd.item()) > 1e-8, name                       # the parameter does act
         assert adjoint.item() == pytest.approx(fd.item(), rel=1e-4), name
