@@ -260,9 +260,10 @@ class NumericalFluid:
         n = self._count_substeps(v, b, v_d, nu, h)                      # [B]
         dt = (h / n.to(v[0])).view(-1, 1, 1, 1)
         p_sum, pen_sum = 0.0, (0.0, 0.0)
-        for i in range(int(n.max())):
+        n_min, n_max = int(n.min()), int(n.max())
+        for i in range(n_max):
             new, phi, pen = self._substep(v, b, v_d, nu, dt)
-            if i >= int(n.min()):                     # samples past their own count keep their state
+            if i >= n_min:                            # samples past their own count keep their state
                 active = (i < n).to(v[0]).view(-1, 1, 1, 1)
                 new = tuple(active * c + (1 - active) * o for c, o in zip(new, v))
                 phi, pen = active * phi, tuple(active * q for q in pen)
