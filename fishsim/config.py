@@ -158,7 +158,7 @@ class FluidConfig:
     pressure_tol: hydronet only, relative residual of the pressure recovery's PCG solve.
     """
 
-    model: str = "hydronet"
+    model: str = "numerical"
     rho: float = 50.0
     mu: float = 1.25e-4
     H: int = 100
