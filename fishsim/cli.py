@@ -22,6 +22,8 @@ app = typer.Typer(
 OVERRIDES = typer.Argument(None, help="Config overrides, key=value (e.g. fish.edge_length=3e-3).",
                            show_default=False)
 SHOW = typer.Option(False, "--show-config", help="Print the resolved config as YAML and exit.")
+CONFIG = typer.Option(None, "--config", help="A YAML config to start from (e.g. a run's config or optimize's "
+                      "best.yaml); overrides apply on top.", show_default=False)
 
 
 def describe(defaults, prefix: str = "") -> str:
@@ -39,10 +41,10 @@ def describe(defaults, prefix: str = "") -> str:
     return "\n\n".join(["top level: " + "  ".join(keys)] + groups)
 
 
-def _execute(command: str, overrides: list[str] | None, show: bool, run: Callable) -> None:
+def _execute(command: str, overrides: list[str] | None, show: bool, run: Callable, config: str | None = None) -> None:
     """Compose, validate and run; user errors become one line on stderr and exit code 2."""
     try:
-        cfg = load_config(command, overrides)
+        cfg = load_config(command, overrides, config)
         if show:
             typer.echo(to_yaml(cfg))
             return
@@ -77,8 +79,8 @@ def _command(name: str, summary: str, positional: tuple[str, ...] = ()) -> Calla
     epilog = "Config (group.key=default):\n\n" + describe(ROOTS[name]())
 
     def decorate(run_factory: Callable[[], Callable]) -> Callable:
-        def command(overrides: list[str] | None = OVERRIDES, show_config: bool = SHOW) -> None:
-            _execute(name, _positional(overrides, positional), show_config, run_factory())
+        def command(overrides: list[str] | None = OVERRIDES, show_config: bool = SHOW, config: str = CONFIG) -> None:
+            _execute(name, _positional(overrides, positional), show_config, run_factory(), config)
 
         command.__doc__ = summary
         app.command(name=name, epilog=epilog)(command)
@@ -111,6 +113,13 @@ def _train_hydronet() -> Callable:
 @_command("validate", "Compare against the numerical reference (suite=hydronet: HydroNet on held-out scenes).")
 def _validate() -> Callable:
     from fishsim.commands.validate import run
+
+    return run
+
+
+@_command("optimize", "Optimise a swimmer's gait or design (adam, any torch.optim, CMA-ES); history, plot, best.yaml.")
+def _optimize() -> Callable:
+    from fishsim.commands.optimize import run
 
     return run
 

@@ -22,6 +22,7 @@ from fishsim.coupling.layer import CouplingConfig
 from fishsim.errors import ConfigError
 from fishsim.fluid.hydronet.train import TrainConfig
 from fishsim.fluid.pressure import PRESSURES
+from fishsim.optimize.problem import ObjectiveConfig, ParamSpec
 from fishsim.render.config import RenderConfig
 from fishsim.solid.model import PDOptions, SolidMaterial
 
@@ -196,7 +197,8 @@ class SimulateConfig:
     """``fishsim simulate``: one episode of B fish swimming, written as an HDF5 trajectory.
 
     frames: number of frames of h seconds.  origin: (x, y) in m of the fish's material origin
-    (the tail tip) in the tank.  fluid_stride: store the fluid fields every k frames.
+    (the tail tip) in the tank.  hold_x: hold the fish's centroid x fixed (the paper's thrust
+    set-up; the fish undulates and sways in y but cannot travel; ``fishsim.rollout.Swimmer``).  fluid_stride: store the fluid fields every k frames.
     vtk / vtk_stride: also write ParaView frames every vtk_stride frames (a multiple of fluid_stride).  flush_every: HDF5 flush period (frames).
     device: cpu | cuda.
     """
@@ -210,6 +212,7 @@ class SimulateConfig:
     frames: int = 300
     h: float = 0.01
     origin: list[float] = field(default_factory=lambda: [0.2, 0.125])
+    hold_x: bool = False
     fluid_stride: int = 5
     vtk: bool = False
     vtk_stride: int = 5
@@ -237,8 +240,81 @@ class SimulateConfig:
                      f"origin={list(self.origin)} puts the fish outside the {Lx:.3f} x {Ly:.3f} m tank")
 
 
+@dataclass
+class OptimizerConfig:
+    """How to optimise (fishsim/optimize/methods.py).
+
+    methods: run each in turn, into <out_dir>/<method>/ (cma, or a torch.optim name: adam, sgd, ...).
+    iterations: per method.  budget: fish-frames per method (null: none); an iteration costs
+        2 x frames for a gradient method (the forward pass and its checkpoint recomputation) and
+        popsize x frames for a CMA-ES generation.
+    lr: the gradient method's learning rate in normalised units (z in [0, 1] spans the bounds).
+    options: more keyword arguments of the torch.optim optimiser.
+    sigma: CMA-ES's initial step in normalised units.  popsize: CMA-ES population (null: pycma's 4 + 3 ln P).
+    seed: CMA-ES's random seed.  segment: gradient-checkpoint segment (frames).
+    """
+
+    methods: list[str] = field(default_factory=lambda: ["adam"])
+    iterations: int = 20
+    budget: int | None = None
+    lr: float = 0.05
+    options: dict[str, Any] = field(default_factory=dict)
+    sigma: float = 0.1
+    popsize: int | None = None
+    seed: int = 0
+    segment: int = 25
+
+    def validate(self) -> None:
+        from fishsim.optimize.methods import torch_optimizer
+
+        _require(len(self.methods) >= 1, "optimizer.methods must name at least one method (e.g. [adam, cma])")
+        for m in self.methods:
+            if m != "cma":
+                torch_optimizer(m)
+        _require(self.iterations >= 1, f"optimizer.iterations must be >= 1 (got {self.iterations})")
+        _require(self.popsize is None or self.popsize >= 2,
+                 f"optimizer.popsize must be >= 2 (got {self.popsize}): CMA-ES needs a population to rank")
+        _positive(**{"optimizer.lr": self.lr, "optimizer.sigma": self.sigma})
+        _require(self.segment >= 1, f"optimizer.segment must be >= 1 (got {self.segment})")
+
+
+@dataclass
+class OptimizeConfig(SimulateConfig):
+    """``fishsim optimize``: the episode (every ``fishsim simulate`` key) plus what to optimise.
+
+    objective: what is maximised (fishsim/optimize/problem.py).  params: {name: bounds, scale,
+    start} of the optimised parameters (frequency, amplitude, wave_number, youngs_modulus).
+    optimizer: how.  resume: continue the run in out_dir from its last completed iteration.
+    """
+
+    frames: int = 120
+    objective: ObjectiveConfig = field(default_factory=ObjectiveConfig)
+    params: dict[str, ParamSpec] = field(default_factory=lambda: {"frequency": ParamSpec(0.5, 10.5)})
+    optimizer: OptimizerConfig = field(default_factory=OptimizerConfig)
+    resume: bool = False
+
+    def validate(self) -> None:
+        super().validate()
+        _require(self.batch.size == 1, "batch.* lists are not used by optimize (its candidates are the batch); "
+                 "remove them")
+        _require(len(self.params) >= 1, "params is empty: give at least one parameter to optimise "
+                 "(e.g. +params.frequency={lower:1,upper:10})")
+        for name, spec in self.params.items():
+            spec.check(name)
+        self.objective.check(self.hold_x)
+        self.optimizer.validate()
+        _require(self.resume is False or self.out_dir is not None,
+                 "resume=true needs out_dir=<the run folder to continue>")
+        b = self.optimizer.budget
+        if b is not None:
+            cheapest = min(2 * self.frames if m != "cma" else (self.optimizer.popsize or 4) * self.frames
+                           for m in self.optimizer.methods)
+            _require(b >= cheapest, f"optimizer.budget = {b} fish-frames cannot afford one iteration "
+                     f"({cheapest} fish-frames at frames={self.frames}); raise it or shorten the episode")
+
+
 ROOTS: dict[str, type] = {"mesh": MeshCommandConfig, "simulate": SimulateConfig, "render": RenderConfig,
-                         "train-hydronet": TrainConfig, "validate": ValidateConfig}
+                         "train-hydronet": TrainConfig, "validate": ValidateConfig, "optimize": OptimizeConfig}
 
 
 def config_dir() -> str:
@@ -246,11 +322,15 @@ def config_dir() -> str:
     return str(resources.files("fishsim") / "conf")
 
 
-def load_config(command: str, overrides: list[str] | None = None) -> Any:
+def load_config(command: str, overrides: list[str] | None = None, config_file: str | None = None) -> Any:
     """Compose ``conf/<command>.yaml`` with command-line ``key=value`` overrides, check it
     against the command's structured config and return the validated dataclass instance.
+    ``config_file``: a YAML config (e.g. a run's stored config, optimize's best.yaml) merged over
+    the composed defaults; the ``key=value`` overrides apply on top of it (config groups such as
+    ``fluid=hydronet`` are then taken from the file: set their keys instead, ``fluid.model=...``).
 
-    Raises ConfigError (one line) for an unknown key, a wrong type or an impossible value.
+    Raises ConfigError (one line) for an unknown key, a wrong type or an impossible value, or a
+    missing or unreadable config file.
     """
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
@@ -263,7 +343,26 @@ def load_config(command: str, overrides: list[str] | None = None) -> Any:
             raw = compose(config_name=command, overrides=overrides)
     except (HydraException, OmegaConfBaseException, ValueError) as err:  # ValueError: bad group override
         raise ConfigError(_one_line(err)) from None
+    if config_file is not None:
+        from pathlib import Path
+
+        groups = {d.name for d in Path(config_dir()).iterdir() if d.is_dir()}
+        raw = _merge_file(raw, config_file, [o for o in overrides if "=" in o and o.split("=")[0].lstrip("+~") not in groups])
     return to_dataclass(command, raw)
+
+
+def _merge_file(raw: Any, path: str, dotted: list[str]) -> Any:
+    """raw <- the YAML file <- the ``key=value`` overrides (later wins)."""
+    from pathlib import Path
+
+    if not Path(path).is_file():
+        raise ConfigError(f"config file {path} does not exist (give the path of a YAML config, e.g. a run's best.yaml)")
+    try:
+        loaded = OmegaConf.load(path)
+        dots = OmegaConf.from_dotlist([o.lstrip("+") for o in dotted if not o.startswith("~")])
+        return OmegaConf.merge(raw, loaded, dots)
+    except (OmegaConfBaseException, ValueError, OSError) as err:
+        raise ConfigError(f"config file {path} is not a readable YAML config: {_one_line(err)}") from None
 
 
 def to_dataclass(command: str, raw: Any) -> Any:

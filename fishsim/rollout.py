@@ -104,12 +104,16 @@ class Swimmer:
         to the fluid's.  fluid: a FluidModel or None (vacuum).
     coupling: CouplingConfig.  walls: the tank's Boundary [1, ., H, W] (mask 1 in the walls).
     fluid_dtype: dtype of the fluid fields (float32 for HydroNet and the numerical solver).
+    hold_x: the constraint mode "held on the x axis" (the paper's thrust experiment, Fig. 5):
+        after every solid step the fish's mass-weighted mean x displacement and x velocity are
+        removed, so its centroid x never moves while it undulates and sways freely in y.
     """
 
     def __init__(self, solid: SolidModel, fluid: FluidModel | None, coupling: CouplingConfig,
-                 walls: Boundary | None = None, fluid_dtype: torch.dtype = torch.float32):
+                 walls: Boundary | None = None, fluid_dtype: torch.dtype = torch.float32,
+                 hold_x: bool = False):
         self.solid, self.fluid, self.coupling = solid, fluid, coupling
-        self.walls, self.fluid_dtype = walls, fluid_dtype
+        self.walls, self.fluid_dtype, self.hold_x = walls, fluid_dtype, hold_x
         self.surface = torch.as_tensor(solid.mesh.surface, dtype=torch.long)
         self.added_mass = torch.as_tensor(solid.added_mass) if solid.added_mass.any() else None
         self.timer = PhaseTimer()
@@ -139,6 +143,10 @@ class Swimmer:
         B = state.q.shape[0]
         walls = Boundary(self.walls.mask.expand(B, -1, -1, -1), self.walls.velocity.expand(B, -1, -1, -1))
         return union(fish, walls)
+
+    def node_mass(self, like: Tensor) -> Tensor:
+        """Lumped nodal masses [N] (kg per unit depth) as ``like``'s dtype and device."""
+        return torch.as_tensor(self.solid.fem.mass, dtype=like.dtype, device=like.device)
 
     def added_mass_force(self, state: SwimState) -> Tensor | float:
         """M^ a_t, the added-mass stabilisation's share of the force (0 without an estimate)."""
@@ -170,9 +178,23 @@ class Swimmer:
             None if state.qdot_prev is None else predicted_start(state.q, state.qdot, state.qdot_prev, self.h))
         q, qdot = pd_step(self.solid, state.q, state.qdot, contraction, f_ext + self.added_mass_force(state),
                           params.E, start=solid_start)
+        if self.hold_x:
+            q, qdot = hold_centroid_x(q, qdot, state.q, self.node_mass(q))
         require_finite(solid_positions_q=q, solid_velocities_qdot=qdot)
         clock.add("solid", t0, dev)
         return SwimState(q, qdot, fluid, state.qdot), FrameOutput(f_ext, contraction, boundary)
+
+
+def hold_centroid_x(q: Tensor, qdot: Tensor, q_prev: Tensor, mass: Tensor) -> Tensor:
+    """The x-held constraint: shift q [B, N, 2] in x so that its mass-weighted centroid x equals
+    q_prev's, and remove the mass-weighted mean x velocity from qdot (momentum in x is zero).
+    mass [N]. Returns (q, qdot), differentiable."""
+    w = (mass / mass.sum())[None, :]
+    dx = ((q[..., 0] - q_prev[..., 0]) * w).sum(1, keepdim=True)
+    vx = (qdot[..., 0] * w).sum(1, keepdim=True)
+    shift = torch.stack([dx, torch.zeros_like(dx)], -1)
+    vshift = torch.stack([vx, torch.zeros_like(vx)], -1)
+    return q - shift, qdot - vshift
 
 
 # ------------------------------------------------------------------------------------------------
@@ -191,17 +213,19 @@ def tail_node(mesh) -> int:
     return int(mesh.surface[np.argmin(np.hypot(pts[:, 0], pts[:, 1]))])
 
 
-METRICS = ["head_x", "head_y", "tail_y", "centroid_x", "centroid_y", "thrust_x", "force_y"]
+METRICS = ["head_x", "head_y", "tail_y", "centroid_x", "centroid_y", "thrust_x", "force_y", "power"]
 
 
 def frame_metrics(swimmer: Swimmer, state: SwimState, out: FrameOutput) -> dict[str, Tensor]:
-    """head_x, head_y, tail_y (m), centroid_x (m, mass weighted), thrust_x, force_y (N, total
-    hydrodynamic force on the fish), each [B]."""
-    mesh, mass = swimmer.solid.mesh, torch.as_tensor(swimmer.solid.fem.mass, dtype=state.q.dtype)
+    """head_x, head_y, tail_y (m), centroid_x (m, mass weighted), thrust_x, force_y (N per unit
+    depth, total hydrodynamic force on the fish), power (W per unit depth, the power the fish
+    gives the fluid, P = -sum_i f_ext,i . qdot_i), each [B]."""
+    mesh, mass = swimmer.solid.mesh, swimmer.node_mass(state.q)
     head, tail = head_node(mesh), tail_node(mesh)
-    centroid = (state.q * mass[None, :, None].to(state.q.device)).sum(1) / mass.sum()
+    centroid = (state.q * mass[None, :, None]).sum(1) / mass.sum()
+    power = -(out.f_ext * state.qdot).sum((1, 2))
     values = [state.q[:, head, 0], state.q[:, head, 1], state.q[:, tail, 1], centroid[:, 0],
-              centroid[:, 1], out.f_ext[..., 0].sum(1), out.f_ext[..., 1].sum(1)]
+              centroid[:, 1], out.f_ext[..., 0].sum(1), out.f_ext[..., 1].sum(1), power]
     return dict(zip(METRICS, values))
 
 
@@ -283,7 +307,7 @@ def _detached(state: SwimState) -> SwimState:
 
 def rollout(swimmer: Swimmer, state: SwimState, params: SwimParams, n_frames: int,
             segment: int = 0, on_frame: Callable[[int, SwimState, FrameOutput, dict], None] | None = None,
-            start: int = 0) -> tuple[SwimState, dict[str, Tensor]]:
+            start: int = 0, failures: dict[int, tuple[int, str]] | None = None) -> tuple[SwimState, dict[str, Tensor]]:
     """Run ``n_frames`` frames from frame ``start``; return the final state and the per-frame
     metrics stacked to [n_frames, B] (differentiable w.r.t. the initial state and ``params``).
 
@@ -294,9 +318,18 @@ def rollout(swimmer: Swimmer, state: SwimState, params: SwimParams, n_frames: in
     on_frame(t, state, output, metrics): called once per frame after frame t (0-based, counted
         from ``start``) in the forward pass only (not again during checkpoint recomputation),
         e.g. to write outputs; raising stops the episode.
+    failures: None (default): a sample that blows up stops the whole batch. A dict: isolate
+        failing samples instead (a population of candidates): a sample whose frame blows up is
+        found by re-running that frame one sample at a time, recorded as
+        ``failures[b] = (frame, reason)`` and parked from then on (held at this call's initial
+        state with zero muscle contraction, so it stays at rest and its gradients are zero); the
+        others carry on. Raises only if every sample has failed.
     Raises SimulationBlowUp naming the frame if a state goes non-finite.
     """
     recorded = [start - 1]
+    isolate, rest = failures is not None, state
+    alive = [torch.ones(state.q.shape[0], dtype=torch.bool, device=state.q.device)]
+    masks: dict[int, Tensor] = {}             # frame -> the alive mask it ran with (replayed)
     seg = segment if segment > 0 and torch.is_grad_enabled() else n_frames
     solutions: dict[int, SwimState] = {}      # frame -> forward solution, replayed in recomputation
 
@@ -308,12 +341,21 @@ def rollout(swimmer: Swimmer, state: SwimState, params: SwimParams, n_frames: in
         p = _with_param_tensors(params, tensors[n_state:])
         for t in range(t0, t0 + count):
             replay = t <= recorded[0]
+            mask = masks[t] if replay and isolate else alive[0]
+            s_in, p_in = park(s, p, mask, rest) if isolate else (s, p)
             try:
-                s, out = swimmer.frame(s, p, t, start=solutions.get(t) if replay else None)
+                s_new, out = swimmer.frame(s_in, p_in, t, start=solutions.get(t) if replay else None)
             except SimulationBlowUp as err:
-                raise SimulationBlowUp(f"simulation blew up at frame {t + 1}: {err}") from None
+                if not isolate or replay:
+                    raise SimulationBlowUp(f"simulation blew up at frame {t + 1}: {err}") from None
+                mask = mask & ~failing_samples(swimmer, s_in, p_in, t, mask, failures, err)
+                alive[0] = mask
+                s_in, p_in = park(s, p, mask, rest)
+                s_new, out = swimmer.frame(s_in, p_in, t)
+            s = s_new
             m = frame_metrics(swimmer, s, out)
             if not replay:
+                masks[t] = mask
                 if on_frame is not None:
                     on_frame(t, s, out, m)
                 recorded[0] = t
@@ -336,6 +378,57 @@ def rollout(swimmer: Swimmer, state: SwimState, params: SwimParams, n_frames: in
         t += count
     stacked = torch.cat(chunks)  # [n_frames, n_metrics, B]
     return _unflatten(tensors), {name: stacked[:, i] for i, name in enumerate(METRICS)}
+
+
+def _select(keep: Tensor, x: Tensor | None, other: Tensor | None) -> Tensor | None:
+    """x where keep [B] is true, else other (per sample; None stays None)."""
+    if x is None or other is None:
+        return x
+    return torch.where(keep.view(-1, *[1] * (x.ndim - 1)), x, other)
+
+
+def park(state: SwimState, params: SwimParams, alive: Tensor, rest: SwimState) -> tuple[SwimState, SwimParams]:
+    """Samples not ``alive`` [B] set to the ``rest`` state with zero muscle amplitude C (they
+    stay at rest and pass no gradient); the others untouched."""
+    if bool(alive.all()):
+        return state, params
+    fluid = state.fluid
+    if fluid is not None:
+        fluid = FluidState(a=_select(alive, fluid.a, rest.fluid.a), p=_select(alive, fluid.p, rest.fluid.p))
+    qdot_prev = _select(alive, state.qdot_prev, rest.qdot_prev if rest.qdot_prev is not None else torch.zeros_like(rest.q))
+    parked = SwimState(_select(alive, state.q, rest.q), _select(alive, state.qdot, rest.qdot), fluid, qdot_prev)
+    C = params.controller.C
+    controller = dataclasses.replace(params.controller, C=torch.where(alive, C, torch.zeros_like(C)))
+    return parked, SwimParams(controller, params.E, params.fluid)
+
+
+def _sample(state: SwimState, params: SwimParams, b: int) -> tuple[SwimState, SwimParams]:
+    """Sample b of a batch as a batch of one."""
+    one = lambda x: None if x is None else x[b:b + 1]
+    fluid = None if state.fluid is None else FluidState(a=one(state.fluid.a), p=one(state.fluid.p))
+    c = params.controller
+    controller = dataclasses.replace(c, C=one(c.C), omega=one(c.omega), gamma=one(c.gamma))
+    fp = None if params.fluid is None else dataclasses.replace(params.fluid, rho=one(params.fluid.rho),
+                                                               mu=one(params.fluid.mu))
+    return SwimState(one(state.q), one(state.qdot), fluid, one(state.qdot_prev)), SwimParams(controller, one(params.E), fp)
+
+
+def failing_samples(swimmer: Swimmer, state: SwimState, params: SwimParams, t: int, alive: Tensor,
+                    failures: dict, err: Exception) -> Tensor:
+    """Re-run frame t for each alive sample alone; return the mask [B] of those that blow up
+    and record ``failures[b] = (frame, reason)``. Re-raises ``err`` if none fails alone (the
+    batch's failure is then not any one sample's) or if every sample fails."""
+    bad = torch.zeros_like(alive)
+    with torch.no_grad():
+        for b in torch.nonzero(alive).flatten().tolist():
+            try:
+                swimmer.frame(*_sample(state, params, b), t)
+            except SimulationBlowUp as one:
+                bad[b] = True
+                failures[b] = (t + 1, str(one))
+    if not bool(bad.any()) or bool((alive & ~bad).sum() == 0):
+        raise SimulationBlowUp(f"simulation blew up at frame {t + 1}: {err}")
+    return bad
 
 
 def strouhal(tail_y: np.ndarray, frequency: float, speed: float) -> float:

@@ -1,7 +1,7 @@
 """Result plots (matplotlib Agg), each written as PNG and SVG:
 
-* ``plot_optimisation_history``: objective and parameter per iteration for several methods on
-  the same axes (paper Fig. 5: gradient descent vs CMA-ES on the controller frequency);
+* ``plot_optimisation_history``: objective and parameters against iterations and simulated
+  fish-frames for several methods on the same axes (paper Fig. 5: gradient vs CMA-ES);
 * ``plot_validation``: a quantity (head x-position) against the controller frequency for
   several simulators, optional error bars (paper Fig. 4: HydroNet vs the numerical solver).
 """
@@ -35,29 +35,41 @@ def _figure(rows: int, height: float) -> tuple[Figure, list]:
     return fig, axes
 
 
-def plot_optimisation_history(histories: Mapping[str, Mapping[str, Sequence[float]]], path: str | Path,
-                              objective_label: str = "objective", parameter_label: str = "frequency [Hz]",
-                              optimum: float | None = None) -> list[Path]:
-    """histories: {method: {"objective": [per iteration], "parameter": [per iteration]}}; a
-    method may give "iteration" (x values, e.g. cumulative simulations) instead of 0, 1, 2...
-    ``optimum``: a reference parameter value drawn as a dotted line."""
-    fig, (ax_obj, ax_par) = _figure(2, 5.2)
+def plot_optimisation_history(histories: Mapping[str, Mapping], path: str | Path, objective_label: str = "objective J",
+                              units: Mapping[str, str] | None = None) -> list[Path]:
+    """The paper's Fig. 5 layout, for several methods on the same axes: the objective (each
+    iteration's value, markers; best so far, line) and every parameter, against iterations (left
+    column) and against simulated fish-frames (right column), so that methods with different
+    costs per iteration compare at equal budget.
+
+    histories: {method: {"objective": [n], "best": [n], "frames": [n] cumulative fish-frames,
+    "parameters": {name: [n]}}}.  units: {parameter name: unit} for the axis labels.
+    """
+    names = list(dict.fromkeys(n for h in histories.values() for n in h["parameters"]))
+    rows = 1 + len(names)
+    fig = Figure(figsize=(10, 2.4 * rows + 0.6), layout="constrained")
+    FigureCanvasAgg(fig)
+    axes = [[fig.add_subplot(rows, 2, 2 * r + c + 1) for c in range(2)] for r in range(rows)]
     for i, (method, h) in enumerate(histories.items()):
         obj = np.asarray(h["objective"], float)
-        it = np.asarray(h.get("iteration", np.arange(len(obj))), float)
-        style = {"marker": MARKERS[i % len(MARKERS)], "markersize": 3, "label": method}
-        ax_obj.plot(it, obj, **style)
-        if "parameter" in h:
-            ax_par.plot(it, np.asarray(h["parameter"], float), **style)
-    if optimum is not None:
-        ax_par.axhline(optimum, color="0.4", linestyle=":", label="optimum")
-    ax_obj.set_ylabel(objective_label)
-    ax_par.set_ylabel(parameter_label)
-    ax_par.set_xlabel("iteration")
-    for ax in (ax_obj, ax_par):
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=8)
-    ax_obj.set_title("optimisation history")
+        xs = (np.arange(1, len(obj) + 1), np.asarray(h["frames"], float))
+        for c, x in enumerate(xs):
+            line = axes[0][c].plot(x, obj, MARKERS[i % len(MARKERS)], markersize=3, alpha=0.6)[0]
+            axes[0][c].plot(x, np.asarray(h["best"], float), color=line.get_color(), label=method)
+            for r, name in enumerate(names, start=1):
+                if name in h["parameters"]:
+                    axes[r][c].plot(x, np.asarray(h["parameters"][name], float), marker=MARKERS[i % len(MARKERS)],
+                                    markersize=3, color=line.get_color(), label=method)
+    labels = [objective_label] + [f"{n} [{(units or {}).get(n, '-')}]" for n in names]
+    for r, row in enumerate(axes):
+        for c, ax in enumerate(row):
+            ax.set_ylabel(labels[r])
+            ax.grid(alpha=0.3)
+            ax.legend(fontsize=8)
+            if r == rows - 1:
+                ax.set_xlabel(("iteration", "simulated fish-frames")[c])
+    axes[0][0].set_title("against iterations (markers: each iteration, line: best so far)")
+    axes[0][1].set_title("against simulated fish-frames")
     return save_png_svg(fig, path)
 
 

@@ -1,0 +1,221 @@
+"""``fishsim optimize``: tune a swimmer's gait or design with a gradient method and/or CMA-ES.
+
+Each method of ``optimizer.methods`` runs into <out_dir>/<method>/:
+
+    history.h5    every iteration: the evaluated parameters x [n, P], objective J, gradient dJ/dx
+                  (gradient methods), the method's mean, the best so far, cumulative fish-frames
+                  and wall time; CMA-ES also its whole population (pop_x [n, lambda, P], pop_J)
+    history.csv   the same, one row per iteration (without the population)
+    state.pt      the optimiser's state after the last completed iteration (resume=true)
+    best.yaml     the best parameters as a config: ``fishsim simulate --config best.yaml``
+
+and <out_dir>/optimize.png/.svg (all methods on one figure, against iterations and fish-frames),
+<out_dir>/summary.json. Every file is rewritten atomically after each iteration, so a run killed
+at any point keeps everything up to its last completed iteration and continues from there.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import io
+import json
+import math
+import os
+from pathlib import Path
+
+import h5py
+import numpy as np
+import torch
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.table import Table
+
+from fishsim.config import OptimizeConfig, SimulateConfig, to_yaml
+from fishsim.errors import FishsimError, SimulationBlowUp
+from fishsim.io.outdir import make_out_dir
+from fishsim.optimize.methods import make_method
+from fishsim.optimize.problem import OBJECTIVES, PARAMETERS, Problem, Space
+from fishsim.render.plots import plot_optimisation_history
+
+
+def run(cfg: OptimizeConfig) -> dict:
+    """Run every method, write the outputs, print the summary; return it."""
+    out_dir = make_out_dir("optimize", cfg.out_dir)
+    space = Space(list(cfg.params), list(cfg.params.values()))
+    problem = Problem(cfg, space, cfg.objective, segment=cfg.optimizer.segment)
+    console = Console(stderr=True)
+    histories, summary = {}, {}
+    for method in cfg.optimizer.methods:
+        rows = optimise(problem, cfg, method, out_dir / method, console)
+        histories[method] = rows
+        summary[method] = _summary(rows, space, problem.initial_x())
+        _write_best(cfg, space, rows, out_dir / method / "best.yaml")
+    unit = OBJECTIVES[cfg.objective.name]
+    plot = plot_optimisation_history(
+        {m: {"objective": [r["J"] for r in rows], "best": [r["best_J"] for r in rows],
+             "frames": [r["frames"] for r in rows],
+             "parameters": {n: [r["x"][i] for r in rows] for i, n in enumerate(space.names)}}
+         for m, rows in histories.items() if rows},
+        out_dir / "optimize", objective_label=f"{cfg.objective.name} J [{unit}]", units=PARAMETERS)
+    _atomic_text(out_dir / "summary.json", json.dumps(summary, indent=2))
+    _print(summary, space, cfg)
+    Console().print(f"outputs: {out_dir}/ (per method: history.h5, history.csv, best.yaml; plot: {plot[0].name})")
+    return summary
+
+
+def optimise(problem: Problem, cfg: OptimizeConfig, name: str, folder: Path, console: Console) -> list[dict]:
+    """One method's iterations, resumed from ``folder/state.pt`` when cfg.resume; returns the
+    history rows. A gradient run whose episode blows up or whose objective is not finite stops
+    with a one-line error, the history up to the last completed iteration kept."""
+    folder.mkdir(parents=True, exist_ok=True)
+    o, space = cfg.optimizer, problem.space
+    z0 = space.to_z(torch.tensor(problem.initial_x(), dtype=torch.float64)).tolist()
+    method = make_method(name, z0, o.lr, o.sigma, o.popsize, o.seed, o.options)
+    rows: list[dict] = []
+    state_path = folder / "state.pt"
+    if cfg.resume and state_path.exists():
+        saved = torch.load(state_path, weights_only=False)
+        method.load(saved["method"])
+        rows = saved["rows"]
+    cost = cfg.frames * (getattr(method, "popsize", 0) or 2)
+    columns = (TextColumn(f"optimize {name}"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[status]}"),
+               TimeElapsedColumn())
+    with Progress(*columns, console=console, transient=True) as bar:
+        task = bar.add_task(name, total=o.iterations, completed=len(rows), status=_status(rows))
+        for it in range(len(rows), o.iterations):
+            if o.budget is not None and (rows[-1]["frames"] if rows else 0) + cost > o.budget:
+                break
+            z = method.ask()
+            try:
+                ev = problem.evaluate(z, gradient=method.uses_gradient, isolate=not method.uses_gradient)
+            except SimulationBlowUp as err:
+                raise FishsimError(f"{name} stopped at iteration {it + 1}: {err}; the history of the "
+                                   f"{len(rows)} completed iterations is kept in {folder}") from None
+            if not bool(torch.isfinite(ev.J).any()):
+                raise FishsimError(f"{name} stopped at iteration {it + 1}: every candidate failed "
+                                   f"({_reasons(ev.failures)}); the history is kept in {folder}")
+            method.tell(z, ev.J, ev.grad_z)
+            rows.append(_row(it, name, space, z, ev, method, rows))
+            _save(folder, rows, space, cfg, name)
+            _atomic_torch({"method": method.state(), "rows": rows}, state_path)
+            bar.update(task, completed=it + 1, status=_status(rows))
+    return rows
+
+
+def _row(it: int, name: str, space: Space, z: torch.Tensor, ev, method, rows: list[dict]) -> dict:
+    """One iteration's record: the best candidate of this iteration, the gradient, the mean,
+    the best so far and the cumulative cost."""
+    J = ev.J.double()
+    finite = torch.where(torch.isfinite(J), J, torch.full_like(J, -math.inf))
+    k = int(torch.argmax(finite))
+    x = space.to_x(z)
+    grad = [math.nan] * len(space.names)
+    if ev.grad_z is not None:
+        zk = z[k].clone().requires_grad_(True)
+        jac = torch.autograd.functional.jacobian(space.to_x, zk).diagonal()   # dx/dz, each x depends on its z
+        grad = (ev.grad_z[k] / jac).tolist()
+    prev = rows[-1] if rows else None
+    best = prev is None or float(J[k]) > prev["best_J"]
+    return {"iteration": it + 1, "method": name, "x": x[k].tolist(), "J": float(J[k]), "grad": grad,
+            "mean_x": space.to_x(method.mean()).tolist(),
+            "best_J": float(J[k]) if best else prev["best_J"], "best_x": x[k].tolist() if best else prev["best_x"],
+            "frames": (prev["frames"] if prev else 0) + ev.frames,
+            "seconds": (prev["seconds"] if prev else 0.0) + ev.seconds,
+            "failed": len(ev.failures), "failures": {str(b): list(v) for b, v in ev.failures.items()},
+            "pop_x": x.tolist(), "pop_J": J.tolist()}
+
+
+def _status(rows: list[dict]) -> str:
+    if not rows:
+        return ""
+    r = rows[-1]
+    return f"J {r['J']:.4g}  best {r['best_J']:.4g}  x {', '.join(f'{v:.4g}' for v in r['x'])}"
+
+
+def _reasons(failures: dict) -> str:
+    return "; ".join(f"member {b} at frame {f}: {why}" for b, (f, why) in sorted(failures.items()))
+
+
+# ------------------------------------------------------------------------------------------------
+# Outputs (each rewritten atomically after every iteration)
+# ------------------------------------------------------------------------------------------------
+
+
+def _save(folder: Path, rows: list[dict], space: Space, cfg: OptimizeConfig, name: str) -> None:
+    tmp = folder / "history.h5.tmp"
+    with h5py.File(tmp, "w") as f:
+        for key in ("iteration", "J", "best_J", "frames", "seconds", "failed"):
+            f[key] = np.array([r[key] for r in rows])
+        for key in ("x", "grad", "mean_x", "best_x"):
+            f[key] = np.array([r[key] for r in rows], dtype=np.float64)
+        if len({len(r["pop_J"]) for r in rows}) == 1:
+            f["pop_x"] = np.array([r["pop_x"] for r in rows], dtype=np.float64)
+            f["pop_J"] = np.array([r["pop_J"] for r in rows], dtype=np.float64)
+        f.attrs.update({"method": name, "parameters": space.names,
+                        "units": [PARAMETERS[n] for n in space.names], "objective": cfg.objective.name,
+                        "objective_unit": OBJECTIVES[cfg.objective.name], "frames_per_episode": cfg.frames,
+                        "config": to_yaml(cfg)})
+    os.replace(tmp, folder / "history.h5")
+    buf = io.StringIO()
+    w = csv.writer(buf)
+    w.writerow(["iteration", "frames", "seconds", "J", "best_J", "failed",
+                *(f"{k}_{n}" for k in ("x", "grad", "mean") for n in space.names)])
+    for r in rows:
+        w.writerow([r["iteration"], r["frames"], f"{r['seconds']:.3f}", repr(r["J"]), repr(r["best_J"]), r["failed"],
+                    *map(repr, r["x"] + r["grad"] + r["mean_x"])])
+    _atomic_text(folder / "history.csv", buf.getvalue())
+
+
+def _write_best(cfg: OptimizeConfig, space: Space, rows: list[dict], path: Path) -> None:
+    """The episode's config with the best parameters: a complete ``fishsim simulate`` config."""
+    if not rows:
+        return
+    sim = SimulateConfig(**{f.name: getattr(cfg, f.name) for f in dataclasses.fields(SimulateConfig)})
+    best = dict(zip(space.names, rows[-1]["best_x"]))
+    c = sim.controller
+    sim.controller = dataclasses.replace(c, frequency=best.get("frequency", c.frequency),
+                                         amplitude=best.get("amplitude", c.amplitude),
+                                         wave_number=best.get("wave_number", c.wave_number))
+    if "youngs_modulus" in best:
+        sim.solid = dataclasses.replace(sim.solid, material=dataclasses.replace(
+            sim.solid.material, youngs_modulus=best["youngs_modulus"]))
+    sim.out_dir = None
+    header = (f"# best of fishsim optimize ({rows[-1]['method']}): {cfg.objective.name} J = {rows[-1]['best_J']:.6g} "
+              f"{OBJECTIVES[cfg.objective.name]}\n# run it: fishsim simulate --config {path}\n")
+    _atomic_text(path, header + to_yaml(sim))
+
+
+def _atomic_text(path: Path, text: str) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def _atomic_torch(obj, path: Path) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+def _summary(rows: list[dict], space: Space, x0: list[float]) -> dict:
+    if not rows:
+        return {"iterations": 0}
+    last = rows[-1]
+    return {"start": dict(zip(space.names, x0)), "best": dict(zip(space.names, last["best_x"])),
+            "best_J": last["best_J"], "iterations": len(rows), "fish_frames": last["frames"],
+            "wall_s": round(last["seconds"], 2), "failed_members": sum(r["failed"] for r in rows),
+            "first_best_iteration": next(r["iteration"] for r in rows if r["best_J"] == last["best_J"])}
+
+
+def _print(summary: dict, space: Space, cfg: OptimizeConfig) -> None:
+    unit = OBJECTIVES[cfg.objective.name]
+    table = Table(title=f"fishsim optimize: {cfg.objective.name} [{unit}], {cfg.frames} frames, fluid={cfg.fluid.model}")
+    for col in ("method", "start", "best", f"best J [{unit}]", "iterations", "fish-frames", "wall [s]", "failed"):
+        table.add_column(col, justify="right")
+    fmt = lambda d: ", ".join(f"{n} {d[n]:.4g}" for n in space.names)
+    for m, s in summary.items():
+        if s["iterations"]:
+            table.add_row(m, fmt(s["start"]), fmt(s["best"]), f"{s['best_J']:.5g}", str(s["iterations"]),
+                          str(s["fish_frames"]), f"{s['wall_s']:.1f}", str(s["failed_members"]))
+    Console().print(table)

@@ -1,0 +1,224 @@
+"""The optimisation problem: which parameters move (bounds, scales), what is maximised (the
+objective J), and the evaluation of a batch of candidates as ONE batched rollout.
+
+Parameters live in normalised coordinates z in [0, 1]^P, the optimisers' space:
+
+    x = lo + z (hi - lo)                 (linear scale)
+    x = lo (hi / lo)^z                   (log scale, lo > 0)
+
+Objectives J (maximised; every optimiser minimises -J), per fish, over an episode of T frames of
+h seconds, with F_x(t) the total hydrodynamic x force on the fish (N per unit depth) and
+P(t) = -sum_i f_ext,i(t) . qdot_i(t) the power it gives the fluid (W per unit depth):
+
+    thrust              J = h sum_t F_x(t)                                  N s / m
+                        (the forward impulse; the paper's L = -sum_t F_x(t) = -J / h, Fig. 5)
+    distance            J = x_head(T) - x_head(0)                           m
+    speed               J = (x_c(T) - x_c(T - n)) / (n h),  n = round(cycles / (f h))   m/s
+                        (the centroid's mean speed over the last ``cycles`` tail beats)
+    cost_of_transport   J = (x_c(T) - x_c(0)) / (h sum_t P(t))              m^2 / J
+                        (distance per unit of work done on the fluid per unit depth: the
+                        transport efficiency; the work the fluid receives stands in for the
+                        muscles' work, which the PD solid does not separate from elastic energy)
+
+thrust is measured on a fish held in x (``hold_x=true``, the paper's set-up) or a free one;
+the others need a free fish.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor
+
+from fishsim.errors import ConfigError, SimulationBlowUp
+
+PARAMETERS = {"frequency": "Hz", "amplitude": "1/m", "wave_number": "rad/m", "youngs_modulus": "Pa"}
+OBJECTIVES = {"thrust": "N s/m", "distance": "m", "speed": "m/s", "cost_of_transport": "m^2/J"}
+FREE_ONLY = ("distance", "speed", "cost_of_transport")
+
+
+@dataclass
+class ParamSpec:
+    """One optimised parameter: bounds [lower, upper] in its unit (PARAMETERS), an optional log
+    scale, and its start (null: the episode config's value)."""
+
+    lower: float
+    upper: float
+    log: bool = False
+    init: float | None = None
+
+    def check(self, name: str) -> None:
+        if name not in PARAMETERS:
+            raise ConfigError(f"unknown optimisation parameter '{name}' (choose from {', '.join(PARAMETERS)})")
+        lo, hi = self.lower, self.upper
+        if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+            raise ConfigError(f"params.{name}: bounds [{lo}, {hi}] are empty or inverted (need lower < upper)")
+        if self.log and lo <= 0:
+            raise ConfigError(f"params.{name}: a log scale needs lower > 0 (got {lo})")
+        if self.init is not None and not lo <= self.init <= hi:
+            raise ConfigError(f"params.{name}.init = {self.init} lies outside [{lo}, {hi}]")
+
+
+@dataclass
+class ObjectiveConfig:
+    """The objective (module docstring): name in OBJECTIVES; cycles: the speed's window."""
+
+    name: str = "distance"
+    cycles: float = 2.0
+
+    def check(self, hold_x: bool) -> None:
+        if self.name not in OBJECTIVES:
+            raise ConfigError(f"unknown objective '{self.name}' (choose from {', '.join(OBJECTIVES)})")
+        if hold_x and self.name in FREE_ONLY:
+            raise ConfigError(f"objective {self.name} needs a free fish, but hold_x=true holds it in x "
+                              "(use objective=thrust, or hold_x=false)")
+        if not self.cycles > 0:
+            raise ConfigError(f"objective.cycles must be > 0 (got {self.cycles})")
+
+
+@dataclass
+class Space:
+    """The map between normalised z in [0, 1]^P and physical parameters x (module docstring)."""
+
+    names: list[str]
+    specs: list[ParamSpec] = field(repr=False)
+
+    def to_x(self, z: Tensor) -> Tensor:
+        """x [..., P] from z [..., P] (differentiable)."""
+        cols = []
+        for i, s in enumerate(self.specs):
+            zi = z[..., i]
+            cols.append(s.lower * (s.upper / s.lower) ** zi if s.log else s.lower + zi * (s.upper - s.lower))
+        return torch.stack(cols, -1)
+
+    def to_z(self, x: Tensor) -> Tensor:
+        cols = []
+        for i, s in enumerate(self.specs):
+            xi = x[..., i]
+            cols.append(torch.log(xi / s.lower) / math.log(s.upper / s.lower) if s.log
+                        else (xi - s.lower) / (s.upper - s.lower))
+        return torch.stack(cols, -1)
+
+
+def objective(name: str, metrics: dict[str, Tensor], frequency: Tensor, h: float, start: dict[str, Tensor],
+              cycles: float = 2.0) -> Tensor:
+    """J [B] of the module docstring from a rollout's metrics ([T, B] each); ``start``: the
+    metrics' values at the initial state ([B]); frequency [B] in Hz (the speed's window)."""
+    T = metrics["head_x"].shape[0]
+    if name == "thrust":
+        return h * metrics["thrust_x"].sum(0)
+    if name == "distance":
+        return metrics["head_x"][-1] - start["head_x"]
+    cx = metrics["centroid_x"]
+    if name == "speed":
+        n = torch.clamp(torch.round(cycles / (frequency.detach() * h)), 1, T - 1).long()
+        before = cx.gather(0, (T - 1 - n)[None]).squeeze(0) if T > 1 else start["centroid_x"]
+        return (cx[-1] - before) / (n.to(cx.dtype) * h)
+    if name == "cost_of_transport":
+        return (cx[-1] - start["centroid_x"]) / (h * metrics["power"].sum(0))
+    raise ConfigError(f"unknown objective '{name}'")
+
+
+@dataclass
+class Evaluation:
+    """The result of evaluating B candidates: J [B] (NaN where failed), dJ/dz [B, P] (gradient
+    runs), failures {b: (frame, reason)}, fish-frames simulated, wall time (s)."""
+
+    J: Tensor
+    grad_z: Tensor | None
+    failures: dict
+    frames: int
+    seconds: float
+
+
+class Problem:
+    """Candidates z [B, P] -> objective J [B], by one batched, checkpointed rollout of the episode
+    built from the config (fishsim.commands.simulate.build_episode with B = 1, then each
+    optimised parameter set per candidate)."""
+
+    def __init__(self, cfg, space: Space, objective_cfg: ObjectiveConfig, segment: int = 25):
+        from fishsim.commands.simulate import build_episode
+
+        self.cfg, self.space, self.objective_cfg, self.segment = cfg, space, objective_cfg, segment
+        self.episode = build_episode(cfg)
+        self.base = self.episode.params
+        self._check_amplitude()
+
+    def _check_amplitude(self) -> None:
+        """The largest amplitude the bounds allow must keep every muscle's contraction below 1."""
+        if "amplitude" not in self.space.names:
+            return
+        hi = self.space.specs[self.space.names.index("amplitude")].upper
+        c = self.base.controller
+        peak = float(dataclasses.replace(c, C=torch.full_like(c.C, hi)).peak_contraction(self.episode.swimmer.solid)[0])
+        if peak >= 1:
+            raise ConfigError(f"params.amplitude.upper = {hi:g} 1/m contracts a muscle by {peak:.2f} >= 1; "
+                              f"use upper < {hi / peak:.4g}")
+
+    def initial_x(self) -> list[float]:
+        """Each parameter's start: its ``init`` or the episode config's value, clipped to bounds."""
+        values = self.current(self.base)
+        return [float(min(max(s.init if s.init is not None else v, s.lower), s.upper))
+                for s, v in zip(self.space.specs, values)]
+
+    def current(self, params) -> list[float]:
+        c = params.controller
+        now = {"frequency": float(c.omega[0]) / (2 * math.pi), "amplitude": float(c.C[0]),
+               "wave_number": float(c.gamma[0]), "youngs_modulus": float(params.E[0])}
+        return [now[n] for n in self.space.names]
+
+    def params_for(self, x: Tensor):
+        """SwimParams of B candidates x [B, P] (physical units), differentiable w.r.t. x."""
+        from fishsim.fluid.factory import fluid_params
+
+        B, base = x.shape[0], self.base
+        col = {n: x[:, i] for i, n in enumerate(self.space.names)}
+        c = base.controller
+        pick = lambda name, value: col[name] if name in col else value.expand(B)
+        omega = 2 * math.pi * col["frequency"] if "frequency" in col else c.omega.expand(B)
+        controller = dataclasses.replace(c, C=pick("amplitude", c.C), omega=omega, gamma=pick("wave_number", c.gamma))
+        fluid = None if base.fluid is None else fluid_params(self.cfg.fluid, B, self.cfg.h, x.device)
+        return type(base)(controller=controller, E=pick("youngs_modulus", base.E), fluid=fluid)
+
+    def evaluate(self, z: Tensor, gradient: bool = False, isolate: bool = True) -> Evaluation:
+        """J [B] of candidates z [B, P] (normalised); with ``gradient`` also dJ/dz by autograd
+        through the checkpointed rollout. ``isolate``: a failing candidate is marked (J = NaN,
+        its reason in ``failures``) and the others carry on; else a blow-up raises."""
+        from fishsim.rollout import rollout
+
+        t0 = time.perf_counter()
+        sw, cfg = self.episode.swimmer, self.cfg
+        z = z.detach().to(torch.float64).clone().requires_grad_(gradient)
+        failures: dict = {} if isolate else None
+        with torch.set_grad_enabled(gradient):
+            x = self.space.to_x(z)
+            params = self.params_for(x)
+            state = sw.initial_state(params, self.episode.origin)
+            start = _start_metrics(sw, state)
+            _, metrics = rollout(sw, state, params, cfg.frames, segment=self.segment if gradient else 0,
+                                 failures=failures)
+            J = objective(self.objective_cfg.name, metrics, params.controller.omega / (2 * math.pi), cfg.h,
+                          start, self.objective_cfg.cycles)
+            grad = None
+            if gradient:
+                if not bool(torch.isfinite(J).all()):
+                    raise SimulationBlowUp(f"the objective is {J.tolist()} (not finite)")
+                (grad,) = torch.autograd.grad(J.sum(), z)
+        J = J.detach().clone()
+        for b in (failures or {}):
+            J[b] = float("nan")
+        frames = z.shape[0] * cfg.frames * (2 if gradient and self.segment < cfg.frames else 1)
+        return Evaluation(J, grad, failures or {}, frames, time.perf_counter() - t0)
+
+
+def _start_metrics(swimmer, state) -> dict[str, Tensor]:
+    """The metrics' positions at the initial state (forces zero)."""
+    from fishsim.rollout import FrameOutput, frame_metrics
+
+    zero = torch.zeros_like(state.q)
+    out = FrameOutput(f_ext=zero, contraction=torch.zeros(1))
+    return {k: v.detach() for k, v in frame_metrics(swimmer, state, out).items()}
