@@ -110,7 +110,7 @@ def _train_hydronet() -> Callable:
     return run
 
 
-@_command("validate", "Compare against the numerical reference (suite=hydronet: HydroNet on held-out scenes).")
+@_command("validate", "Compare against references (suite=hydronet: HydroNet on held-out scenes; suite=solid: mesh convergence, beam theory).")
 def _validate() -> Callable:
     from fishsim.commands.validate import run
 

@@ -61,11 +61,21 @@ class SwimParams:
     controller: the travelling-wave controller ([B] tensors C, omega, gamma).
     E: Young's modulus [B] (Pa).
     fluid: rho, mu [B] and h (None in vacuum).
+    muscle_thickness: the muscle layer's thickness (a scalar tensor, fraction of the local
+        half-width; shared by the batch, as the muscles are) to differentiate through, e.g. as a
+        co-design parameter; None (default, no cost): the solid's fixed muscle weights. Its value
+        must be the thickness the solid's muscle layer was built with (muscles.layer_muscles,
+        within ``muscle_x_range``, the layer's (start, end) fractions of L); pd_step refuses
+        weights that differ from the model's. A gradient step on it means rebuilding the solid
+        at the new thickness (with the elements of a thicker layer, ``layer_muscles(...,
+        elements=)``, the muscle list stays the same).
     """
 
     controller: WaveController
     E: Tensor
     fluid: FluidParams | None = None
+    muscle_thickness: Tensor | None = None
+    muscle_x_range: tuple[float, float] = (0.05, 0.95)
 
 
 @dataclass
@@ -154,11 +164,24 @@ class Swimmer:
             return 0.0
         return stabilising_force(self.added_mass.to(state.q), state.qdot, state.qdot_prev, self.h)
 
+    def muscle_weights(self, params: SwimParams) -> tuple[Tensor, Tensor] | None:
+        """(PD weights [n_act], top shares [n_act]) of the solid's muscle layer as functions of
+        ``params.muscle_thickness`` (muscles.layer_weights, ~15 ms on the default fish: the
+        rollout computes them once per segment), or None without a thickness."""
+        if params.muscle_thickness is None:
+            return None
+        from fishsim.solid.muscles import layer_weights
+
+        thickness = params.muscle_thickness.to("cpu", torch.float64)
+        return layer_weights(self.solid, thickness, params.muscle_x_range)
+
     def frame(self, state: SwimState, params: SwimParams, t: int,
-              start: SwimState | None = None) -> tuple[SwimState, FrameOutput]:
+              start: SwimState | None = None,
+              muscles: tuple[Tensor, Tensor] | None = None) -> tuple[SwimState, FrameOutput]:
         """Advance one frame (module docstring); ``t`` is the index of the frame being left.
         ``start``: a guess of the new state (its q and fluid p) for the iterative solves
-        (default: the PD step starts from ``predicted_start``, the fluid from p_t)."""
+        (default: the PD step starts from ``predicted_start``, the fluid from p_t).
+        ``muscles``: ``muscle_weights(params)`` if already computed (default: computed here)."""
         dev, clock = state.q.device, self.timer
         t0 = time.perf_counter()
         fluid, boundary = state.fluid, None
@@ -173,11 +196,15 @@ class Swimmer:
             f_ext = fluid_to_solid(state.q, fluid.p, boundary, self.surface, self.fluid.grid,
                                    self.coupling, step=t + 1)
             t0 = clock.add("coupling", t0, dev)
-        contraction = params.controller.contraction(self.solid, (t + 1) * self.h)
+        if muscles is None:
+            muscles = self.muscle_weights(params)
+        weight, share = (None, None) if muscles is None else muscles
+        contraction = params.controller.contraction(
+            self.solid, (t + 1) * self.h, top_share=None if share is None else share.to(params.controller.C))
         solid_start = start.q if start is not None else (
             None if state.qdot_prev is None else predicted_start(state.q, state.qdot, state.qdot_prev, self.h))
         q, qdot = pd_step(self.solid, state.q, state.qdot, contraction, f_ext + self.added_mass_force(state),
-                          params.E, start=solid_start)
+                          params.E, start=solid_start, muscle_weight=weight)
         if self.hold_x:
             q, qdot = hold_centroid_x(q, qdot, state.q, self.node_mass(q))
         require_finite(solid_positions_q=q, solid_velocities_qdot=qdot)
@@ -260,18 +287,21 @@ def _unflatten(tensors: tuple[Tensor, ...]) -> SwimState:
 
 
 def _param_tensors(params: SwimParams) -> tuple[Tensor, ...]:
-    """The tensors of ``params`` (controller C, omega, gamma; E; fluid rho, mu)."""
+    """The tensors of ``params`` (controller C, omega, gamma; E; fluid rho, mu; the muscle
+    thickness if given)."""
     c = params.controller
     fluid = () if params.fluid is None else (params.fluid.rho, params.fluid.mu)
-    return (c.C, c.omega, c.gamma, params.E, *fluid)
+    thickness = () if params.muscle_thickness is None else (params.muscle_thickness,)
+    return (c.C, c.omega, c.gamma, params.E, *fluid, *thickness)
 
 
 def _with_param_tensors(params: SwimParams, tensors: tuple[Tensor, ...]) -> SwimParams:
     """``params`` with its tensors replaced (inverse of _param_tensors)."""
-    C, omega, gamma, E, *fluid = tensors
+    C, omega, gamma, E, *rest = tensors
     controller = dataclasses.replace(params.controller, C=C, omega=omega, gamma=gamma)
-    fluid_params = None if params.fluid is None else dataclasses.replace(params.fluid, rho=fluid[0], mu=fluid[1])
-    return SwimParams(controller, E, fluid_params)
+    fluid_params = None if params.fluid is None else dataclasses.replace(params.fluid, rho=rest[0], mu=rest[1])
+    thickness = None if params.muscle_thickness is None else rest[-1]
+    return dataclasses.replace(params, controller=controller, E=E, fluid=fluid_params, muscle_thickness=thickness)
 
 
 class CheckpointedFrames(torch.autograd.Function):
@@ -339,19 +369,21 @@ def rollout(swimmer: Swimmer, state: SwimState, params: SwimParams, n_frames: in
     def run_frames(t0: int, count: int, *tensors: Tensor):
         s, rows = _unflatten(tensors[:n_state]), []
         p = _with_param_tensors(params, tensors[n_state:])
+        muscles = swimmer.muscle_weights(p)                     # once per segment, not per frame
         for t in range(t0, t0 + count):
             replay = t <= recorded[0]
             mask = masks[t] if replay and isolate else alive[0]
             s_in, p_in = park(s, p, mask, rest) if isolate else (s, p)
             try:
-                s_new, out = swimmer.frame(s_in, p_in, t, start=solutions.get(t) if replay else None)
+                s_new, out = swimmer.frame(s_in, p_in, t, start=solutions.get(t) if replay else None,
+                                           muscles=muscles)
             except SimulationBlowUp as err:
                 if not isolate or replay:
                     raise SimulationBlowUp(f"simulation blew up at frame {t + 1}: {err}") from None
                 mask = mask & ~failing_samples(swimmer, s_in, p_in, t, mask, failures, err)
                 alive[0] = mask
                 s_in, p_in = park(s, p, mask, rest)
-                s_new, out = swimmer.frame(s_in, p_in, t)
+                s_new, out = swimmer.frame(s_in, p_in, t, muscles=muscles)
             s = s_new
             m = frame_metrics(swimmer, s, out)
             if not replay:
@@ -399,7 +431,7 @@ def park(state: SwimState, params: SwimParams, alive: Tensor, rest: SwimState) -
     parked = SwimState(_select(alive, state.q, rest.q), _select(alive, state.qdot, rest.qdot), fluid, qdot_prev)
     C = params.controller.C
     controller = dataclasses.replace(params.controller, C=torch.where(alive, C, torch.zeros_like(C)))
-    return parked, SwimParams(controller, params.E, params.fluid)
+    return parked, dataclasses.replace(params, controller=controller)
 
 
 def _sample(state: SwimState, params: SwimParams, b: int) -> tuple[SwimState, SwimParams]:
@@ -410,7 +442,8 @@ def _sample(state: SwimState, params: SwimParams, b: int) -> tuple[SwimState, Sw
     controller = dataclasses.replace(c, C=one(c.C), omega=one(c.omega), gamma=one(c.gamma))
     fp = None if params.fluid is None else dataclasses.replace(params.fluid, rho=one(params.fluid.rho),
                                                                mu=one(params.fluid.mu))
-    return SwimState(one(state.q), one(state.qdot), fluid, one(state.qdot_prev)), SwimParams(controller, one(params.E), fp)
+    return (SwimState(one(state.q), one(state.qdot), fluid, one(state.qdot_prev)),
+            dataclasses.replace(params, controller=controller, E=one(params.E), fluid=fp))
 
 
 def failing_samples(swimmer: Swimmer, state: SwimState, params: SwimParams, t: int, alive: Tensor,

@@ -19,6 +19,27 @@ def test_mesh_command_writes_mesh_and_preview(tmp_path):
     assert f"{mesh.n_nodes}" in result.output
 
 
+def test_mesh_command_shows_and_writes_the_muscle_layer(tmp_path):
+    """With the default fish.muscles=layer the file carries the layer's area fractions and the
+    table counts the layer's elements; with fish.muscles=paper only the stations are written."""
+    import meshio
+
+    from fishsim.solid.muscles import layer_muscles
+
+    result = runner.invoke(app, ["mesh", "fish.edge_length=5e-3", f"out_dir={tmp_path}", "output=layer.vtu"])
+    assert result.exit_code == 0, result.output
+    m = meshio.read(tmp_path / "layer.vtu")
+    top, bottom = m.cell_data["muscle_top"][0], m.cell_data["muscle_bottom"][0]
+    layout = layer_muscles(read_mesh(tmp_path / "layer.vtu"), 0.3)
+    assert np.allclose((top + bottom)[layout.elements], layout.fraction)
+    assert "muscle layer (top)" in result.output and "actuated (top)" not in result.output
+    result = runner.invoke(app, ["mesh", "fish.edge_length=5e-3", "fish.muscles=paper", f"out_dir={tmp_path}",
+                                 "output=paper.vtu", "preview=false"])
+    assert result.exit_code == 0, result.output
+    assert "muscle_top" not in meshio.read(tmp_path / "paper.vtu").cell_data
+    assert "actuated (top)" in result.output
+
+
 def _one_error_line(result) -> str:
     lines = [line for line in result.output.splitlines() if line.strip()]
     assert result.exit_code == 2, result.output

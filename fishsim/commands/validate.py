@@ -1,8 +1,14 @@
-"""``fishsim validate``: comparisons against the numerical reference solver.
+"""``fishsim validate``: comparisons against reference solutions.
 
 suite=hydronet: the HydroNet model against the numerical solver on held-out scenes
 (``fishsim.fluid.hydronet.evaluate``): metrics.json, a printed table, and a picture of the final
 vorticity of both models side by side (comparison.png/.svg).
+
+suite=solid: the solid's mesh convergence and its beam validation (``fishsim.solid.convergence``,
+docs/validation.md): the swimming stroke at several edge lengths with each muscle model, and a
+clamped cantilever against Euler-Bernoulli; metrics.json, printed tables, and a plot of the tail
+peak-to-peak against the edge length and of the beam's errors against refinement
+(solid_convergence.png/.svg).
 """
 
 from __future__ import annotations
@@ -12,6 +18,7 @@ import re
 from dataclasses import asdict, dataclass, field
 
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 from rich.table import Table
 
@@ -20,14 +27,43 @@ from fishsim.fluid.hydronet.evaluate import EvalConfig, evaluate, summarise
 from fishsim.fluid.pressure import PRESSURES
 from fishsim.io.outdir import make_out_dir
 
-SUITES = ("hydronet",)
+SUITES = ("hydronet", "solid")
+STUDY_FLUIDS = ("none", "numerical", "hydronet")
+
+
+@dataclass
+class SolidStudyConfig:
+    """suite=solid (``fishsim.solid.convergence``). edges: fish edge lengths (m), each a
+    `fishsim simulate` run per muscle model (deviations from the finest). muscles: layer and/or
+    paper. fluid: none (vacuum) | numerical | hydronet. frames: episode length at h = 0.01 s
+    (stroke over the second half). beam_across: the cantilever's elements across its thickness
+    (empty: no beam check)."""
+
+    edges: list[float] = field(default_factory=lambda: [3.0e-3, 2.0e-3, 1.4e-3, 1.0e-3])
+    muscles: list[str] = field(default_factory=lambda: ["layer", "paper"])
+    fluid: str = "none"
+    frames: int = 120
+    beam_across: list[int] = field(default_factory=lambda: [2, 4, 8, 16])
+
+    def validate(self) -> None:
+        if len(self.edges) < 2 or not all(0 < e < 0.02 for e in self.edges):
+            raise ConfigError(f"solid.edges needs at least 2 edge lengths in (0, 0.02) m (got {list(self.edges)})")
+        if not self.muscles or not set(self.muscles) <= {"layer", "paper"}:
+            raise ConfigError(f"solid.muscles must list layer and/or paper (got {list(self.muscles)})")
+        if self.fluid not in STUDY_FLUIDS:
+            raise ConfigError(f"solid.fluid must be one of {STUDY_FLUIDS} (got '{self.fluid}')")
+        if self.frames < 4:
+            raise ConfigError(f"solid.frames must be >= 4 (the stroke is measured over the second half; got {self.frames})")
+        if not all(n >= 1 for n in self.beam_across):
+            raise ConfigError(f"solid.beam_across must be >= 1 element across (got {list(self.beam_across)})")
 
 
 @dataclass
 class ValidateConfig:
-    """suite: hydronet (the only one so far). model_file: the HydroNet to judge (null: shipped).
+    """suite: hydronet | solid. model_file: the HydroNet to judge (null: shipped).
     bf16: run it in bfloat16. pressure: recovered | network (``fishsim.fluid.pressure``).
-    device: cpu | cuda. scenes: the held-out scenes and protocol."""
+    device: cpu | cuda. scenes: the held-out scenes and protocol (hydronet).
+    solid: the mesh study and beam check (solid)."""
 
     suite: str = "hydronet"
     model_file: str | None = None
@@ -35,9 +71,11 @@ class ValidateConfig:
     pressure: str = "recovered"
     device: str = "cpu"
     scenes: EvalConfig = field(default_factory=EvalConfig)
+    solid: SolidStudyConfig = field(default_factory=SolidStudyConfig)
     out_dir: str | None = None
 
     def validate(self) -> None:
+        self.solid.validate()
         if self.suite not in SUITES:
             raise ConfigError(f"suite must be one of {SUITES} (got '{self.suite}')")
         if self.pressure not in PRESSURES:
@@ -50,7 +88,59 @@ class ValidateConfig:
 
 
 def run(cfg: ValidateConfig) -> dict:
-    """Evaluate, write metrics.json and the comparison picture, print the table."""
+    """Run the chosen suite: evaluate, write metrics.json and the picture, print the tables."""
+    if cfg.suite == "solid":
+        return run_solid(cfg)
+    return run_hydronet(cfg)
+
+
+def run_solid(cfg: ValidateConfig) -> dict:
+    """suite=solid: the stroke study and the beam check (module docstring)."""
+    from fishsim.render.plots import plot_solid_convergence
+    from fishsim.solid.convergence import beam_study, stroke_study, summary
+
+    out_dir = make_out_dir("validate", cfg.out_dir)
+    s = cfg.solid
+    overrides = [] if cfg.device == "cpu" else [f"device={cfg.device}"]
+    columns = (TextColumn("validate solid"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
+    with Progress(*columns, console=Console(stderr=True), transient=True) as bar:
+        task = bar.add_task("runs", total=len(s.edges) * len(s.muscles))
+        rows = stroke_study(tuple(s.edges), tuple(s.muscles), s.fluid, s.frames, overrides,
+                            progress=lambda done, total: bar.update(task, completed=done, total=total))
+    beam_rows = beam_study(tuple(s.beam_across)) if s.beam_across else []
+    result = {"solid": asdict(s), "stroke": rows, "beam": beam_rows, "summary": summary(rows, beam_rows)}
+    (out_dir / "metrics.json").write_text(json.dumps(result, indent=2))
+    pictures = plot_solid_convergence(rows, beam_rows, out_dir / "solid_convergence")
+    _print_solid(rows, beam_rows, s)
+    Console().print(f"metrics: {out_dir / 'metrics.json'}   picture: {pictures[0]}")
+    return result
+
+
+def _print_solid(rows: list[dict], beam_rows: list[dict], s: SolidStudyConfig) -> None:
+    """The stroke table (deviations from the finest mesh of each muscle model), then the beam's."""
+    fluid = "vacuum" if s.fluid == "none" else f"{s.fluid} fluid"
+    table = Table(title=f"solid mesh convergence ({fluid}, {s.frames} frames, 5 Hz)")
+    for label in ("muscles", "edge [mm]", "nodes", "muscle elements", "tail p2p [mm]", "vs finest",
+                  "head dx [mm]", "vs finest", "solid step [ms]"):
+        table.add_column(escape(label), justify="left" if label == "muscles" else "right")
+    for r in rows:
+        table.add_row(r["muscles"], f"{r['edge_mm']:.1f}", str(r["nodes"]), str(r["n_act"]), f"{r['tail_p2p_mm']:.1f}",
+                      f"{100 * r['tail_dev']:+.1f} %", f"{r['head_dx_mm']:+.2f}", f"{100 * r['head_dev']:+.1f} %",
+                      f"{r['solid_ms_per_step']:.1f}")
+    console = Console(width=max(Console().width, 120))
+    console.print(table)
+    if beam_rows:
+        beam = Table(title="clamped cantilever vs Euler-Bernoulli")
+        for label in ("elements across", "edge [mm]", "nodes", "tip deflection error", "first frequency error"):
+            beam.add_column(escape(label), justify="right")
+        for r in beam_rows:
+            beam.add_row(str(r["across"]), f"{r['edge_mm']:.3g}", str(r["nodes"]), f"{100 * r['static_err']:+.2f} %",
+                         f"{100 * r['frequency_err']:+.2f} %")
+        console.print(beam)
+
+
+def run_hydronet(cfg: ValidateConfig) -> dict:
+    """suite=hydronet: evaluate, write metrics.json and the comparison picture, print the table."""
     import torch
 
     from fishsim.fluid.base import Grid

@@ -7,6 +7,10 @@ Layout written by `write_mesh` (and required by `read_mesh`):
   point data    surface_order [N]: k for the k-th node of the ccw surface polyline, -1 interior
                 fishsim_length [N]: the body length L in metres (constant; point data survives
                 every format, field data does not)
+  optional      muscle_top, muscle_bottom [T] (cell data, float): each element's area fraction
+                inside the muscle layer (fishsim/solid/muscles.py) it was written with, for
+                viewers; not read back (a run recomputes the layer from the outline and its
+                config; `actuator` keeps the paper's stations for fish.muscles=paper)
 Formats without integer data (gmsh) store floats; `read_mesh` rounds them back.
 """
 
@@ -46,28 +50,30 @@ def mesh_format(path: Path) -> str | None:
     return next((n for n in PREFERRED_FORMATS if n in names), names[0])
 
 
-def write_mesh(mesh: FishMesh, path) -> Path:
+def write_mesh(mesh: FishMesh, path, cell_data: dict[str, np.ndarray] | None = None) -> Path:
     """Write `mesh` to `path` (format from the extension, .vtu if none; parent folders are
-    created) and return the path written."""
+    created) and return the path written. cell_data: extra per-element float fields [T] (e.g.
+    the muscle layer's muscle_top, muscle_bottom fractions)."""
     path = mesh_path(path)
     fmt = mesh_format(path)
     if fmt is None:
         raise ConfigError(f"cannot write a mesh as {path.name}: unknown extension {path.suffix!r}; "
                           "use a meshio extension such as .vtu, .msh or .xdmf")
     path.parent.mkdir(parents=True, exist_ok=True)
-    meshio.write(path, to_meshio(mesh), file_format=fmt)
+    meshio.write(path, to_meshio(mesh, cell_data), file_format=fmt)
     return path
 
 
-def to_meshio(mesh: FishMesh) -> meshio.Mesh:
-    """The meshio.Mesh of the layout in this module's docstring."""
+def to_meshio(mesh: FishMesh, cell_data: dict[str, np.ndarray] | None = None) -> meshio.Mesh:
+    """The meshio.Mesh of the layout in this module's docstring (with the extra cell fields)."""
+    extra = {k: [np.asarray(v, np.float64).reshape(mesh.n_elements)] for k, v in (cell_data or {}).items()}
     surface_order = np.full(mesh.n_nodes, -1, dtype=np.int32)
     surface_order[mesh.surface] = np.arange(len(mesh.surface), dtype=np.int32)
     points = np.column_stack([mesh.points, np.zeros(mesh.n_nodes)])
     return meshio.Mesh(
-        points, [("triangle", mesh.triangles)],
+        points, [("triangle", mesh.triangles.copy())],            # a copy: editing the result leaves mesh alone
         point_data={SURFACE_KEY: surface_order, LENGTH_KEY: np.full(mesh.n_nodes, mesh.length)},
-        cell_data={ACTUATOR_KEY: [mesh.actuator.astype(np.int8)]},
+        cell_data={ACTUATOR_KEY: [mesh.actuator.astype(np.int8)], **extra},
     )
 
 

@@ -3,7 +3,9 @@
 * ``plot_optimisation_history``: objective and parameters against iterations and simulated
   fish-frames for several methods on the same axes (paper Fig. 5: gradient vs CMA-ES);
 * ``plot_validation``: a quantity (head x-position) against the controller frequency for
-  several simulators, optional error bars (paper Fig. 4: HydroNet vs the numerical solver).
+  several simulators, optional error bars (paper Fig. 4: HydroNet vs the numerical solver);
+* ``plot_solid_convergence``: the tail's stroke against the edge length per muscle model, and
+  the cantilever's errors against refinement (``fishsim validate suite=solid``).
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ from pathlib import Path
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
+from matplotlib.ticker import FormatStrFormatter, LogLocator, NullLocator
 
 MARKERS = "osd^v<>"
 
@@ -112,4 +115,45 @@ def plot_fluid_comparison(final: Mapping, path: str | Path, labels: Sequence[str
             ax.set_title(f"{name}: {label}", fontsize=8)
             ax.set_xticks([]), ax.set_yticks([])
         fig.colorbar(im, ax=ax, shrink=0.8, label=field)
+    return save_png_svg(fig, path)
+
+
+def plot_solid_convergence(rows: Sequence[Mapping], beam_rows: Sequence[Mapping], path: str | Path) -> list[Path]:
+    """Left: tail peak-to-peak [mm] against the edge length [mm] (finer to the right), one line
+    per muscle model (rows of ``fishsim.solid.convergence.stroke_study``). Right (if beam_rows):
+    |relative error| [%] of the cantilever's tip deflection and first frequency against the
+    elements across its thickness, log-log (rows of ``beam_study``)."""
+    fig = Figure(figsize=(10 if beam_rows else 5.5, 3.8), layout="constrained")
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot(1, 2 if beam_rows else 1, 1)
+    for i, model in enumerate(dict.fromkeys(r["muscles"] for r in rows)):
+        runs = sorted((r for r in rows if r["muscles"] == model), key=lambda r: -r["edge_mm"])
+        ax.plot([r["edge_mm"] for r in runs], [r["tail_p2p_mm"] for r in runs], marker=MARKERS[i % len(MARKERS)],
+                label=f"{model} muscles")
+    ax.set_xscale("log")
+    ax.invert_xaxis()
+    edges = sorted({r["edge_mm"] for r in rows})
+    ax.set_xticks(edges, [f"{e:g}" for e in edges])
+    ax.minorticks_off()
+    ax.set_xlabel("edge length [mm]")
+    ax.set_ylabel("tail peak-to-peak [mm]")
+    fluid = rows[0]["fluid"] if rows else "none"
+    ax.set_title(f"stroke under refinement ({'vacuum' if fluid == 'none' else fluid + ' fluid'})")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    if beam_rows:
+        bx = fig.add_subplot(1, 2, 2)
+        n = [r["across"] for r in beam_rows]
+        for i, (key, label) in enumerate((("static_err", "tip deflection"), ("frequency_err", "first frequency"))):
+            bx.loglog(n, [max(100 * abs(r[key]), 1e-3) for r in beam_rows], marker=MARKERS[i], label=label)
+        bx.set_xticks(n, [str(k) for k in n])
+        bx.xaxis.set_minor_locator(NullLocator())
+        bx.yaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
+        bx.yaxis.set_major_formatter(FormatStrFormatter("%g"))
+        bx.yaxis.set_minor_locator(NullLocator())
+        bx.set_xlabel("elements across the thickness")
+        bx.set_ylabel("|error| vs Euler-Bernoulli [%]")
+        bx.set_title("clamped cantilever")
+        bx.grid(alpha=0.3, which="both")
+        bx.legend(fontsize=8)
     return save_png_svg(fig, path)

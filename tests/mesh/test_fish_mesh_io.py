@@ -89,6 +89,27 @@ def test_preview_png(mesh, tmp_path):
     assert np.sum(np.all(np.abs(rgb - red) < 0.02, axis=-1)) > 50  # top muscles drawn in red
 
 
+def test_preview_of_the_muscle_layer(mesh, tmp_path):
+    from matplotlib.image import imread
+
+    from fishsim.render.mesh_preview import LAYER_COLORS
+
+    rgb = imread(plot_mesh(mesh, tmp_path / "layer.png", layer=(0.3, (0.05, 0.95))))[..., :3]
+    colour = lambda c: np.array([int(c[k:k + 2], 16) / 255 for k in (1, 3, 5)])
+    for c in LAYER_COLORS:                                           # full-fraction top and bottom elements
+        assert np.sum(np.all(np.abs(rgb - colour(c)) < 0.02, axis=-1)) > 50
+    assert np.sum(np.all(np.abs(rgb - colour(FACE_COLORS[2])) < 0.02, axis=-1)) < 10    # no station colours
+
+
+@pytest.mark.parametrize("suffix", [".vtu", ".msh", ".xdmf"])
+def test_extra_cell_data_is_written_and_ignored_on_read(mesh, tmp_path, monkeypatch, suffix):
+    monkeypatch.chdir(tmp_path)
+    fraction = np.linspace(0, 1, mesh.n_elements)
+    path = write_mesh(mesh, tmp_path / f"fish{suffix}", cell_data={"muscle_top": fraction})
+    _assert_same(mesh, read_mesh(path))
+    assert np.allclose(np.ravel(meshio.read(path).cell_data["muscle_top"][0]), fraction)
+
+
 def test_unknown_output_extension(mesh, tmp_path):
     from fishsim.errors import ConfigError
 

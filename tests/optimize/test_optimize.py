@@ -1,0 +1,154 @@
+"""fishsim optimize on a small tank and short episodes: the constraint mode, the batched
+population, failing members, the optimum of a swept problem, history, resume and bad input."""
+
+import h5py
+import numpy as np
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from fishsim.cli import app
+from fishsim.commands.optimize import run
+from fishsim.config import load_config
+from fishsim.errors import FishsimError, SimulationBlowUp
+from fishsim.optimize.problem import Problem, Space
+from fishsim.rollout import Swimmer
+
+runner = CliRunner()
+SMALL = ["fluid.H=32", "fluid.W=96", "fish.length=0.06", "fish.edge_length=4e-3", "origin=[0.05,0.04]"]
+
+
+def problem(*overrides: str) -> Problem:
+    cfg = load_config("optimize", [*SMALL, *overrides])
+    return Problem(cfg, Space(list(cfg.params), list(cfg.params.values())), cfg.objective)
+
+
+def test_hold_x_keeps_the_centroid_while_the_fish_pushes():
+    from fishsim.rollout import rollout
+
+    pb = problem("hold_x=true", "objective=thrust", "coupling.force_mode=average", "frames=25",
+                 "controller.frequency=8")
+    ep = pb.episode
+    state = ep.swimmer.initial_state(ep.params, ep.origin)
+    with torch.no_grad():
+        _, m = rollout(ep.swimmer, state, ep.params, 25)
+    cx, y = m["centroid_x"][:, 0], m["centroid_y"][:, 0]
+    assert float((cx - cx[0]).abs().max()) < 1e-12
+    assert float(m["thrust_x"][-10:].abs().max()) > 0 and float(m["tail_y"].std()) > 1e-4
+    assert float((y - y[0]).abs().max()) > 0        # free in y
+
+
+def test_batched_population_equals_members_one_by_one():
+    pb = problem("frames=15", "params.frequency.lower=2", "params.frequency.upper=12")
+    z = torch.tensor([[0.2], [0.5], [0.9]], dtype=torch.float64)
+    together = pb.evaluate(z).J
+    alone = torch.cat([pb.evaluate(z[i:i + 1]).J for i in range(3)])
+    assert torch.allclose(together, alone, rtol=1e-5, atol=0)    # the iterative solves' tolerance
+    assert len(set(together.tolist())) == 3
+
+
+def test_a_failing_member_does_not_stop_the_others(monkeypatch):
+    """A member whose frame blows up (here: any sample above 10 Hz from frame 6 on) is marked
+    with its frame and reason, parked, and the others give exactly their own results."""
+    frame = Swimmer.frame
+
+    def fragile(self, state, params, t, start=None):
+        c = params.controller
+        if t >= 5 and bool(((c.omega > 2 * np.pi * 10) & (c.C > 0)).any()):     # parked members have C = 0
+            raise SimulationBlowUp("non-finite solid positions q")
+        return frame(self, state, params, t, start)
+
+    pb = problem("frames=12", "params.frequency.lower=2", "params.frequency.upper=12")
+    z = torch.tensor([[0.2], [0.95], [0.5]], dtype=torch.float64)
+    good = pb.evaluate(z[[0, 2]]).J
+    monkeypatch.setattr(Swimmer, "frame", fragile)
+    ev = pb.evaluate(z)
+    assert set(ev.failures) == {1} and ev.failures[1][0] == 6 and "non-finite" in ev.failures[1][1]
+    assert torch.isnan(ev.J[1]) and torch.allclose(ev.J[[0, 2]], good, rtol=1e-5, atol=0)
+    with pytest.raises(SimulationBlowUp, match="frame 6"):      # a gradient run stops instead
+        pb.evaluate(z[1:2], gradient=True, isolate=False)
+
+
+@pytest.fixture(scope="module")
+def swept():
+    """The distance after 30 frames against frequency (5-25 Hz) by a dense batched sweep."""
+    over = ["frames=30", "params.frequency.lower=5", "params.frequency.upper=25"]
+    pb = problem(*over)
+    z = torch.linspace(0, 1, 21, dtype=torch.float64)[:, None]
+    return over, pb.space.to_x(z)[:, 0], pb.evaluate(z).J
+
+
+def test_adam_reaches_the_optimum_of_the_dense_sweep(swept, tmp_path):
+    over, f, J = swept
+    k = int(torch.argmax(J))
+    assert 0 < k < len(f) - 1                              # an interior optimum
+    cfg = load_config("optimize", [*SMALL, *over, "params.frequency.init=9", "optimizer.lr=0.1",
+                                   "optimizer.iterations=6", f"out_dir={tmp_path}"])
+    summary = run(cfg)["adam"]
+    assert summary["best_J"] >= 0.95 * float(J[k])
+    near = f[J >= 0.85 * J[k]]
+    assert float(near.min()) - 1 <= summary["best"]["frequency"] <= float(near.max()) + 1
+
+
+@pytest.mark.parametrize("method", ["adam", "cma"])
+def test_history_and_resume_reproduce_an_uninterrupted_run(method, tmp_path):
+    args = [*SMALL, "frames=8", f"optimizer.methods=[{method}]", "optimizer.popsize=3", "optimizer.lr=0.2",
+            "params.frequency.lower=2", "params.frequency.upper=12"]
+    full = runner.invoke(app, ["optimize", *args, "optimizer.iterations=3", f"out_dir={tmp_path / 'full'}"])
+    assert full.exit_code == 0, full.output
+    first = runner.invoke(app, ["optimize", *args, "optimizer.iterations=2", f"out_dir={tmp_path / 'cut'}"])
+    assert first.exit_code == 0, first.output
+    again = runner.invoke(app, ["optimize", *args, "optimizer.iterations=3", "resume=true",
+                                f"out_dir={tmp_path / 'cut'}"])
+    assert again.exit_code == 0, again.output
+    with h5py.File(tmp_path / "full" / method / "history.h5") as a, h5py.File(tmp_path / "cut" / method / "history.h5") as b:
+        assert a["x"].shape == (3, 1) and a.attrs["parameters"].tolist() == ["frequency"]
+        for key in ("x", "J", "best_J", "frames", "mean_x"):
+            np.testing.assert_array_equal(a[key][:], b[key][:])
+        if method == "cma":
+            assert a["pop_x"].shape == (3, 3, 1)
+        else:
+            assert np.isfinite(a["grad"][:]).all()
+    csv = (tmp_path / "cut" / method / "history.csv").read_text().splitlines()
+    assert len(csv) == 4 and csv[0].startswith("iteration,frames")
+    best = tmp_path / "cut" / method / "best.yaml"
+    assert (tmp_path / "cut" / "optimize.png").exists() and best.exists()
+    sim = runner.invoke(app, ["simulate", "--config", str(best), "frames=2", f"out_dir={tmp_path / 'sim'}"])
+    assert sim.exit_code == 0, sim.output
+    best_f = load_config("simulate", [], str(best)).controller.frequency
+    with h5py.File(tmp_path / "full" / method / "history.h5") as a:
+        assert best_f == pytest.approx(float(a["best_x"][-1, 0]))
+
+
+def test_a_blow_up_mid_run_stops_with_the_history_kept(monkeypatch, tmp_path):
+    calls = []
+    evaluate = Problem.evaluate
+
+    def second_blows_up(self, z, gradient=False, isolate=True):
+        calls.append(1)
+        if len(calls) == 2:
+            raise SimulationBlowUp("simulation blew up at frame 4: non-finite fluid pressure p")
+        return evaluate(self, z, gradient, isolate)
+
+    monkeypatch.setattr(Problem, "evaluate", second_blows_up)
+    cfg = load_config("optimize", [*SMALL, "frames=6", "optimizer.iterations=3", f"out_dir={tmp_path}"])
+    with pytest.raises(FishsimError, match="iteration 2: .*frame 4.*1 completed"):
+        run(cfg)
+    with h5py.File(tmp_path / "adam" / "history.h5") as f:
+        assert f["J"].shape == (1,)
+
+
+@pytest.mark.parametrize("override, words", [
+    (["+params.speed={lower:1,upper:2}"], "unknown optimisation parameter 'speed'"),
+    (["params.frequency.lower=8", "params.frequency.upper=3"], "empty or inverted"),
+    (["optimizer.methods=[cma]", "optimizer.popsize=1"], "popsize must be >= 2"),
+    (["optimizer.budget=10"], "cannot afford one iteration"),
+    (["hold_x=true"], "objective distance needs a free fish"),
+    (["optimizer.methods=[adamm]"], "unknown optimiser 'adamm'"),
+    (["objective.name=drag"], "unknown objective 'drag'"),
+    (["params.frequency.log=true", "params.frequency.lower=0"], "log scale needs lower > 0"),
+])
+def test_bad_input_is_one_line_and_exit_2(override, words, tmp_path):
+    result = runner.invoke(app, ["optimize", *SMALL, *override, f"out_dir={tmp_path}"])
+    assert result.exit_code == 2 and words in result.output, result.output
+    assert not (tmp_path / "adam").exists()
