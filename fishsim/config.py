@@ -355,13 +355,16 @@ def _merge_file(raw: Any, path: str, dotted: list[str]) -> Any:
     """raw <- the YAML file <- the ``key=value`` overrides (later wins)."""
     from pathlib import Path
 
+    import yaml
+
     if not Path(path).is_file():
         raise ConfigError(f"config file {path} does not exist (give the path of a YAML config, e.g. a run's best.yaml)")
     try:
         loaded = OmegaConf.load(path)
         dots = OmegaConf.from_dotlist([o.lstrip("+") for o in dotted if not o.startswith("~")])
+        OmegaConf.set_struct(raw, False)          # the file may hold keys of other groups; the schema checks them
         return OmegaConf.merge(raw, loaded, dots)
-    except (OmegaConfBaseException, ValueError, OSError) as err:
+    except (OmegaConfBaseException, ValueError, OSError, yaml.YAMLError) as err:
         raise ConfigError(f"config file {path} is not a readable YAML config: {_one_line(err)}") from None
 
 

@@ -134,7 +134,11 @@ class Swimmer:
 
     def initial_state(self, params: SwimParams, origin: tuple[float, float]) -> SwimState:
         """Fish at rest with its material frame translated to ``origin`` (x, y) in metres
-        (material X = 0, the tail, sits at x = origin[0]); fluid at rest."""
+        (material X = 0, the tail, sits at x = origin[0]); fluid at rest. A new episode also drops
+        the solid's lagged preconditioner, so that an episode's result never depends on the
+        episodes run before it in the same process (they differ only within the solver's
+        tolerance, but a resumed optimisation must repeat an uninterrupted one exactly)."""
+        self.solid.lagged = None
         B = params.E.shape[0]
         q = torch.as_tensor(self.solid.mesh.points, dtype=torch.float64, device=params.E.device)
         q = (q + torch.tensor(origin, dtype=q.dtype, device=q.device)).expand(B, -1, -1).clone()

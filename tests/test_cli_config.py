@@ -81,3 +81,16 @@ def test_shipped_yaml_defaults_equal_the_code_defaults():
     from fishsim.commands.validate import ValidateConfig
 
     assert load_config("validate") == ValidateConfig()
+
+
+def test_config_file_missing_or_unreadable_is_exit_2(tmp_path):
+    missing = runner.invoke(app, ["simulate", "--config", str(tmp_path / "nope.yaml"), "frames=1"])
+    assert missing.exit_code == 2 and "does not exist" in missing.output
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("frames: [unclosed\n")
+    broken = runner.invoke(app, ["simulate", "--config", str(bad)])
+    assert broken.exit_code == 2 and "not a readable YAML config" in broken.output
+    unknown = tmp_path / "unknown.yaml"
+    unknown.write_text("framez: 3\n")
+    typo = runner.invoke(app, ["simulate", "--config", str(unknown)])
+    assert typo.exit_code == 2 and "framez" in typo.output

@@ -52,11 +52,11 @@ def test_a_failing_member_does_not_stop_the_others(monkeypatch):
     with its frame and reason, parked, and the others give exactly their own results."""
     frame = Swimmer.frame
 
-    def fragile(self, state, params, t, start=None):
+    def fragile(self, state, params, t, start=None, **kw):
         c = params.controller
         if t >= 5 and bool(((c.omega > 2 * np.pi * 10) & (c.C > 0)).any()):     # parked members have C = 0
             raise SimulationBlowUp("non-finite solid positions q")
-        return frame(self, state, params, t, start)
+        return frame(self, state, params, t, start, **kw)
 
     pb = problem("frames=12", "params.frequency.lower=2", "params.frequency.upper=12")
     z = torch.tensor([[0.2], [0.95], [0.5]], dtype=torch.float64)
@@ -71,8 +71,8 @@ def test_a_failing_member_does_not_stop_the_others(monkeypatch):
 
 @pytest.fixture(scope="module")
 def swept():
-    """The distance after 30 frames against frequency (5-25 Hz) by a dense batched sweep."""
-    over = ["frames=30", "params.frequency.lower=5", "params.frequency.upper=25"]
+    """The distance after 40 frames against frequency (5-25 Hz) by a dense batched sweep."""
+    over = ["frames=40", "params.frequency.lower=5", "params.frequency.upper=25"]
     pb = problem(*over)
     z = torch.linspace(0, 1, 21, dtype=torch.float64)[:, None]
     return over, pb.space.to_x(z)[:, 0], pb.evaluate(z).J
