@@ -9,6 +9,12 @@ docs/validation.md): the swimming stroke at several edge lengths with each muscl
 clamped cantilever against Euler-Bernoulli; metrics.json, printed tables, and a plot of the tail
 peak-to-peak against the edge length and of the beam's errors against refinement
 (solid_convergence.png/.svg).
+
+suite=swim: the paper's frequency study (Fig. 4, ``fishsim.swim_study``): the head's displacement
+after 120 frames at 3-7 Hz for HydroNet (recovered and own pressure) and the numerical fluid at
+r = 1 and r = 2 (the reference), each fluid one batched rollout; Spearman rank correlation,
+argmax, mean mismatch (mm and cells) and runtimes; metrics.json, a printed table and a plot of
+displacement against frequency (swim.png/.svg).
 """
 
 from __future__ import annotations
@@ -26,8 +32,9 @@ from fishsim.errors import ConfigError
 from fishsim.fluid.hydronet.evaluate import EvalConfig, evaluate, summarise
 from fishsim.fluid.pressure import PRESSURES
 from fishsim.io.outdir import make_out_dir
+from fishsim.swim_study import PAPER, SwimStudyConfig
 
-SUITES = ("hydronet", "solid")
+SUITES = ("hydronet", "solid", "swim")
 STUDY_FLUIDS = ("none", "numerical", "hydronet")
 
 
@@ -60,10 +67,10 @@ class SolidStudyConfig:
 
 @dataclass
 class ValidateConfig:
-    """suite: hydronet | solid. model_file: the HydroNet to judge (null: shipped).
+    """suite: hydronet | solid | swim. model_file: the HydroNet to judge (null: shipped).
     bf16: run it in bfloat16. pressure: recovered | network (``fishsim.fluid.pressure``).
     device: cpu | cuda. scenes: the held-out scenes and protocol (hydronet).
-    solid: the mesh study and beam check (solid)."""
+    solid: the mesh study and beam check (solid). swim: the frequency study (swim)."""
 
     suite: str = "hydronet"
     model_file: str | None = None
@@ -72,10 +79,12 @@ class ValidateConfig:
     device: str = "cpu"
     scenes: EvalConfig = field(default_factory=EvalConfig)
     solid: SolidStudyConfig = field(default_factory=SolidStudyConfig)
+    swim: SwimStudyConfig = field(default_factory=SwimStudyConfig)
     out_dir: str | None = None
 
     def validate(self) -> None:
         self.solid.validate()
+        self.swim.validate()
         if self.suite not in SUITES:
             raise ConfigError(f"suite must be one of {SUITES} (got '{self.suite}')")
         if self.pressure not in PRESSURES:
@@ -91,7 +100,50 @@ def run(cfg: ValidateConfig) -> dict:
     """Run the chosen suite: evaluate, write metrics.json and the picture, print the tables."""
     if cfg.suite == "solid":
         return run_solid(cfg)
+    if cfg.suite == "swim":
+        return run_swim(cfg)
     return run_hydronet(cfg)
+
+
+def run_swim(cfg: ValidateConfig) -> dict:
+    """suite=swim: the frequency study (module docstring)."""
+    from fishsim.render.plots import plot_validation
+    from fishsim.swim_study import frequency_study
+
+    out_dir = make_out_dir("validate", cfg.out_dir)
+    s = cfg.swim
+    columns = (TextColumn("validate swim: {task.fields[fluid]}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
+    with Progress(*columns, console=Console(stderr=True), transient=True) as bar:
+        task = bar.add_task("fluids", total=len(s.fluids), fluid="")
+        done = []
+
+        def step(name: str) -> None:
+            bar.update(task, completed=len(done), fluid=name)
+            done.append(name)
+
+        results = frequency_study(s, cfg.device, progress=step)
+    metrics = {"swim": asdict(s), "fluids": results, "paper": PAPER}
+    (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    pictures = plot_validation(s.frequencies, {n: r["displacement_mm"] for n, r in results.items()}, out_dir / "swim",
+                               ylabel="head x displacement [mm]",
+                               title=f"frequency study, {s.frames} frames (reference: {s.reference})")
+    table = Table(title=f"frequency study: head x displacement [mm] after {s.frames} frames (reference {s.reference})")
+    for label in ("fluid", *(f"{f:g} Hz" for f in s.frequencies), "Spearman", "argmax [Hz]", "mismatch [mm]",
+                  "mismatch [cells]", "wall [s]", "s / fish-frame"):
+        table.add_column(escape(label), justify="left" if label == "fluid" else "right")
+    for name, r in results.items():
+        table.add_row(name, *(f"{v:.1f}" for v in r["displacement_mm"]), f"{r['spearman']:.2f}", f"{r['argmax_hz']:g}",
+                      f"{r['mean_mismatch_mm']:.1f}", f"{r['mean_mismatch_cells']:.1f}", f"{r['wall_s']:.1f}",
+                      f"{r['s_per_fish_frame']:.3f}")
+    Console(width=max(Console().width, 150)).print(table)
+    Console().print(f"paper (Fig. 4, Table 1): argmax {PAPER['argmax_hz']:g} Hz for both, mean mismatch "
+                    f"{PAPER['mean_mismatch_mm']:g} mm ({PAPER['mean_mismatch_cells']:g} cells); HydroNet "
+                    f"{PAPER['hydronet_forward_s_per_frame']:.2f} s / frame, COMSOL {PAPER['comsol_s_per_frame']:.0f} s / frame")
+    for name, r in results.items():
+        for f, fail in r["failures"].items():
+            Console().print(f"[yellow]{name} {f} Hz blew up at frame {fail['frame']}: {escape(fail['reason'])}[/]")
+    Console().print(f"metrics: {out_dir / 'metrics.json'}   picture: {pictures[0]}")
+    return metrics
 
 
 def run_solid(cfg: ValidateConfig) -> dict:

@@ -1,0 +1,46 @@
+"""fishsim validate suite=swim on a small tank: the study's table, metrics and plot, and its
+statistics against hand-made values."""
+
+import json
+
+import numpy as np
+from typer.testing import CliRunner
+
+from fishsim.cli import app
+from fishsim.swim_study import compare, spearman
+
+runner = CliRunner()
+
+
+def test_spearman_against_hand_values():
+    assert spearman([1, 2, 3, 4], [10, 20, 30, 40]) == 1.0
+    assert spearman([1, 2, 3, 4], [4, 3, 2, 1]) == -1.0
+    assert abs(spearman([1, 2, 3, 4, 5], [2, 1, 4, 3, 5]) - 0.8) < 1e-12      # 1 - 6 * 4 / (5 * 24)
+    assert np.isnan(spearman([1, 2, 3], [1, np.nan, 2]))
+
+
+def test_compare_mismatch_and_argmax():
+    ref = {"displacement_mm": [10.0, 30.0, 20.0], "dx_mm": 2.5}
+    other = {"displacement_mm": [5.0, 25.0, 35.0], "dx_mm": 2.5}
+    c = compare(other, ref, [3.0, 5.0, 7.0])
+    assert c["argmax_hz"] == 7.0 and c["mean_mismatch_mm"] == 25.0 / 3 and c["mean_mismatch_cells"] == 25.0 / 7.5
+    assert c["spearman"] == 0.5
+
+
+def test_validate_swim_small(tmp_path):
+    small = "['fluid.H=32','fluid.W=96','fish.length=0.06','fish.edge_length=4e-3','origin=[0.05,0.04]']"
+    result = runner.invoke(app, ["validate", "suite=swim", "swim.frequencies=[4,8]", "swim.frames=6",
+                                 "swim.fluids=[numerical_r2,numerical]", f"swim.overrides={small}",
+                                 f"out_dir={tmp_path}"])
+    assert result.exit_code == 0, result.output
+    metrics = json.loads((tmp_path / "metrics.json").read_text())
+    ref, r1 = metrics["fluids"]["numerical_r2"], metrics["fluids"]["numerical"]
+    assert abs(ref["spearman"] - 1.0) < 1e-12 and ref["mean_mismatch_mm"] == 0.0
+    assert len(r1["displacement_mm"]) == 2 and np.isfinite(r1["displacement_mm"]).all()
+    assert r1["displacement_mm"] != ref["displacement_mm"]
+    assert (tmp_path / "swim.png").exists() and "Spearman" in result.output
+
+
+def test_validate_swim_bad_fluid_is_exit_2(tmp_path):
+    result = runner.invoke(app, ["validate", "suite=swim", "swim.fluids=[comsol]", f"out_dir={tmp_path}"])
+    assert result.exit_code == 2 and "unknown ['comsol']" in result.output
