@@ -15,6 +15,11 @@ after 120 frames at 3-7 Hz for HydroNet (recovered and own pressure) and the num
 r = 1 and r = 2 (the reference), each fluid one batched rollout; Spearman rank correlation,
 argmax, mean mismatch (mm and cells) and runtimes; metrics.json, a printed table and a plot of
 displacement against frequency (swim.png/.svg).
+
+suite=convergence: the same study against each numerical knob of the reference (sub-steps,
+penalisation iterations, the IBM kernel, the grid; ``fishsim.swim_study.convergence_study``):
+displacement and mean thrust per setting, observed orders, Richardson estimates and the
+defaults' errors; metrics.json, a table and convergence.png/.svg.
 """
 
 from __future__ import annotations
@@ -32,9 +37,9 @@ from fishsim.errors import ConfigError
 from fishsim.fluid.hydronet.evaluate import EvalConfig, evaluate, summarise
 from fishsim.fluid.pressure import PRESSURES
 from fishsim.io.outdir import make_out_dir
-from fishsim.swim_study import PAPER, SwimStudyConfig
+from fishsim.swim_study import PAPER, ConvergenceStudyConfig, SwimStudyConfig
 
-SUITES = ("hydronet", "solid", "swim")
+SUITES = ("hydronet", "solid", "swim", "convergence")
 STUDY_FLUIDS = ("none", "numerical", "hydronet")
 
 
@@ -67,7 +72,7 @@ class SolidStudyConfig:
 
 @dataclass
 class ValidateConfig:
-    """suite: hydronet | solid | swim. model_file: the HydroNet to judge (null: shipped).
+    """suite: hydronet | solid | swim | convergence. model_file: the HydroNet to judge (null: shipped).
     bf16: run it in bfloat16. pressure: recovered | network (``fishsim.fluid.pressure``).
     device: cpu | cuda. scenes: the held-out scenes and protocol (hydronet).
     solid: the mesh study and beam check (solid). swim: the frequency study (swim)."""
@@ -80,11 +85,13 @@ class ValidateConfig:
     scenes: EvalConfig = field(default_factory=EvalConfig)
     solid: SolidStudyConfig = field(default_factory=SolidStudyConfig)
     swim: SwimStudyConfig = field(default_factory=SwimStudyConfig)
+    convergence: ConvergenceStudyConfig = field(default_factory=ConvergenceStudyConfig)
     out_dir: str | None = None
 
     def validate(self) -> None:
         self.solid.validate()
         self.swim.validate()
+        self.convergence.validate()
         if self.suite not in SUITES:
             raise ConfigError(f"suite must be one of {SUITES} (got '{self.suite}')")
         if self.pressure not in PRESSURES:
@@ -102,7 +109,44 @@ def run(cfg: ValidateConfig) -> dict:
         return run_solid(cfg)
     if cfg.suite == "swim":
         return run_swim(cfg)
+    if cfg.suite == "convergence":
+        return run_convergence(cfg)
     return run_hydronet(cfg)
+
+
+def run_convergence(cfg: ValidateConfig) -> dict:
+    """suite=convergence (module docstring)."""
+    from fishsim.render.plots import plot_convergence
+    from fishsim.swim_study import convergence_study
+
+    out_dir = make_out_dir("validate", cfg.out_dir)
+    c = cfg.convergence
+    columns = (TextColumn("validate convergence: {task.fields[run]}"), BarColumn(), TimeRemainingColumn())
+    with Progress(*columns, console=Console(stderr=True), transient=True) as bar:
+        task = bar.add_task("runs", total=None, run="")
+        results = convergence_study(c, cfg.device, progress=lambda what: bar.update(task, run=what))
+    metrics = {"convergence": asdict(c), "knobs": results}
+    (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    pictures = plot_convergence(results, c.frequencies, out_dir / "convergence")
+    freqs = [f"{f:g} Hz" for f in c.frequencies]
+    table = Table(title=f"convergence of the frequency study: head x displacement [mm] ({', '.join(freqs)})")
+    for label in ("knob", "setting", "displacement [mm]", "mean thrust [mN/m]", "wall [s]"):
+        table.add_column(escape(label), justify="left" if label == "knob" else "right")
+    fmt = lambda row: " / ".join(f"{v:.1f}" for v in row)
+    for name, r in results.items():
+        for i, v in enumerate(r["values"]):
+            mark = " (default)" if v == r["default"] else ""
+            table.add_row(name if i == 0 else "", f"{r['key']}={v:g}{mark}", fmt(r["displacement_mm"][i]),
+                          fmt(r["mean_thrust_mN"][i]), f"{r['wall_s'][i]:.0f}")
+        o = r["displacement"]
+        table.add_row("", "observed order p", " / ".join(f"{p:.2f}" for p in o["order"]), "", "")
+        table.add_row("", "Richardson estimate", fmt(o["richardson"]), "", "")
+        if "default_error_vs_finest" in r:
+            table.add_row("", "default vs finest", " / ".join(f"{100 * e:+.1f} %" for e in r["default_error_vs_finest"]),
+                          "", "")
+    Console(width=max(Console().width, 130)).print(table)
+    Console().print(f"metrics: {out_dir / 'metrics.json'}   picture: {pictures[0]}")
+    return metrics
 
 
 def run_swim(cfg: ValidateConfig) -> dict:

@@ -10,6 +10,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -156,4 +157,30 @@ def plot_solid_convergence(rows: Sequence[Mapping], beam_rows: Sequence[Mapping]
         bx.set_title("clamped cantilever")
         bx.grid(alpha=0.3, which="both")
         bx.legend(fontsize=8)
+    return save_png_svg(fig, path)
+
+
+def plot_convergence(results: Mapping[str, Mapping], frequencies: Sequence[float], path: str | Path) -> list[Path]:
+    """One panel per numerical knob: the head's displacement against the knob's setting (log
+    axis), one line per frequency, the Richardson estimate dashed and the default dotted.
+    results: fishsim.swim_study.convergence_study's output."""
+    names = list(results)
+    fig = Figure(figsize=(5.0 * min(len(names), 3), 3.4 * math.ceil(len(names) / 3)), layout="constrained")
+    FigureCanvasAgg(fig)
+    for k, name in enumerate(names):
+        r = results[name]
+        ax = fig.add_subplot(math.ceil(len(names) / 3), min(len(names), 3), k + 1)
+        d = np.asarray(r["displacement_mm"], float)
+        for j, f in enumerate(frequencies):
+            line = ax.plot(r["values"], d[:, j], marker=MARKERS[j % len(MARKERS)], label=f"{f:g} Hz")[0]
+            rich = r["displacement"]["richardson"][j]
+            if np.isfinite(rich):
+                ax.axhline(rich, color=line.get_color(), linestyle="--", linewidth=0.8)
+        ax.axvline(r["default"], color="0.5", linestyle=":", label="default")
+        ax.set_xscale("log")
+        ax.set_xlabel(f"{r['key']} ({r['frames']} frames)")
+        ax.set_ylabel("head x displacement [mm]")
+        ax.set_title(name)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
     return save_png_svg(fig, path)
