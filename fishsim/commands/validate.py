@@ -129,7 +129,7 @@ def run_convergence(cfg: ValidateConfig) -> dict:
     (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
     pictures = plot_convergence(results, c.frequencies, out_dir / "convergence")
     freqs = [f"{f:g} Hz" for f in c.frequencies]
-    table = Table(title=f"convergence of the frequency study: head x displacement [mm] ({', '.join(freqs)})")
+    table = Table(title=escape(f"convergence of the frequency study: head x displacement [mm] ({', '.join(freqs)})"))
     for label in ("knob", "setting", "displacement [mm]", "mean thrust [mN/m]", "wall [s]"):
         table.add_column(escape(label), justify="left" if label == "knob" else "right")
     fmt = lambda row: " / ".join(f"{v:.1f}" for v in row)
@@ -171,7 +171,7 @@ def run_swim(cfg: ValidateConfig) -> dict:
     pictures = plot_validation(s.frequencies, {n: r["displacement_mm"] for n, r in results.items()}, out_dir / "swim",
                                ylabel="head x displacement [mm]",
                                title=f"frequency study, {s.frames} frames (reference: {s.reference})")
-    table = Table(title=f"frequency study: head x displacement [mm] after {s.frames} frames (reference {s.reference})")
+    table = Table(title=escape(f"frequency study: head x displacement [mm] after {s.frames} frames (reference {s.reference})"))
     for label in ("fluid", *(f"{f:g} Hz" for f in s.frequencies), "Spearman", "argmax [Hz]", "mismatch [mm]",
                   "mismatch [cells]", "wall [s]", "s / fish-frame"):
         table.add_column(escape(label), justify="left" if label == "fluid" else "right")
