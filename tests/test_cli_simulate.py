@@ -161,3 +161,42 @@ def test_simulate_blow_up_exit_code_2_and_partial_file_kept(tmp_path, monkeypatc
     tr = read_trajectory(tmp_path / "trajectory.h5")
     assert not tr.complete and tr.n_frames == 3 and "blew up" in tr.attrs["message"]
     assert np.isfinite(tr["solid/q"][:3]).all()
+
+
+THRESHOLD = 0.1  # m/s: the 6 Hz fish's surface passes it from the 6th step, the 3 Hz fish's never (8 frames)
+
+
+def test_a_batch_carries_on_past_a_fish_that_blows_up(tmp_path, monkeypatch):
+    """In a batch, the fish whose fluid goes non-finite (here the faster one, from frame 4 on) is
+    marked failed with its frame and held at rest; the others finish exactly as alone."""
+    import json
+
+    import torch
+
+    from fishsim.fluid.base import FluidState
+    from fishsim.fluid.numerical import NumericalFluid
+
+    real = NumericalFluid.step
+
+    def second_fails(self, state, boundary, params, start=None):
+        new = real(self, state, boundary, params, start)
+        fast = boundary.velocity[:, :, 5:-5, 10:-10].abs().amax((1, 2, 3)) > THRESHOLD    # the 6 Hz fish, not the walls
+        if self.steps_taken >= 5 and bool(fast.any()):
+            p = new.p.clone()
+            p[fast] = torch.nan
+            return FluidState(new.a, p)
+        return new
+
+    args = ["simulate", *NUMERICAL, "frames=8", f"out_dir={tmp_path}"]
+    alone = runner.invoke(app, [*args[:-1], "controller.frequency=3", f"out_dir={tmp_path / 'alone'}"])
+    assert alone.exit_code == 0, alone.output
+    monkeypatch.setattr(NumericalFluid, "step", second_fails)
+    result = runner.invoke(app, [*args, "batch.frequency=[3,6]"])
+    assert result.exit_code == 0, result.output
+    assert "fish 1 blew up at frame" in result.output
+    tr = read_trajectory(tmp_path / "trajectory.h5")
+    assert tr.complete and "1" in json.loads(tr.attrs["failed_fish"])
+    ref = read_trajectory(tmp_path / "alone" / "trajectory.h5")
+    np.testing.assert_allclose(tr["metrics/head_x"][:, 0], ref["metrics/head_x"][:, 0], rtol=1e-6)
+    q1 = tr["solid/q"][-3:, 1]
+    assert np.isfinite(q1).all() and np.abs(q1 - q1[0]).max() == 0          # held at rest

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 import time
 from dataclasses import dataclass
@@ -135,17 +136,25 @@ def run(cfg: SimulateConfig) -> dict:
                 history[k].append(v.detach().cpu().numpy())
             progress.update(task, advance=1, description=f"simulate  head x {float(metrics['head_x'][0]):.4f} m")
 
+        # a batch carries on past a fish that blows up (marked failed, held at rest); one fish stops
+        failures = {} if episode.params.E.shape[0] > 1 else None
         try:
             with torch.no_grad():
-                rollout(sw, state, episode.params, cfg.frames, on_frame=on_frame)
+                rollout(sw, state, episode.params, cfg.frames, on_frame=on_frame, failures=failures)
         except (FishsimError, KeyboardInterrupt) as err:
             writer.close(complete=False, message=f"stopped: {err}", attrs=_grid_attrs(cfg))
             raise type(err)(f"{err} (partial trajectory kept in {path}, marked incomplete)") from None
     wall = time.perf_counter() - t_start
     summary = summarise(cfg, episode, history, wall)
-    writer.close(complete=True, attrs={**_grid_attrs(cfg), **{f"summary_{k}": v for k, v in summary.items()
-                                                              if isinstance(v, (int, float))}})
+    failed = {str(b): {"frame": f, "reason": why} for b, (f, why) in sorted((failures or {}).items())}
+    writer.close(complete=True, attrs={**_grid_attrs(cfg), "failed_fish": json.dumps(failed),
+                                       **{f"summary_{k}": v for k, v in summary.items() if isinstance(v, (int, float))}})
     summary["trajectory"] = str(path)
+    for b, fail in failed.items():
+        Console(stderr=True).print(f"[yellow]fish {b} blew up at frame {fail['frame']} and was held at rest from "
+                                   f"then on (the others carried on): {escape(fail['reason'])}[/]")
+    if failed:
+        summary["failed fish"] = ", ".join(failed)
     if cfg.vtk:
         summary["paraview"] = str(_write_vtk(path, out_dir, cfg.vtk_stride))
     _print(summary)

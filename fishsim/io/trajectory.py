@@ -120,9 +120,9 @@ def read_trajectory(path: str | Path, load_fluid: bool = True) -> Trajectory:
         data: dict[str, np.ndarray] = {}
 
         def visit(name: str, obj) -> None:
-            if isinstance(obj, h5py.Dataset) and name != "config":
-                if load_fluid or not name.startswith("fluid/"):
-                    data[name] = obj[()]
+            wanted = load_fluid or not name.startswith("fluid/")
+            if isinstance(obj, h5py.Dataset) and name != "config" and wanted:
+                data[name] = obj[()]
 
         f.visititems(visit)
         attrs = dict(f.attrs)
