@@ -94,7 +94,8 @@ def tail_excursion(model: SolidModel, frequency: float = 5.0, t_end: float = 1.2
 
 def run(steps: int = 20, warmup: int = 40, repeats: int = 7) -> dict:
     """Benchmark dict: mesh size, ms/step forward and backward at B = 1 and 16 (best of
-    `repeats`, the machine is shared), iterations per step."""
+    `repeats`, the machine is shared), iterations per step; and B = 1 ms/step at each edge length
+    of the mesh-convergence study (3, 2, 1.4, 1 mm)."""
     torch.set_num_threads(1)
     mesh = make_fish_mesh()
     model = SolidModel(mesh, muscles=layer_muscles(mesh, 0.3))          # the default muscles
@@ -112,6 +113,11 @@ def run(steps: int = 20, warmup: int = 40, repeats: int = 7) -> dict:
                     f"adjoint_iterations_B{B}": round(bits, 2)})
     out["batch16_over_batch1_forward"] = round(out["forward_ms_B16"] / out["forward_ms_B1"], 2)
     out["batch16_over_batch1_backward"] = round(out["backward_ms_B16"] / out["backward_ms_B1"], 2)
+    from benchmarks.study_solid_convergence import timing_study
+
+    for r in timing_study(steps=steps, warmup=warmup, repeats=3):     # the cost of refining the fish
+        out[f"edge_{r['edge_mm']:g}mm"] = {"nodes": r["nodes"], "forward_ms": round(r["forward_ms"], 2),
+                                           "backward_ms": round(r["backward_ms"], 2)}
     return out
 
 
