@@ -252,6 +252,7 @@ class OptimizerConfig:
     options: more keyword arguments of the torch.optim optimiser.
     sigma: CMA-ES's initial step in normalised units.  popsize: CMA-ES population (null: pycma's 4 + 3 ln P).
     seed: CMA-ES's random seed.  segment: gradient-checkpoint segment (frames).
+    truncate: truncated backpropagation through time, the window in frames (0: the full episode).
     """
 
     methods: list[str] = field(default_factory=lambda: ["adam"])
@@ -263,6 +264,7 @@ class OptimizerConfig:
     popsize: int | None = None
     seed: int = 0
     segment: int = 25
+    truncate: int = 0
 
     def validate(self) -> None:
         from fishsim.optimize.methods import torch_optimizer
@@ -276,6 +278,7 @@ class OptimizerConfig:
                  f"optimizer.popsize must be >= 2 (got {self.popsize}): CMA-ES needs a population to rank")
         _positive(**{"optimizer.lr": self.lr, "optimizer.sigma": self.sigma})
         _require(self.segment >= 1, f"optimizer.segment must be >= 1 (got {self.segment})")
+        _require(self.truncate >= 0, f"optimizer.truncate must be >= 0 frames, 0 for none (got {self.truncate})")
 
 
 @dataclass

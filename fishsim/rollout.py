@@ -341,7 +341,8 @@ def _detached(state: SwimState) -> SwimState:
 
 def rollout(swimmer: Swimmer, state: SwimState, params: SwimParams, n_frames: int,
             segment: int = 0, on_frame: Callable[[int, SwimState, FrameOutput, dict], None] | None = None,
-            start: int = 0, failures: dict[int, tuple[int, str]] | None = None) -> tuple[SwimState, dict[str, Tensor]]:
+            start: int = 0, failures: dict[int, tuple[int, str]] | None = None,
+            truncate: int = 0) -> tuple[SwimState, dict[str, Tensor]]:
     """Run ``n_frames`` frames from frame ``start``; return the final state and the per-frame
     metrics stacked to [n_frames, B] (differentiable w.r.t. the initial state and ``params``).
 
@@ -358,6 +359,10 @@ def rollout(swimmer: Swimmer, state: SwimState, params: SwimParams, n_frames: in
         ``failures[b] = (frame, reason)`` and parked from then on (held at this call's initial
         state with zero muscle contraction, so it stays at rest and its gradients are zero); the
         others carry on. Raises only if every sample has failed.
+    truncate: truncated backpropagation through time (0: none). Every ``truncate`` frames the
+        state is detached, so the gradient of a frame's metrics reaches the parameters only
+        through the frames since the last cut (a biased but bounded gradient for long episodes
+        whose full gradient grows with their length; docs/physics.md section 9).
     Raises SimulationBlowUp naming the frame if a state goes non-finite.
     """
     recorded = [start - 1]
@@ -404,6 +409,11 @@ def rollout(swimmer: Swimmer, state: SwimState, params: SwimParams, n_frames: in
     t = start
     while t < start + n_frames:
         count = min(seg, start + n_frames - t)
+        if truncate > 0 and torch.is_grad_enabled():
+            done = t - start
+            if done and done % truncate == 0:
+                tensors = tuple(x.detach() for x in tensors)
+            count = min(count, truncate - done % truncate)
         inputs = (*tensors, *_param_tensors(params))
         if seg < n_frames:
             result = CheckpointedFrames.apply(lambda *x, t0=t, n=count: run_frames(t0, n, *x), *inputs)

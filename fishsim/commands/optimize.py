@@ -43,7 +43,7 @@ def run(cfg: OptimizeConfig) -> dict:
     """Run every method, write the outputs, print the summary; return it."""
     out_dir = make_out_dir("optimize", cfg.out_dir)
     space = Space(list(cfg.params), list(cfg.params.values()))
-    problem = Problem(cfg, space, cfg.objective, segment=cfg.optimizer.segment)
+    problem = Problem(cfg, space, cfg.objective, segment=cfg.optimizer.segment, truncate=cfg.optimizer.truncate)
     console = Console(stderr=True)
     histories, summary = {}, {}
     for method in cfg.optimizer.methods:

@@ -138,12 +138,14 @@ class Evaluation:
 class Problem:
     """Candidates z [B, P] -> objective J [B], by one batched, checkpointed rollout of the episode
     built from the config (fishsim.commands.simulate.build_episode with B = 1, then each
-    optimised parameter set per candidate)."""
+    optimised parameter set per candidate). segment: gradient-checkpoint segment (frames);
+    truncate: truncated backpropagation window (frames, 0: full; fishsim.rollout.rollout)."""
 
-    def __init__(self, cfg, space: Space, objective_cfg: ObjectiveConfig, segment: int = 25):
+    def __init__(self, cfg, space: Space, objective_cfg: ObjectiveConfig, segment: int = 25, truncate: int = 0):
         from fishsim.commands.simulate import build_episode
 
         self.cfg, self.space, self.objective_cfg, self.segment = cfg, space, objective_cfg, segment
+        self.truncate = truncate
         self.episode = build_episode(cfg)
         self.base = self.episode.params
         self._check_amplitude()
@@ -200,7 +202,7 @@ class Problem:
             state = sw.initial_state(params, self.episode.origin)
             start = _start_metrics(sw, state)
             _, metrics = rollout(sw, state, params, cfg.frames, segment=self.segment if gradient else 0,
-                                 failures=failures)
+                                 failures=failures, truncate=self.truncate)
             J = objective(self.objective_cfg.name, metrics, params.controller.omega / (2 * math.pi), cfg.h,
                           start, self.objective_cfg.cycles)
             grad = None
