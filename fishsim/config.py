@@ -292,7 +292,7 @@ class OptimizeConfig(SimulateConfig):
 
     frames: int = 120
     objective: ObjectiveConfig = field(default_factory=ObjectiveConfig)
-    params: dict[str, ParamSpec] = field(default_factory=lambda: {"frequency": ParamSpec(0.5, 10.5)})
+    params: dict[str, ParamSpec] = field(default_factory=dict)   # optimize.yaml: frequency in [0.5, 10.5] Hz
     optimizer: OptimizerConfig = field(default_factory=OptimizerConfig)
     resume: bool = False
 

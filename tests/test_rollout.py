@@ -236,7 +236,7 @@ def test_added_mass_of_the_fish_lies_in_the_stable_window(fluid):
 def test_truncated_backpropagation_equals_detached_windows(segment):
     """rollout(truncate=k) gives the gradient of the same metrics computed window by window with
     the state detached between windows; a window as long as the episode changes nothing."""
-    cfg, sw, ep = small_swimmer(["fluid=none"])
+    _, sw, ep = small_swimmer(["fluid=none"])
     n, k = 12, 5
 
     def loss_and_grad(run):

@@ -152,3 +152,10 @@ def test_bad_input_is_one_line_and_exit_2(override, words, tmp_path):
     result = runner.invoke(app, ["optimize", *SMALL, *override, f"out_dir={tmp_path}"])
     assert result.exit_code == 2 and words in result.output, result.output
     assert not (tmp_path / "adam").exists()
+
+
+def test_parameters_can_be_dropped_and_added_from_the_command_line():
+    cfg = load_config("optimize", ["~params.frequency", "+params.amplitude={lower:5,upper:20}",
+                                   "+params.youngs_modulus={lower:2e5,upper:2e6,log:true}"])
+    assert list(cfg.params) == ["amplitude", "youngs_modulus"] and cfg.params["youngs_modulus"].log
+    assert list(load_config("optimize", []).params) == ["frequency"]
