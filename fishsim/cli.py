@@ -11,6 +11,7 @@ import typer
 
 from fishsim.config import ROOTS, load_config, to_yaml
 from fishsim.errors import FishsimError
+from fishsim.io.outdir import release_locks
 
 app = typer.Typer(
     add_completion=False,
@@ -55,6 +56,8 @@ def _execute(command: str, overrides: list[str] | None, show: bool, run: Callabl
     except KeyboardInterrupt:
         typer.secho("interrupted: partial results were kept", fg=typer.colors.YELLOW, err=True)
         raise typer.Exit(code=130) from None
+    finally:
+        release_locks()
 
 
 @app.callback()

@@ -200,7 +200,7 @@ class SimulateConfig:
     (the tail tip) in the tank.  hold_x: hold the fish's centroid x fixed (the paper's thrust
     set-up; the fish undulates and sways in y but cannot travel; ``fishsim.rollout.Swimmer``).  fluid_stride: store the fluid fields every k frames.
     vtk / vtk_stride: also write ParaView frames every vtk_stride frames (a multiple of fluid_stride).  flush_every: HDF5 flush period (frames).
-    device: cpu | cuda.
+    device: cpu | cuda.  overwrite: replace an existing output (else refused: a finished run is never lost).
     """
 
     fish: FishConfig = field(default_factory=FishConfig)
@@ -220,6 +220,7 @@ class SimulateConfig:
     device: str = "cpu"
     output: str = "trajectory.h5"
     out_dir: str | None = None
+    overwrite: bool = False
 
     def validate(self) -> None:
         for part in (self.fish, self.controller, self.batch, self.fluid):

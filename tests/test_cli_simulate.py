@@ -43,7 +43,7 @@ def test_simulate_killed_leaves_incomplete_readable_file(tmp_path):
     args = ["simulate", *NUMERICAL, "frames=2000", "flush_every=1", f"out_dir={tmp_path}"]
     proc = subprocess.Popen([sys.executable, "-m", "fishsim.cli", *args],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    path = tmp_path / "trajectory.h5"
+    path = tmp_path / "trajectory.h5.part"          # renamed to trajectory.h5 only when the run ends
     deadline = time.time() + 120
     while time.time() < deadline:
         time.sleep(1.0)
@@ -52,7 +52,7 @@ def test_simulate_killed_leaves_incomplete_readable_file(tmp_path):
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait()
     tr = read_trajectory(path)
-    assert not tr.complete
+    assert not tr.complete and not (tmp_path / "trajectory.h5").exists()
     assert 3 <= tr.n_frames < 2000
     assert np.isfinite(tr["solid/q"][: tr.n_frames]).all()
 

@@ -32,7 +32,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from fishsim.config import OptimizeConfig, SimulateConfig, to_yaml
-from fishsim.errors import FishsimError, SimulationBlowUp
+from fishsim.errors import ConfigError, FishsimError, SimulationBlowUp
 from fishsim.io.outdir import make_out_dir
 from fishsim.optimize.methods import make_method
 from fishsim.optimize.problem import OBJECTIVES, PARAMETERS, Problem, Space
@@ -42,6 +42,7 @@ from fishsim.render.plots import plot_optimisation_history
 def run(cfg: OptimizeConfig) -> dict:
     """Run every method, write the outputs, print the summary; return it."""
     out_dir = make_out_dir("optimize", cfg.out_dir)
+    _check_existing(cfg, out_dir)
     space = Space(list(cfg.params), list(cfg.params.values()))
     problem = Problem(cfg, space, cfg.objective, segment=cfg.optimizer.segment, truncate=cfg.optimizer.truncate)
     console = Console(stderr=True)
@@ -62,6 +63,18 @@ def run(cfg: OptimizeConfig) -> dict:
     _print(summary, space, cfg)
     Console().print(f"outputs: {out_dir}/ (per method: history.h5, history.csv, best.yaml; plot: {plot[0].name})")
     return summary
+
+
+def _check_existing(cfg: OptimizeConfig, out_dir) -> None:
+    """A run folder holding an earlier run is continued (resume=true) or replaced
+    (overwrite=true), never silently restarted; resume=true needs something to resume."""
+    started = [m for m in cfg.optimizer.methods if (out_dir / m / "state.pt").exists()]
+    if started and not (cfg.resume or cfg.overwrite):
+        raise ConfigError(f"{out_dir} already holds a run of {', '.join(started)}; pass resume=true to continue it, "
+                          "overwrite=true to start again, or another out_dir")
+    if cfg.resume and not started:
+        raise ConfigError(f"resume=true but {out_dir} holds no run to continue (no <method>/state.pt); "
+                          "drop resume=true to start one")
 
 
 def optimise(problem: Problem, cfg: OptimizeConfig, name: str, folder: Path, console: Console) -> list[dict]:

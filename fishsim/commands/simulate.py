@@ -117,6 +117,11 @@ def run(cfg: SimulateConfig) -> dict:
     """Simulate, writing the trajectory as it goes; print and return the summary."""
     out_dir = make_out_dir("simulate", cfg.out_dir)
     path = resolve_output(out_dir, cfg.output)
+    if path.is_dir():
+        raise ConfigError(f"output={cfg.output} is a folder; name a file, e.g. output=trajectory.h5")
+    if path.exists() and not cfg.overwrite:
+        raise ConfigError(f"{path} already exists (an earlier run's result); pass overwrite=true to replace it "
+                          "or choose another out_dir / output")
     episode = build_episode(cfg)
     sw = episode.swimmer
     writer = open_writer(cfg, episode, path)

@@ -14,13 +14,15 @@ Layout (every time series has the frame axis first and a batch axis B second)::
     /config                            the resolved config as a YAML string
     attributes: fishsim_version, h, units, complete, n_frames (final), message
 
-The file is opened in HDF5 single-writer/multiple-reader mode after all datasets are declared,
-and flushed every ``flush_every`` frames: a killed run leaves a readable file holding every
-flushed frame, with ``complete = False``.
+The file is written as ``<name>.part`` and renamed to its name when the run ends (complete or
+stopped and marked incomplete). It is opened in HDF5 single-writer/multiple-reader mode after
+all datasets are declared and flushed every ``flush_every`` frames: a killed run leaves a
+readable ``<name>.part`` holding every flushed frame, with ``complete = False``.
 """
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -45,7 +47,8 @@ class TrajectoryWriter:
                  static: dict[str, np.ndarray], config_yaml: str, h: float, flush_every: int = 10):
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self.file = h5py.File(self.path, "w", libver="latest")
+        self.partial = partial_path(self.path)
+        self.file = h5py.File(self.partial, "w", libver="latest")
         self.counts = {name: 0 for name in series}
         self.flush_every = flush_every
         self._frames = 0
@@ -81,11 +84,19 @@ class TrajectoryWriter:
         extra file attributes (grid size, summary numbers)."""
         self.file.flush()
         self.file.close()
-        with h5py.File(self.path, "r+") as f:
+        with h5py.File(self.partial, "r+") as f:
             f.attrs.update(attrs or {})
             f.attrs["complete"] = bool(complete)
             f.attrs["n_frames"] = self._frames
             f.attrs["message"] = message or ("complete" if complete else "incomplete")
+        os.replace(self.partial, self.path)
+
+
+def partial_path(path: Path) -> Path:
+    """Where a trajectory is written until its run ends (then renamed to ``path``): an earlier
+    file at ``path`` is never touched by a run that dies, and a killed run leaves
+    ``<name>.part``, readable up to its last flushed frame."""
+    return path.with_name(path.name + ".part")
 
 
 @dataclass
@@ -103,16 +114,34 @@ class Trajectory:
         return self.data[key]
 
 
+def open_trajectory(path: Path) -> h5py.File:
+    """Open for reading: normally first (a truncated or foreign file fails in milliseconds);
+    in SWMR mode only for a file that a writer still holds or that a killed writer left marked
+    open (HDF5 then refuses a normal open)."""
+    try:
+        return h5py.File(path, "r")
+    except OSError as err:
+        text = str(err)
+        if "truncated" in text or "already open for write" not in text and "consistency flags" not in text:
+            reason = "truncated: the file is cut short" if "truncated" in text else err.__class__.__name__
+            raise InputFileError(f"{path} is not a readable HDF5 file ({reason}); it may be corrupt, "
+                                 "cut short, or not a fishsim trajectory") from None
+    try:
+        return h5py.File(path, "r", libver="latest", swmr=True)
+    except OSError as err:
+        raise InputFileError(f"{path} is not a readable HDF5 file ({err.__class__.__name__}); "
+                             "it may be corrupt or not a fishsim trajectory") from None
+
+
 def read_trajectory(path: str | Path, load_fluid: bool = True) -> Trajectory:
     """Read a trajectory file; a crashed run's file is read up to its last flushed frame."""
     path = Path(path)
     if not path.exists():
-        raise InputFileError(f"no such trajectory file: {path} (run `fishsim simulate` to make one)")
-    try:
-        f = h5py.File(path, "r", libver="latest", swmr=True)
-    except OSError as err:
-        raise InputFileError(f"{path} is not a readable HDF5 file ({err.__class__.__name__}); "
-                             "it may be corrupt or not a fishsim trajectory") from None
+        part = partial_path(path)
+        hint = (f"a run killed while writing it left {part}: read that" if part.exists()
+                else "run `fishsim simulate` to make one")
+        raise InputFileError(f"no such trajectory file: {path} ({hint})")
+    f = open_trajectory(path)
     with f:
         if "config" not in f or "metrics/time" not in f:
             raise InputFileError(f"{path} is an HDF5 file but not a fishsim trajectory "

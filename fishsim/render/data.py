@@ -9,11 +9,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import h5py
 import numpy as np
 
 from fishsim.errors import InputFileError
-from fishsim.io.trajectory import read_trajectory
+from fishsim.io.trajectory import open_trajectory, read_trajectory
 
 DEFAULT_DX = 2.5e-3
 FLUID_KEYS = ("p", "vx", "vy", "mask")
@@ -114,7 +113,7 @@ def _surface(data: dict) -> np.ndarray:
 
 def _read_fluid(path: Path, sample: int, n: int) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """The stored fluid frames of one sample whose frame index is < n (all fields same length)."""
-    with h5py.File(path, "r", libver="latest", swmr=True) as f:
+    with open_trajectory(path) as f:
         if "fluid/frame" not in f or "fluid/p" not in f:
             return {}, np.zeros(0, int)
         keys = [k for k in FLUID_KEYS if f"fluid/{k}" in f]

@@ -74,7 +74,8 @@ def write_synthetic_trajectory(path: str | Path, n_frames: int = 12, H: int = 20
                                fluid: bool = True, complete: bool = True, grid_attrs: bool = True,
                                length: float | None = None, h: float = 0.01) -> Path:
     """Write a trajectory of a fish crossing a H x W grid; ``complete=False`` leaves it as a
-    killed run would (flushed frames, ``complete`` False).  Returns the path."""
+    killed run would (flushed frames, ``complete`` False, at ``<path>.part``).  Returns the
+    path of the file written."""
     length = length or 0.3 * W * dx
     points, tris, surface = fish_mesh(length)
     start = (0.1 * W * dx, 0.5 * H * dx)
@@ -88,8 +89,8 @@ def write_synthetic_trajectory(path: str | Path, n_frames: int = 12, H: int = 20
                      fluid and t % fluid_every == 0)
     if not complete:
         w.file.flush()
-        w.file.close()          # as a killed run: attributes never finalised
-        return Path(path)
+        w.file.close()          # as a killed run: attributes never finalised, the file left as <name>.part
+        return w.partial
     w.close(complete=True)
     if grid_attrs and fluid:
         with h5py.File(path, "r+") as f:

@@ -52,11 +52,29 @@ def test_killed_writer_leaves_readable_incomplete_file(tmp_path):
         os.kill(os.getpid(), signal.SIGKILL)
     """)
     proc = subprocess.run([sys.executable, "-c", script], capture_output=True, check=False)
-    assert proc.returncode != 0
-    tr = read_trajectory(path)
+    assert proc.returncode != 0 and not path.exists()
+    with pytest.raises(InputFileError, match=r"killed\.h5\.part"):      # the error points at what is left
+        read_trajectory(path)
+    tr = read_trajectory(path.with_name("killed.h5.part"))
     assert not tr.complete
     assert tr.n_frames == 4  # frames 0-3 were flushed; frame 4 was not
     np.testing.assert_array_equal(tr["metrics/head_x"][3], [3.0, 6.0])
+
+
+def test_truncated_file_is_refused_at_once(tmp_path):
+    import time
+
+    w = _writer(tmp_path / "t.h5", flush_every=1)
+    for t in range(6):
+        _frame(w, t)
+    w.close(complete=True)
+    data = (tmp_path / "t.h5").read_bytes()
+    cut = tmp_path / "cut.h5"
+    cut.write_bytes(data[: len(data) // 2])
+    t0 = time.perf_counter()
+    with pytest.raises(InputFileError, match="truncated|not a readable HDF5"):
+        read_trajectory(cut)
+    assert time.perf_counter() - t0 < 5.0
 
 
 def test_bad_files(tmp_path):

@@ -101,6 +101,10 @@ def test_history_and_resume_reproduce_an_uninterrupted_run(method, tmp_path):
     again = runner.invoke(app, ["optimize", *args, "optimizer.iterations=3", "resume=true",
                                 f"out_dir={tmp_path / 'cut'}"])
     assert again.exit_code == 0, again.output
+    restart = runner.invoke(app, ["optimize", *args, "optimizer.iterations=3", f"out_dir={tmp_path / 'cut'}"])
+    assert restart.exit_code == 2 and "resume=true to continue" in restart.output
+    nothing = runner.invoke(app, ["optimize", *args, "resume=true", f"out_dir={tmp_path / 'empty'}"])
+    assert nothing.exit_code == 2 and "no run to continue" in nothing.output
     with h5py.File(tmp_path / "full" / method / "history.h5") as a, h5py.File(tmp_path / "cut" / method / "history.h5") as b:
         assert a["x"].shape == (3, 1) and a.attrs["parameters"].tolist() == ["frequency"]
         for key in ("x", "J", "best_J", "frames", "mean_x"):

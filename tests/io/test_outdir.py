@@ -1,0 +1,63 @@
+"""Output folders: a finished result is never overwritten by accident, default folders are
+unique, and a folder another run is writing to is refused."""
+
+import subprocess
+import sys
+import time
+
+import pytest
+from typer.testing import CliRunner
+
+from fishsim.cli import app
+from fishsim.errors import ConfigError
+from fishsim.io.outdir import make_out_dir, release_locks
+from fishsim.io.trajectory import read_trajectory
+
+runner = CliRunner()
+TINY = ["fluid=none", "fish.edge_length=5e-3", "frames=2"]
+
+
+def test_a_finished_trajectory_is_not_overwritten_unless_asked(tmp_path):
+    first = runner.invoke(app, ["simulate", *TINY, f"out_dir={tmp_path}"])
+    assert first.exit_code == 0, first.output
+    before = (tmp_path / "trajectory.h5").read_bytes()
+    again = runner.invoke(app, ["simulate", *TINY, "frames=3", f"out_dir={tmp_path}"])
+    assert again.exit_code == 2 and "already exists" in again.output and "overwrite=true" in again.output
+    assert (tmp_path / "trajectory.h5").read_bytes() == before
+    forced = runner.invoke(app, ["simulate", *TINY, "frames=3", "overwrite=true", f"out_dir={tmp_path}"])
+    assert forced.exit_code == 0 and read_trajectory(tmp_path / "trajectory.h5").n_frames == 3
+
+
+def test_default_folders_are_unique_within_one_second(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    a, b = make_out_dir("simulate", None), make_out_dir("simulate", None)
+    release_locks()
+    assert a != b and a.parent == b.parent and a.is_dir() and b.is_dir()
+
+
+def test_a_folder_in_use_by_another_run_is_refused(tmp_path):
+    script = ("import time; from pathlib import Path; from fishsim.io.outdir import make_out_dir; "
+              f"make_out_dir('x', {str(tmp_path)!r}); print('locked', flush=True); time.sleep(30)")
+    other = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
+    try:
+        assert other.stdout.readline().strip() == "locked"
+        with pytest.raises(ConfigError, match="in use by another fishsim run"):
+            make_out_dir("x", str(tmp_path))
+        result = runner.invoke(app, ["simulate", *TINY, f"out_dir={tmp_path}"])
+        assert result.exit_code == 2 and "in use" in result.output
+    finally:
+        other.kill()
+        other.wait()
+    time.sleep(0.1)
+    assert make_out_dir("x", str(tmp_path)) == tmp_path          # free again once the other run is gone
+    release_locks()
+
+
+@pytest.mark.parametrize("make_bad, words", [
+    (lambda p: (p / "f").write_text("x") and str(p / "f"), "is a file, not a folder"),
+    (lambda p: str(p / "f" / "sub"), "cannot create out_dir"),
+])
+def test_unusable_out_dir_is_one_line(tmp_path, make_bad, words):
+    (tmp_path / "f").write_text("x")
+    result = runner.invoke(app, ["simulate", *TINY, f"out_dir={make_bad(tmp_path)}"])
+    assert result.exit_code == 2 and words in result.output, result.output
