@@ -200,3 +200,15 @@ def test_a_batch_carries_on_past_a_fish_that_blows_up(tmp_path, monkeypatch):
     np.testing.assert_allclose(tr["metrics/head_x"][:, 0], ref["metrics/head_x"][:, 0], rtol=1e-6)
     q1 = tr["solid/q"][-3:, 1]
     assert np.isfinite(q1).all() and np.abs(q1 - q1[0]).max() == 0          # held at rest
+
+
+def test_batch_summary_has_one_row_per_fish_and_strouhal_over_whole_periods(tmp_path):
+    import csv
+
+    result = runner.invoke(app, ["simulate", *NUMERICAL, "frames=30", "batch.frequency=[4,9]", f"out_dir={tmp_path}"])
+    assert result.exit_code == 0, result.output
+    rows = list(csv.DictReader((tmp_path / "summary.csv").open()))
+    assert [float(r["frequency [Hz]"]) for r in rows] == [4.0, 9.0] and "per fish" in result.output
+    # 30 frames: the second half (15 frames) holds no whole 4 Hz period (25 frames), one 9 Hz period (11)
+    assert rows[0]["Strouhal f A / U"] == "nan" and rows[0]["mean speed [m/s]"] == "nan"
+    assert float(rows[1]["tail peak-to-peak [m]"]) > 0 and rows[1]["mean speed [m/s]"] != "nan"

@@ -151,6 +151,8 @@ def run(cfg: SimulateConfig) -> dict:
             raise type(err)(f"{err} (partial trajectory kept in {path}, marked incomplete)") from None
     wall = time.perf_counter() - t_start
     summary = summarise(cfg, episode, history, wall)
+    rows = fish_summaries(cfg, episode, history)
+    write_summary_csv(rows, out_dir / "summary.csv")
     failed = {str(b): {"frame": f, "reason": why} for b, (f, why) in sorted((failures or {}).items())}
     writer.close(complete=True, attrs={**_grid_attrs(cfg), "failed_fish": json.dumps(failed),
                                        **{f"summary_{k}": v for k, v in summary.items() if isinstance(v, (int, float))}})
@@ -160,6 +162,8 @@ def run(cfg: SimulateConfig) -> dict:
                                    f"then on (the others carried on): {escape(fail['reason'])}[/]")
     if failed:
         summary["failed fish"] = ", ".join(failed)
+    if len(rows) > 1:
+        _print_fish(rows, failed)
     if cfg.vtk:
         summary["paraview"] = str(_write_vtk(path, out_dir, cfg.vtk_stride))
     _print(summary)
@@ -171,26 +175,48 @@ def _grid_attrs(cfg: SimulateConfig) -> dict:
 
 
 def summarise(cfg: SimulateConfig, episode: Episode, history: dict, wall: float) -> dict:
-    """Distance travelled by the head, mean speed, mean thrust, Strouhal number (fish 0; the
-    second half of the episode for speed/St), wall time split solid/fluid/coupling."""
-    m = {k: np.stack(v)[:, 0] for k, v in history.items()}
-    n, h = len(m["head_x"]), cfg.h
-    half = n // 2
-    distance = float(m["head_x"][-1] - (m["head_x"][0] if n else 0.0))
-    speed = float((m["centroid_x"][-1] - m["centroid_x"][half]) / max(1, n - 1 - half) / h) if n > 2 else 0.0
-    tail = m["tail_y"][half:]
-    amplitude = float(tail.max() - tail.min()) if len(tail) else 0.0
-    f = float(episode.params.controller.omega[0]) / (2 * math.pi)
+    """The run's summary: fish 0's numbers (``fish_summaries``), the batch size and the wall time
+    split solid/fluid/coupling."""
     split = episode.swimmer.timer.seconds
-    return {
-        "frames": n, "batch": int(episode.params.E.shape[0]),
-        "head distance [m]": distance, "mean speed [m/s]": speed,
-        "mean thrust x [N]": float(np.mean(m["thrust_x"])),
-        "tail peak-to-peak [m]": amplitude,
-        "Strouhal f A / U": f * amplitude / speed if speed > 1e-6 else float("nan"),
-        "wall time [s]": wall,
-        "solid [s]": split["solid"], "fluid [s]": split["fluid"], "coupling [s]": split["coupling"],
-    }
+    rows = fish_summaries(cfg, episode, history)
+    return {"frames": len(history["head_x"]), "batch": len(rows), **{k: v for k, v in rows[0].items() if k != "fish"},
+            "wall time [s]": wall, "solid [s]": split["solid"], "fluid [s]": split["fluid"],
+            "coupling [s]": split["coupling"]}
+
+
+def fish_summaries(cfg: SimulateConfig, episode: Episode, history: dict) -> list[dict]:
+    """One row per fish: its controller, the head's distance, the centroid's mean speed and the
+    tail's peak-to-peak excursion over the second half, the mean thrust, and the Strouhal number
+    f A / U over whole tail-beat periods of the second half (NaN with less than one period or
+    no forward speed)."""
+    m = {k: np.stack(v) for k, v in history.items()}                     # [frames, B]
+    n, h = m["head_x"].shape[0], cfg.h
+    c = episode.params.controller
+    freqs = (c.omega / (2 * math.pi)).cpu().numpy()
+    rows = []
+    for b in range(m["head_x"].shape[1]):
+        f = float(freqs[b])
+        period = max(1, round(1.0 / (f * h)))                           # frames per tail beat
+        k = (n - n // 2) // period * period                              # whole periods in the second half
+        speed = float((m["centroid_x"][-1, b] - m["centroid_x"][n - 1 - k, b]) / (k * h)) if k else float("nan")
+        tail = m["tail_y"][n - k:, b] if k else m["tail_y"][n // 2:, b]
+        amplitude = float(tail.max() - tail.min()) if len(tail) else 0.0
+        st = f * amplitude / speed if k and speed > 1e-6 else float("nan")
+        rows.append({"fish": b, "frequency [Hz]": f, "amplitude C [1/m]": float(c.C[b]),
+                     "head distance [m]": float(m["head_x"][-1, b] - m["head_x"][0, b]) if n else 0.0,
+                     "mean speed [m/s]": speed, "mean thrust x [N]": float(np.mean(m["thrust_x"][:, b])),
+                     "tail peak-to-peak [m]": amplitude, "Strouhal f A / U": st})
+    return rows
+
+
+def write_summary_csv(rows: list[dict], path) -> None:
+    """The per-fish rows as CSV (one line per fish)."""
+    import csv
+
+    with open(path, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
 
 
 def _write_vtk(path, out_dir, stride: int):
@@ -206,6 +232,17 @@ def _write_vtk(path, out_dir, stride: int):
 def _progress() -> Progress:
     return Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
                     TimeElapsedColumn(), TimeRemainingColumn(), transient=False)
+
+
+def _print_fish(rows: list[dict], failed: dict) -> None:
+    """One row per fish of a batch (summary.csv holds the same)."""
+    table = Table(title="per fish (summary.csv)")
+    for key in rows[0]:
+        table.add_column(escape(key), justify="right")
+    for r in rows:
+        table.add_row(*(f"{v:.4g}" if isinstance(v, float) else str(v) for v in r.values()),
+                      style="yellow" if str(r["fish"]) in failed else None)
+    Console(width=max(Console().width, 140)).print(table)
 
 
 def _print(summary: dict) -> None:
