@@ -212,3 +212,15 @@ def test_batch_summary_has_one_row_per_fish_and_strouhal_over_whole_periods(tmp_
     # 30 frames: the second half (15 frames) holds no whole 4 Hz period (25 frames), one 9 Hz period (11)
     assert rows[0]["Strouhal f A / U"] == "nan" and rows[0]["mean speed [m/s]"] == "nan"
     assert float(rows[1]["tail peak-to-peak [m]"]) > 0 and rows[1]["mean speed [m/s]"] != "nan"
+
+
+def test_a_fish_near_the_wall_is_reported(tmp_path):
+    import json
+
+    near = [a if not a.startswith("origin=") else "origin=[0.022,0.1]" for a in NUMERICAL]   # tail by the left wall
+    result = runner.invoke(app, ["simulate", *near, "frames=2", f"out_dir={tmp_path}"])
+    assert result.exit_code == 0, result.output
+    assert "fish 0 came within a body width of the tank wall at frame 1" in " ".join(result.output.split())
+    assert json.loads(read_trajectory(tmp_path / "trajectory.h5").attrs["near_wall_frame"]) == {"0": 1}
+    far = runner.invoke(app, ["simulate", *NUMERICAL, "frames=2", f"out_dir={tmp_path / 'far'}"])
+    assert far.exit_code == 0 and "body width" not in far.output

@@ -129,10 +129,17 @@ def run(cfg: SimulateConfig) -> dict:
     history = {k: [] for k in METRICS}
     t_start = time.perf_counter()
 
+    near_wall: dict[int, int] = {}                 # fish -> first frame within a body width of a wall
     with _progress() as progress:
         task = progress.add_task("simulate", total=cfg.frames)
 
         def on_frame(t, s, out, metrics):
+            if sw.fluid is not None:
+                for b in wall_proximity(cfg, sw.solid.mesh, s.q):
+                    if b not in near_wall:
+                        near_wall[b] = t + 1
+                        progress.console.print(f"[yellow]warning: fish {b} came within a body width of the tank wall at "
+                                               f"frame {t + 1}; from here on its motion is wall-dominated[/]")
             writer.append(frame_record(t, s, out, metrics, cfg.h))
             if sw.fluid is not None and (t + 1) % cfg.fluid_stride == 0:
                 writer.append(fluid_record(t, s, out, cfg.fluid.dx))
@@ -155,6 +162,7 @@ def run(cfg: SimulateConfig) -> dict:
     write_summary_csv(rows, out_dir / "summary.csv")
     failed = {str(b): {"frame": f, "reason": why} for b, (f, why) in sorted((failures or {}).items())}
     writer.close(complete=True, attrs={**_grid_attrs(cfg), "failed_fish": json.dumps(failed),
+                                       "near_wall_frame": json.dumps({str(b): f for b, f in near_wall.items()}),
                                        **{f"summary_{k}": v for k, v in summary.items() if isinstance(v, (int, float))}})
     summary["trajectory"] = str(path)
     for b, fail in failed.items():
@@ -168,6 +176,17 @@ def run(cfg: SimulateConfig) -> dict:
         summary["paraview"] = str(_write_vtk(path, out_dir, cfg.vtk_stride))
     _print(summary)
     return summary
+
+
+def wall_proximity(cfg: SimulateConfig, mesh, q: torch.Tensor) -> list[int]:
+    """The fish [B] with a node within one body width (the mesh's largest thickness) of the
+    fluid region's edge (the inner side of the wall bands)."""
+    width = float(np.ptp(mesh.points[:, 1]))
+    f, dx = cfg.fluid, cfg.fluid.dx
+    lo = torch.tensor([f.wall_x * dx + width, f.wall_y * dx + width], dtype=q.dtype, device=q.device)
+    hi = torch.tensor([(f.W - f.wall_x) * dx - width, (f.H - f.wall_y) * dx - width], dtype=q.dtype, device=q.device)
+    close = ((q < lo) | (q > hi)).flatten(1).any(1)
+    return torch.nonzero(close).flatten().tolist()
 
 
 def _grid_attrs(cfg: SimulateConfig) -> dict:
