@@ -295,10 +295,15 @@ class Logger:
         self.csv = csv.writer(self.csv_file)
         if new:
             self.csv.writerow(self.COLUMNS)
-        from torch.utils.tensorboard import SummaryWriter
-
-        self.tb = SummaryWriter(str(out / "tb"), purge_step=start + 1 if start else None)
         self.console = Console()
+        try:
+            from torch.utils.tensorboard import SummaryWriter
+
+            self.tb = SummaryWriter(str(out / "tb"), purge_step=start + 1 if start else None)
+        except ImportError:                       # tensorboard is the optional `train` extra
+            self.tb = None
+            self.console.print("[yellow]TensorBoard logging off (pip install 'fishsim[train]' for it); "
+                               "log.csv has the same numbers[/]")
         self.bar = self._progress(start) if cfg.progress and self.console.is_terminal else None
 
     def _progress(self, start: int):
@@ -318,7 +323,7 @@ class Logger:
         self.csv.writerow(row)
         self.csv_file.flush()
         for name, value in zip(self.COLUMNS[2:], row[2:]):
-            if math.isfinite(value):
+            if math.isfinite(value) and self.tb is not None:
                 self.tb.add_scalar(f"train/{name}", value, run.iteration)
         status = f"loss {row[2]:.3f}  L_p {row[3]:.2e}  L_b {row[4]:.2e}  val {row[5]:.3f}  {rate:.2f} it/s"
         if self.bar is not None:
@@ -330,7 +335,8 @@ class Logger:
         if self.bar is not None:
             self.bar.stop()
         self.csv_file.close()
-        self.tb.close()
+        if self.tb is not None:
+            self.tb.close()
 
 
 # ---------------------------------------------------------------------------------- run
