@@ -37,8 +37,8 @@ def describe(defaults, prefix: str = "") -> str:
             groups.append(f"{prefix}{f.name}: " + describe(default, prefix + f.name + "."))
         else:
             keys.append(f"{prefix}{f.name}={default}")
-    if prefix:
-        return "  ".join(keys)
+    if prefix:                                   # a group: its keys, then its sub-groups' keys
+        return "  ".join(keys + [g.split(": ", 1)[1] for g in groups])
     return "\n\n".join(["top level: " + "  ".join(keys)] + groups)
 
 

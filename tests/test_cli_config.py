@@ -54,6 +54,10 @@ def test_help_lists_config_groups():
     result = runner.invoke(app, ["mesh", "--help"])
     assert result.exit_code == 0
     assert "fish.edge_length" in result.output
+    nested = runner.invoke(app, ["simulate", "--help"], terminal_width=200)      # groups inside groups
+    assert "solid.material.youngs_modulus" in nested.output and "solid.pd.atol" in nested.output
+    optimize = runner.invoke(app, ["optimize", "--help"], terminal_width=200)
+    assert "optimizer.methods" in optimize.output and "objective.name" in optimize.output
 
 
 def test_show_config_prints_yaml():

@@ -81,7 +81,7 @@ def test_sampled_pressure_is_continuous_across_cell_boundaries():
     p = torch.randn(1, 1, 40, 40, dtype=torch.float64)
     mask = torch.zeros_like(p)
     for fit in ("mean", "linear"):
-        def p_at(x):
+        def p_at(x, fit=fit):
             qs = torch.tensor([[[x, 20.3 * g.dx]]], dtype=torch.float64)
             return float(surface_pressure(qs, p, mask, g, g.dx ** 2, "fluid", fit)[0, 0])
 
