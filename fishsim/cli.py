@@ -60,8 +60,17 @@ def _execute(command: str, overrides: list[str] | None, show: bool, run: Callabl
         release_locks()
 
 
+def _version(show: bool) -> None:
+    if show:
+        from fishsim import __version__
+
+        typer.echo(f"fishsim {__version__}")
+        raise typer.Exit()
+
+
 @app.callback()
-def _root() -> None:
+def _root(version: bool = typer.Option(False, "--version", callback=_version, is_eager=True,
+                                       help="Print fishsim's version and exit.")) -> None:
     """fishsim: a fast, differentiable simulator of soft swimming robots."""
 
 

@@ -98,3 +98,10 @@ def test_config_file_missing_or_unreadable_is_exit_2(tmp_path):
     unknown.write_text("framez: 3\n")
     typo = runner.invoke(app, ["simulate", "--config", str(unknown)])
     assert typo.exit_code == 2 and "framez" in typo.output
+
+
+def test_version():
+    from fishsim import __version__
+
+    result = runner.invoke(app, ["--version"])
+    assert result.exit_code == 0 and result.output.strip() == f"fishsim {__version__}"
