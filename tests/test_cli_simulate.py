@@ -209,6 +209,7 @@ def test_batch_summary_has_one_row_per_fish_and_strouhal_over_whole_periods(tmp_
     assert result.exit_code == 0, result.output
     rows = list(csv.DictReader((tmp_path / "summary.csv").open()))
     assert [float(r["frequency [Hz]"]) for r in rows] == [4.0, 9.0] and "per fish" in result.output
+    assert "simulate: frame 30/30" in result.output          # not a terminal: plain progress lines
     # 30 frames: the second half (15 frames) holds no whole 4 Hz period (25 frames), one 9 Hz period (11)
     assert rows[0]["Strouhal f A / U"] == "nan" and rows[0]["mean speed [m/s]"] == "nan"
     assert float(rows[1]["tail peak-to-peak [m]"]) > 0 and rows[1]["mean speed [m/s]"] != "nan"

@@ -22,6 +22,7 @@ import io
 import json
 import math
 import os
+import time
 from pathlib import Path
 
 import h5py
@@ -113,6 +114,9 @@ def optimise(problem: Problem, cfg: OptimizeConfig, name: str, folder: Path, con
             _save(folder, rows, space, cfg, name)
             _atomic_torch({"method": method.state(), "rows": rows}, state_path)
             bar.update(task, completed=it + 1, status=_status(rows))
+            if not console.is_terminal:                 # piped or logged: a plain line per iteration
+                print(f"[{time.strftime('%H:%M:%S')}] optimize {name}: iteration {it + 1}/{o.iterations}, "
+                      f"{rows[-1]['frames']} fish-frames, {_status(rows)}", flush=True)
     return rows
 
 

@@ -147,6 +147,9 @@ def run(cfg: SimulateConfig) -> dict:
             for k, v in metrics.items():
                 history[k].append(v.detach().cpu().numpy())
             progress.update(task, advance=1, description=f"simulate  head x {float(metrics['head_x'][0]):.4f} m")
+            if not progress.console.is_terminal and (t + 1) % max(1, cfg.frames // 10) == 0:
+                print(f"[{time.strftime('%H:%M:%S')}] simulate: frame {t + 1}/{cfg.frames}, head x "
+                      f"{float(metrics['head_x'][0]):.4f} m, {time.perf_counter() - t_start:.0f} s", flush=True)
 
         # a batch carries on past a fish that blows up (marked failed, held at rest); one fish stops
         failures = {} if episode.params.E.shape[0] > 1 else None

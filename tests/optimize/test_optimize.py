@@ -96,6 +96,7 @@ def test_history_and_resume_reproduce_an_uninterrupted_run(method, tmp_path):
             "params.frequency.lower=2", "params.frequency.upper=12"]
     full = runner.invoke(app, ["optimize", *args, "optimizer.iterations=3", f"out_dir={tmp_path / 'full'}"])
     assert full.exit_code == 0, full.output
+    assert f"optimize {method}: iteration 3/3" in full.output        # not a terminal: a line per iteration
     first = runner.invoke(app, ["optimize", *args, "optimizer.iterations=2", f"out_dir={tmp_path / 'cut'}"])
     assert first.exit_code == 0, first.output
     again = runner.invoke(app, ["optimize", *args, "optimizer.iterations=3", "resume=true",
