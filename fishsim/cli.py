@@ -42,8 +42,29 @@ def describe(defaults, prefix: str = "") -> str:
     return "\n\n".join(["top level: " + "  ".join(keys)] + groups)
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (sent by `timeout`, SLURM, `docker stop`): stops a run like Ctrl-C, outputs kept."""
+
+
+def _on_sigterm(signum, frame) -> None:
+    raise Terminated("terminated (SIGTERM)")
+
+
+def _handle_stop_signals() -> None:
+    """SIGTERM stops a run like SIGINT; SIGINT is handled even when the shell started the command
+    in the background with SIGINT ignored."""
+    import signal
+    import threading
+
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, _on_sigterm)
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
 def _execute(command: str, overrides: list[str] | None, show: bool, run: Callable, config: str | None = None) -> None:
-    """Compose, validate and run; user errors become one line on stderr and exit code 2."""
+    """Compose, validate and run; user errors become one line on stderr and exit code 2;
+    Ctrl-C exits 130 and SIGTERM 143, after the command kept its partial results."""
+    _handle_stop_signals()
     try:
         cfg = load_config(command, overrides, config)
         if show:
@@ -53,8 +74,12 @@ def _execute(command: str, overrides: list[str] | None, show: bool, run: Callabl
     except FishsimError as err:
         typer.secho(f"error: {err}", fg=typer.colors.RED, err=True)
         raise typer.Exit(code=2) from None
-    except KeyboardInterrupt:
-        typer.secho("interrupted: partial results were kept", fg=typer.colors.YELLOW, err=True)
+    except Terminated as err:
+        typer.secho(f"terminated (SIGTERM): partial results were kept ({err})", fg=typer.colors.YELLOW, err=True)
+        raise typer.Exit(code=143) from None
+    except KeyboardInterrupt as err:
+        typer.secho(f"interrupted: partial results were kept ({err})" if str(err) else
+                    "interrupted: partial results were kept", fg=typer.colors.YELLOW, err=True)
         raise typer.Exit(code=130) from None
     finally:
         release_locks()

@@ -8,6 +8,7 @@ import sys
 import time
 
 import numpy as np
+import pytest
 from typer.testing import CliRunner
 
 from fishsim.cli import app
@@ -225,3 +226,26 @@ def test_a_fish_near_the_wall_is_reported(tmp_path):
     assert json.loads(read_trajectory(tmp_path / "trajectory.h5").attrs["near_wall_frame"]) == {"0": 1}
     far = runner.invoke(app, ["simulate", *NUMERICAL, "frames=2", f"out_dir={tmp_path / 'far'}"])
     assert far.exit_code == 0 and "body width" not in far.output
+
+
+@pytest.mark.parametrize("sig, code, ignored", [(signal.SIGTERM, 143, False), (signal.SIGINT, 130, True)])
+def test_stop_signals_keep_a_marked_partial_file(tmp_path, sig, code, ignored):
+    """SIGTERM (timeout, SLURM, docker stop) stops like Ctrl-C: exit 143, the frames so far kept
+    in trajectory.h5 marked incomplete with the reason. SIGINT works even when the shell started
+    the run in the background with SIGINT ignored."""
+    args = ["simulate", *NUMERICAL, "frames=2000", "flush_every=1", f"out_dir={tmp_path}"]
+    ignore = "signal.signal(signal.SIGINT, signal.SIG_IGN); " if ignored else ""     # as `cmd &` in a script
+    start = f"import runpy, signal, sys; {ignore}sys.argv = ['fishsim', *{args!r}]; runpy.run_module('fishsim.cli', run_name='__main__')"
+    proc = subprocess.Popen([sys.executable, "-c", start], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    part = tmp_path / "trajectory.h5.part"
+    deadline = time.time() + 120
+    while time.time() < deadline:
+        time.sleep(0.5)
+        if part.exists() and read_trajectory(part, load_fluid=False).n_frames >= 3:
+            break
+    proc.send_signal(sig)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == code, err
+    tr = read_trajectory(tmp_path / "trajectory.h5")
+    assert not tr.complete and 3 <= tr.n_frames < 2000 and "partial results were kept" in err
+    assert ("SIGTERM" in tr.attrs["message"]) == (sig == signal.SIGTERM)

@@ -122,7 +122,8 @@ def open_trajectory(path: Path) -> h5py.File:
         return h5py.File(path, "r")
     except OSError as err:
         text = str(err)
-        if "truncated" in text or "already open for write" not in text and "consistency flags" not in text:
+        held = any(w in text for w in ("already open for write", "consistency flags", "unable to lock"))
+        if "truncated" in text or not (held or isinstance(err, BlockingIOError)):
             reason = "truncated: the file is cut short" if "truncated" in text else err.__class__.__name__
             raise InputFileError(f"{path} is not a readable HDF5 file ({reason}); it may be corrupt, "
                                  "cut short, or not a fishsim trajectory") from None
