@@ -201,6 +201,7 @@ class SimulateConfig:
     set-up; the fish undulates and sways in y but cannot travel; ``fishsim.rollout.Swimmer``).  fluid_stride: store the fluid fields every k frames.
     vtk / vtk_stride: also write ParaView frames every vtk_stride frames (a multiple of fluid_stride).  flush_every: HDF5 flush period (frames).
     device: cpu | cuda.  overwrite: replace an existing output (else refused: a finished run is never lost).
+    check_memory: refuse a run whose estimated memory exceeds what is available (fishsim/resources.py).
     """
 
     fish: FishConfig = field(default_factory=FishConfig)
@@ -221,6 +222,7 @@ class SimulateConfig:
     output: str = "trajectory.h5"
     out_dir: str | None = None
     overwrite: bool = False
+    check_memory: bool = True
 
     def validate(self) -> None:
         for part in (self.fish, self.controller, self.batch, self.fluid):

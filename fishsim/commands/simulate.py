@@ -21,6 +21,7 @@ from fishsim.fluid.factory import fluid_params, make_fluid, make_tank
 from fishsim.fluid.grid import curl, faces_to_centres
 from fishsim.io.outdir import make_out_dir, resolve_output
 from fishsim.io.trajectory import TrajectoryWriter, trajectory_series
+from fishsim.resources import check_memory
 from fishsim.rollout import METRICS, Swimmer, SwimParams, rollout
 from fishsim.solid import SolidModel
 from fishsim.solid.controller import WaveController, calibrated_amplitude
@@ -39,6 +40,7 @@ class Episode:
 def build_episode(cfg: SimulateConfig) -> Episode:
     """Mesh, solid, fluid, tank, coupling and the batch's parameters from the config."""
     device = torch.device(cfg.device)
+    check_memory(cfg, cfg.batch.size)
     if device.type == "cuda" and not torch.cuda.is_available():
         raise ConfigError("device=cuda but torch sees no CUDA device (install a CUDA build of torch: see README)")
     mesh = build_fish_mesh(cfg.fish)

@@ -143,7 +143,11 @@ class Problem:
 
     def __init__(self, cfg, space: Space, objective_cfg: ObjectiveConfig, segment: int = 25, truncate: int = 0):
         from fishsim.commands.simulate import build_episode
+        from fishsim.resources import check_memory
 
+        check_memory(cfg, 1, gradient_frames=cfg.frames, segment=segment)      # a gradient iteration
+        popsize = getattr(getattr(cfg, "optimizer", None), "popsize", None) or 8
+        check_memory(cfg, popsize)                                              # a CMA-ES population
         self.cfg, self.space, self.objective_cfg, self.segment = cfg, space, objective_cfg, segment
         self.truncate = truncate
         self.episode = build_episode(cfg)

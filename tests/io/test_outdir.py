@@ -61,3 +61,12 @@ def test_unusable_out_dir_is_one_line(tmp_path, make_bad, words):
     (tmp_path / "f").write_text("x")
     result = runner.invoke(app, ["simulate", *TINY, f"out_dir={make_bad(tmp_path)}"])
     assert result.exit_code == 2 and words in result.output, result.output
+
+
+@pytest.mark.parametrize("override", [["fluid.H=20000", "fluid.W=20000"], ["fluid.H=100000", "fluid.W=100000"],
+                                      ["fish.edge_length=1e-5"]])
+def test_a_run_too_large_for_memory_is_refused_up_front(tmp_path, override):
+    t0 = time.perf_counter()
+    result = runner.invoke(app, ["simulate", "fluid=numerical", *override, f"out_dir={tmp_path}"])
+    assert result.exit_code == 2 and "GB of memory" in result.output and "check_memory=false" in result.output
+    assert time.perf_counter() - t0 < 10 and not (tmp_path / "trajectory.h5").exists()
