@@ -212,6 +212,8 @@ class Swimmer:
         if self.hold_x:
             q, qdot = hold_centroid_x(q, qdot, state.q, self.node_mass(q))
         require_finite(solid_positions_q=q, solid_velocities_qdot=qdot)
+        if self.fluid is not None:
+            require_physical(q, qdot, self.fluid.grid)
         clock.add("solid", t0, dev)
         return SwimState(q, qdot, fluid, state.qdot), FrameOutput(f_ext, contraction, boundary)
 
@@ -258,6 +260,24 @@ def frame_metrics(swimmer: Swimmer, state: SwimState, out: FrameOutput) -> dict[
     values = [state.q[:, head, 0], state.q[:, head, 1], state.q[:, tail, 1], centroid[:, 0],
               centroid[:, 1], out.f_ext[..., 0].sum(1), out.f_ext[..., 1].sum(1), power]
     return dict(zip(METRICS, values))
+
+
+MAX_SPEED = 20.0  # m/s: a swimming fish of this size moves < 1 m/s; beyond this the coupling has run away
+
+
+def require_physical(q: Tensor, qdot: Tensor, grid) -> None:
+    """Raise SimulationBlowUp when a fish has left the tank or a node moves faster than
+    MAX_SPEED (cheap per-frame checks: a run that went unphysical must not pass as complete)."""
+    x, y = q[..., 0].detach(), q[..., 1].detach()
+    W, H = grid.W * grid.dx, grid.H * grid.dx
+    if bool(((x < 0) | (x > W) | (y < 0) | (y > H)).any()):
+        raise SimulationBlowUp(f"a fish left the {W:.3g} x {H:.3g} m tank (node at x in [{float(x.min()):.3g}, "
+                               f"{float(x.max()):.3g}], y in [{float(y.min()):.3g}, {float(y.max()):.3g}] m): the "
+                               "coupling ran away (check coupling.added_mass_ratio, e.g. the default 5)")
+    speed = float(qdot.detach().norm(dim=-1).max())
+    if speed > MAX_SPEED:
+        raise SimulationBlowUp(f"a node moves at {speed:.3g} m/s (> {MAX_SPEED:g} m/s): the coupling ran away "
+                               "(check coupling.added_mass_ratio, e.g. the default 5)")
 
 
 def require_finite(**fields: Tensor) -> None:

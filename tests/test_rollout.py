@@ -267,3 +267,17 @@ def test_truncated_backpropagation_equals_detached_windows(segment):
     assert got[0] == pytest.approx(ref[0], rel=1e-12) and got[1] == pytest.approx(ref[1], rel=1e-9)
     full, long = loss_and_grad(truncated(0)), loss_and_grad(truncated(n))
     assert long == pytest.approx(full, rel=1e-12) and abs(full[1] - got[1]) > 1e-3 * abs(full[1])
+
+
+def test_a_fish_leaving_the_tank_stops_the_run():
+    """An unphysical state (a node outside the tank) stops the episode with a named reason."""
+    from fishsim.fluid.base import Grid
+    from fishsim.rollout import require_physical
+
+    grid = Grid(40, 120, 5e-3)
+    q = torch.tensor([[[0.3, 0.1], [0.35, 0.1]]], dtype=torch.float64)
+    require_physical(q, torch.zeros_like(q), grid)
+    with pytest.raises(SimulationBlowUp, match="left the 0.6 x 0.2 m tank"):
+        require_physical(q + torch.tensor([0.0, 0.15], dtype=torch.float64), torch.zeros_like(q), grid)
+    with pytest.raises(SimulationBlowUp, match="moves at 30 m/s"):
+        require_physical(q, torch.full_like(q, 30.0 / 2 ** 0.5), grid)
