@@ -108,8 +108,8 @@ class ControllerConfig:
 
     def validate(self) -> None:
         _positive(**{"controller.frequency": self.frequency, "controller.t_a": self.t_a})
-        _require(self.amplitude is None or self.amplitude >= 0,
-                 f"controller.amplitude must be >= 0 or null (got {self.amplitude})")
+        _require(self.amplitude is None or (math.isfinite(self.amplitude) and self.amplitude >= 0),
+                 f"controller.amplitude must be a finite value >= 0 or null (got {self.amplitude})")
         _require(self.wave_number is None or self.wave_number > 0, "controller.wave_number must be > 0")
 
 

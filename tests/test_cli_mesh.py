@@ -59,3 +59,15 @@ def test_mesh_command_impossible_profile(tmp_path):
     line = _one_error_line(runner.invoke(
         app, ["mesh", "fish.profile=polynomial", "fish.poly_coeffs=[0.01,-0.1]", f"out_dir={tmp_path}"]))
     assert "width" in line
+
+
+def test_mesh_formats_that_lose_the_fish_are_refused(tmp_path):
+    for name in ("fish.stl", "fish.obj", "fish.ply", "fish.off"):
+        line = _one_error_line(runner.invoke(app, ["mesh", f"output={name}", "preview=false", f"out_dir={tmp_path}"]))
+        assert "keep only the triangles" in line and ".vtu" in line
+        assert not (tmp_path / name).exists()
+
+
+def test_infinite_amplitude_is_one_line(tmp_path):
+    result = runner.invoke(app, ["simulate", "controller.amplitude=inf", f"out_dir={tmp_path}"])
+    assert result.exit_code == 2 and "finite" in result.output and "nan" not in result.output

@@ -50,6 +50,10 @@ def mesh_format(path: Path) -> str | None:
     return next((n for n in PREFERRED_FORMATS if n in names), names[0])
 
 
+# meshio formats without point and cell data: a fish written there could not be read back
+GEOMETRY_ONLY = ("stl", "obj", "off", "ply", "wavefront-obj")
+
+
 def write_mesh(mesh: FishMesh, path, cell_data: dict[str, np.ndarray] | None = None) -> Path:
     """Write `mesh` to `path` (format from the extension, .vtu if none; parent folders are
     created) and return the path written. cell_data: extra per-element float fields [T] (e.g.
@@ -59,6 +63,9 @@ def write_mesh(mesh: FishMesh, path, cell_data: dict[str, np.ndarray] | None = N
     if fmt is None:
         raise ConfigError(f"cannot write a mesh as {path.name}: unknown extension {path.suffix!r}; "
                           "use a meshio extension such as .vtu, .msh or .xdmf")
+    if fmt in GEOMETRY_ONLY:
+        raise ConfigError(f"{path.suffix} files keep only the triangles, not the fish's surface order, length and "
+                          "muscles that `fishsim simulate fish.mesh_file=...` needs; use .vtu, .vtk, .msh or .xdmf")
     path.parent.mkdir(parents=True, exist_ok=True)
     meshio.write(path, to_meshio(mesh, cell_data), file_format=fmt)
     return path
