@@ -10,7 +10,7 @@ from collections.abc import Callable
 import typer
 
 from fishsim.config import ROOTS, load_config, to_yaml
-from fishsim.errors import FishsimError
+from fishsim.errors import FishsimError, Terminated
 from fishsim.io.outdir import release_locks
 
 app = typer.Typer(
@@ -40,10 +40,6 @@ def describe(defaults, prefix: str = "") -> str:
     if prefix:                                   # a group: its keys, then its sub-groups' keys
         return "  ".join(keys + [g.split(": ", 1)[1] for g in groups])
     return "\n\n".join(["top level: " + "  ".join(keys)] + groups)
-
-
-class Terminated(KeyboardInterrupt):
-    """SIGTERM (sent by `timeout`, SLURM, `docker stop`): stops a run like Ctrl-C, outputs kept."""
 
 
 def _on_sigterm(signum, frame) -> None:

@@ -21,3 +21,8 @@ class MeshError(FishsimError):
 class SimulationBlowUp(FishsimError):
     """A simulation produced non-finite or runaway values; the message names the step and the
     quantity, and the partial results are kept."""
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (sent by `timeout`, SLURM, `docker stop`): stops a run like Ctrl-C, outputs kept;
+    the CLI exits 143 (Ctrl-C: 130)."""

@@ -78,7 +78,7 @@ def test_keyboard_interrupt_saves_and_exits(cfg, monkeypatch):
 
 
 def test_sigterm_saves_and_exits(cfg, tmp_path):
-    """``kill PID`` of a background run (SIGINT ignored by the shell): checkpoint and clean exit."""
+    """``kill PID`` of a background run (SIGINT ignored by the shell): checkpoint, then exit 143."""
     import subprocess
     import sys
     import time
@@ -95,8 +95,8 @@ def test_sigterm_saves_and_exits(cfg, tmp_path):
         time.sleep(0.2)
     proc.terminate()
     out, _ = proc.communicate(timeout=60)
-    assert proc.returncode == 0, out.decode()[-2000:]
-    assert b"interrupted, checkpoint saved" in out
+    assert proc.returncode == 143, out.decode()[-2000:]          # saved, then the stop is reported
+    assert b"interrupted, checkpoint saved" in out and b"SIGTERM" in out
     assert torch.load(tmp_path / "bg" / "ckpt.pt", weights_only=False)["iteration"] >= 2
 
 
@@ -192,3 +192,12 @@ def test_ddp_gloo_two_processes(cfg, tmp_path):
     torch.manual_seed(c.seed)
     fresh = HydroNet(c.net).state_dict()
     assert any(not torch.equal(ck["model"][n], fresh[n]) for n in names)
+
+
+def test_resume_without_a_checkpoint_is_an_error(cfg):
+    from dataclasses import replace
+
+    from fishsim.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="no ckpt.pt to continue"):
+        T.run(replace(cfg, resume=True))

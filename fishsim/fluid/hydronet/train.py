@@ -31,6 +31,7 @@ import torch
 import torch.distributed as dist
 from torch import nn
 
+from fishsim.errors import ConfigError, Terminated
 from fishsim.fluid.base import Boundary, FluidParams, FluidState, rest_state
 from fishsim.fluid.hydronet.loss import LossConfig, LossTerms, hydronet_loss
 from fishsim.fluid.hydronet.pool import PoolConfig, ScenePool, advance, random_scene, scene_boundaries
@@ -405,14 +406,17 @@ def _after_step(run: Run, cfg: TrainConfig, out: Path, rank: int, world: int, lo
 
 def _restore(run: Run, cfg: TrainConfig, out: Path, rank: int, device: torch.device) -> None:
     """resume: everything from out/ckpt.pt; else init_from: the weights only."""
-    if cfg.resume and (out / "ckpt.pt").exists():
+    if cfg.resume and not (out / "ckpt.pt").exists():
+        raise ConfigError(f"resume=true but {out} holds no ckpt.pt to continue; drop resume=true to start "
+                          "training, or give the out_dir of the run to continue")
+    if cfg.resume:
         load_checkpoint(run, out, rank, cfg.lr)
     elif cfg.init_from:
         run.model.load_state_dict(torch.load(cfg.init_from, map_location=device, weights_only=False)["model"])
 
 
 def _raise_interrupt(signum, frame):
-    raise KeyboardInterrupt(f"signal {signum}")
+    raise Terminated(f"signal {signum}")
 
 
 @contextlib.contextmanager
@@ -453,8 +457,8 @@ def run(cfg: TrainConfig | dict) -> dict:
                 now = time.perf_counter()
                 run_.elapsed, t_last = run_.elapsed + now - t_last, now
                 last_save = _after_step(run_, cfg, out, rank, world, log, terms, last_save)
-    except KeyboardInterrupt:
-        interrupted = True
+    except KeyboardInterrupt as err:            # Terminated (SIGTERM) is one too
+        interrupted = "SIGTERM" if isinstance(err, Terminated) else "SIGINT"
     save_checkpoint(run_, cfg, out, rank)
     if log is not None:
         log.close()
