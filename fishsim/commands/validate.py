@@ -97,6 +97,11 @@ class ValidateConfig:
         if self.pressure not in PRESSURES:
             raise ConfigError(f"pressure must be recovered or network (got '{self.pressure}')")
         s = self.scenes
+        if not (s.H >= 32 and s.W >= 32 and s.dx > 0 and s.rho > 0 and s.mu > 0):
+            raise ConfigError(f"scenes need a grid of at least 32 x 32 cells (HydroNet's U-Net pools it 4 times) and "
+                              f"dx, rho, mu > 0 (got {s.H} x {s.W}, dx {s.dx}, rho {s.rho}, mu {s.mu})")
+        if not s.radius < min(s.H, s.W) * s.dx / 4:
+            raise ConfigError(f"scenes.radius = {s.radius} m does not fit the {s.H} x {s.W} grid of {s.dx} m cells")
         if not (s.warmup >= 0 and s.steps >= 1 and s.radius > 0 and s.fish_amp > 0 and s.h > 0):
             raise ConfigError("scenes.warmup >= 0, scenes.steps >= 1 and radius, fish_amp, h > 0 are required")
         if not (s.speeds or s.frequencies):

@@ -60,3 +60,14 @@ def test_validate_command_writes_metrics_and_picture(tmp_path):
 def test_validate_missing_model_exit_code_2(tmp_path):
     result = CliRunner().invoke(app, ["validate", f"model_file={tmp_path / 'none.pt'}", f"out_dir={tmp_path}"])
     assert result.exit_code == 2 and "fishsim train-hydronet" in result.output
+
+
+def test_impossible_scene_grids_are_one_line(tmp_path):
+    from typer.testing import CliRunner
+
+    from fishsim.cli import app
+
+    for args, words in ((["scenes.H=4"], "at least 32 x 32"), (["scenes.dx=-1"], "dx, rho, mu > 0"),
+                        (["scenes.radius=1"], "does not fit")):
+        result = CliRunner().invoke(app, ["validate", *args, f"out_dir={tmp_path}"])
+        assert result.exit_code == 2 and words in result.output, result.output
