@@ -201,3 +201,17 @@ def test_resume_without_a_checkpoint_is_an_error(cfg):
 
     with pytest.raises(ConfigError, match="no ckpt.pt to continue"):
         T.run(replace(cfg, resume=True))
+
+
+def test_init_from_a_foreign_or_misshapen_file_is_one_line(cfg, tmp_path):
+    from dataclasses import replace
+
+    from fishsim.errors import ConfigError, InputFileError
+    from fishsim.fluid.factory import SHIPPED_HYDRONET
+
+    junk = tmp_path / "junk.pt"
+    junk.write_text("# not a model")
+    with pytest.raises(InputFileError, match="not a readable HydroNet"):
+        T.run(replace(cfg, init_from=str(junk)))
+    with pytest.raises(ConfigError, match=r"do not fit this network: tensor '.*' is \[16"):
+        T.run(replace(cfg, init_from=str(SHIPPED_HYDRONET)))

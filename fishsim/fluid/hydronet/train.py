@@ -31,7 +31,7 @@ import torch
 import torch.distributed as dist
 from torch import nn
 
-from fishsim.errors import ConfigError, Terminated
+from fishsim.errors import ConfigError, InputFileError, Terminated
 from fishsim.fluid.base import Boundary, FluidParams, FluidState, rest_state
 from fishsim.fluid.hydronet.loss import LossConfig, LossTerms, hydronet_loss
 from fishsim.fluid.hydronet.pool import PoolConfig, ScenePool, advance, random_scene, scene_boundaries
@@ -214,10 +214,10 @@ def load_checkpoint(run: Run, out: Path, rank: int, lr: float | None = None) -> 
     """Restore ``run`` from ckpt.pt (and ckpt_rank{r}.pt for rank r > 0); ``lr`` replaces the
     saved learning rate. A compact checkpoint (``compact_checkpoint``: no pool) keeps the freshly
     drawn pool: everything else continues exactly."""
-    main = torch.load(out / "ckpt.pt", map_location="cpu", weights_only=False)
-    own = main if rank == 0 else torch.load(out / f"ckpt_rank{rank}.pt", map_location="cpu", weights_only=False)
+    main = _load_file(out / "ckpt.pt", "checkpoint")
+    own = main if rank == 0 else _load_file(out / f"ckpt_rank{rank}.pt", "checkpoint")
     model = run.model.module if hasattr(run.model, "module") else run.model
-    model.load_state_dict(main["model"])
+    load_weights(model, main, out / "ckpt.pt")
     run.opt.load_state_dict(main["optimizer"])
     for group in run.opt.param_groups:  # the configured lr wins: resume with a smaller one to anneal
         group["lr"] = main["config"]["lr"] if lr is None else lr
@@ -264,7 +264,6 @@ def load_hydronet(path: str | Path, device="cpu") -> HydroNet:
     """A trained HydroNet (eval mode) from best.pt or ckpt.pt; wrap it in ``HydroNetFluid``.
 
     Raises InputFileError (one line, how to fix) for a missing, unreadable or foreign file."""
-    from fishsim.errors import InputFileError
 
     path = Path(path)
     hint = "train one with `fishsim train-hydronet` or pass fluid.model_file=PATH to a best.pt"
@@ -412,7 +411,35 @@ def _restore(run: Run, cfg: TrainConfig, out: Path, rank: int, device: torch.dev
     if cfg.resume:
         load_checkpoint(run, out, rank, cfg.lr)
     elif cfg.init_from:
-        run.model.load_state_dict(torch.load(cfg.init_from, map_location=device, weights_only=False)["model"])
+        load_weights(run.model, _load_file(Path(cfg.init_from), "model (init_from)"), Path(cfg.init_from))
+
+
+def _load_file(path: Path, what: str) -> dict:
+    """torch.load of a fishsim checkpoint or model, InputFileError (one line) if it is not one."""
+    if not path.exists():
+        raise InputFileError(f"{what} file {path} not found")
+    try:
+        data = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as err:  # noqa: BLE001 - any failure here means the file is not ours
+        raise InputFileError(f"{path} is not a readable HydroNet {what} ({type(err).__name__}: {err})") from None
+    if not isinstance(data, dict) or "model" not in data:
+        raise InputFileError(f"{path} is not a HydroNet {what} (no 'model' weights in it)")
+    return data
+
+
+def load_weights(model: nn.Module, data: dict, path: Path) -> None:
+    """Load data["model"] into ``model``; a network of another shape is a one-line error naming the
+    first tensor that differs and the file's network config."""
+    own, theirs = model.state_dict(), data["model"]
+    for name, tensor in own.items():
+        other = theirs.get(name)
+        if other is None or tuple(other.shape) != tuple(tensor.shape):
+            net = (data.get("config") or {}).get("net")
+            got = "missing" if other is None else f"{list(other.shape)}"
+            raise ConfigError(f"the weights in {path} do not fit this network: tensor '{name}' is {got} there and "
+                              f"{list(tensor.shape)} here" + (f"; the file's network is net={net}" if net else "")
+                              + " (set net.* to match, or train from scratch)")
+    model.load_state_dict(theirs)
 
 
 def _raise_interrupt(signum, frame):
