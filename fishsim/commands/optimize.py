@@ -235,4 +235,4 @@ def _print(summary: dict, space: Space, cfg: OptimizeConfig) -> None:
         if s["iterations"]:
             table.add_row(m, fmt(s["start"]), fmt(s["best"]), f"{s['best_J']:.5g}", str(s["iterations"]),
                           str(s["fish_frames"]), f"{s['wall_s']:.1f}", str(s["failed_members"]))
-    Console().print(table)
+    Console(width=max(Console().width, 140)).print(table)
