@@ -13,8 +13,10 @@ P(t) = -sum_i f_ext,i(t) . qdot_i(t) the power it gives the fluid (W per unit de
     thrust              J = h sum_t F_x(t)                                  N s / m
                         (the forward impulse; the paper's L = -sum_t F_x(t) = -J / h, Fig. 5)
     distance            J = x_head(T) - x_head(0)                           m
-    speed               J = (x_c(T) - x_c(T - n)) / (n h),  n = round(cycles / (f h))   m/s
-                        (the centroid's mean speed over the last ``cycles`` tail beats)
+    speed               J = the least-squares slope of x_c(t) over the last ``window`` s   m/s
+                        (default the episode's second half; a line fit averages out the surge
+                        within each tail beat, and unlike an end-point difference over whole
+                        beats it is smooth in the frequency: no window that jumps by a frame)
     cost_of_transport   J = (x_c(T) - x_c(0)) / (h sum_t P(t))              m^2 / J
                         (distance per unit of work done on the fluid per unit depth: the
                         transport efficiency; the work the fluid receives stands in for the
@@ -65,10 +67,11 @@ class ParamSpec:
 
 @dataclass
 class ObjectiveConfig:
-    """The objective (module docstring): name in OBJECTIVES; cycles: the speed's window."""
+    """The objective (module docstring): name in OBJECTIVES; window: the speed's averaging
+    window in s (null: the episode's second half)."""
 
     name: str = "distance"
-    cycles: float = 2.0
+    window: float | None = None
 
     def check(self, hold_x: bool) -> None:
         if self.name not in OBJECTIVES:
@@ -76,8 +79,8 @@ class ObjectiveConfig:
         if hold_x and self.name in FREE_ONLY:
             raise ConfigError(f"objective {self.name} needs a free fish, but hold_x=true holds it in x "
                               "(use objective=thrust, or hold_x=false)")
-        if not self.cycles > 0:
-            raise ConfigError(f"objective.cycles must be > 0 (got {self.cycles})")
+        if self.window is not None and not self.window > 0:
+            raise ConfigError(f"objective.window must be > 0 s or null (got {self.window})")
 
 
 @dataclass
@@ -104,23 +107,31 @@ class Space:
         return torch.stack(cols, -1)
 
 
-def objective(name: str, metrics: dict[str, Tensor], frequency: Tensor, h: float, start: dict[str, Tensor],
-              cycles: float = 2.0) -> Tensor:
+def objective(name: str, metrics: dict[str, Tensor], h: float, start: dict[str, Tensor],
+              window: float | None = None) -> Tensor:
     """J [B] of the module docstring from a rollout's metrics ([T, B] each); ``start``: the
-    metrics' values at the initial state ([B]); frequency [B] in Hz (the speed's window)."""
-    T = metrics["head_x"].shape[0]
+    metrics' values at the initial state ([B])."""
     if name == "thrust":
         return h * metrics["thrust_x"].sum(0)
     if name == "distance":
         return metrics["head_x"][-1] - start["head_x"]
     cx = metrics["centroid_x"]
     if name == "speed":
-        n = torch.clamp(torch.round(cycles / (frequency.detach() * h)), 1, T - 1).long()
-        before = cx.gather(0, (T - 1 - n)[None]).squeeze(0) if T > 1 else start["centroid_x"]
-        return (cx[-1] - before) / (n.to(cx.dtype) * h)
+        return line_slope(cx, h, window)
     if name == "cost_of_transport":
         return (cx[-1] - start["centroid_x"]) / (h * metrics["power"].sum(0))
     raise ConfigError(f"unknown objective '{name}'")
+
+
+def line_slope(x: Tensor, h: float, window: float | None = None) -> Tensor:
+    """Least-squares slope dx/dt [B] of x [T, B] sampled every h s, over the last ``window`` s
+    (None: the second half; at least 2 frames)."""
+    T = x.shape[0]
+    n = max(2, min(T, round(window / h) if window is not None else T - T // 2))
+    y = x[-n:]
+    t = torch.arange(n, dtype=y.dtype, device=y.device)[:, None] * h
+    tc = t - t.mean()
+    return (tc * (y - y.mean(0))).sum(0) / (tc ** 2).sum()
 
 
 @dataclass
@@ -207,8 +218,7 @@ class Problem:
             start = _start_metrics(sw, state)
             _, metrics = rollout(sw, state, params, cfg.frames, segment=self.segment if gradient else 0,
                                  failures=failures, truncate=self.truncate)
-            J = objective(self.objective_cfg.name, metrics, params.controller.omega / (2 * math.pi), cfg.h,
-                          start, self.objective_cfg.cycles)
+            J = objective(self.objective_cfg.name, metrics, cfg.h, start, self.objective_cfg.window)
             grad = None
             if gradient:
                 if not bool(torch.isfinite(J).all()):

@@ -164,3 +164,13 @@ def test_parameters_can_be_dropped_and_added_from_the_command_line():
                                    "+params.youngs_modulus={lower:2e5,upper:2e6,log:true}"])
     assert list(cfg.params) == ["amplitude", "youngs_modulus"] and cfg.params["youngs_modulus"].log
     assert list(load_config("optimize", []).params) == ["frequency"]
+
+
+def test_speed_is_a_line_fit_that_averages_out_the_beat():
+    from fishsim.optimize.problem import line_slope
+
+    h, t = 0.01, torch.arange(120, dtype=torch.float64)[:, None] * 0.01
+    assert float(line_slope(0.2 * t + 0.01, h)) == pytest.approx(0.2, rel=1e-12)
+    beats = [float(line_slope(0.2 * t + 1e-3 * torch.sin(2 * np.pi * f * t), h)) for f in np.linspace(5, 6, 41)]
+    assert max(abs(v - 0.2) for v in beats) < 0.01                        # a 1 mm surge at 5-6 Hz: < 5 %
+    assert np.abs(np.diff(beats)).max() < 1e-3        # no jumps between neighbours
