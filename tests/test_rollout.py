@@ -245,7 +245,7 @@ def test_truncated_backpropagation_equals_detached_windows(segment):
             C=ep.params.controller.C, omega=omega, gamma=ep.params.controller.gamma), ep.params.E)
         loss = run(params)
         (g,) = torch.autograd.grad(loss, omega)
-        return float(loss), float(g)
+        return float(loss.detach()), float(g)
 
     def by_windows(params):
         state, total = sw.initial_state(params, ep.origin), 0.0
