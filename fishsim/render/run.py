@@ -26,12 +26,13 @@ from fishsim.render.video import VideoWriter, write_png
 
 
 def trajectory_paths(path: str | Path) -> list[Path]:
-    """The file itself, or every ``*.h5`` in a folder (sorted)."""
+    """The file itself, or every ``*.h5`` in a folder and its subfolders (sorted; e.g.
+    ``outputs/simulate/`` with one run folder per run)."""
     path = Path(path)
     if path.is_dir():
-        files = sorted(path.glob("*.h5"))
+        files = sorted(path.rglob("*.h5"))
         if not files:
-            raise InputFileError(f"no *.h5 trajectories in folder {path}")
+            raise InputFileError(f"no *.h5 trajectories in folder {path} or its subfolders")
         return files
     if not path.exists():
         raise InputFileError(f"no such trajectory file or folder: {path}")

@@ -129,3 +129,16 @@ def test_renders_without_any_display_or_gl(traj, tmp_path):
                           check=False)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert len(list((tmp_path / "frames").glob("*.png"))) == 2
+
+
+def test_a_folder_of_run_folders_finds_every_trajectory(tmp_path):
+    from fishsim.errors import InputFileError
+    from fishsim.render.run import trajectory_paths
+
+    for folder in ("2026-01-01_00-00-00", "2026-01-01_00-00-00_2"):
+        write_synthetic_trajectory(tmp_path / "simulate" / folder / "trajectory.h5", n_frames=2)
+    assert [p.parent.name for p in trajectory_paths(tmp_path / "simulate")] == ["2026-01-01_00-00-00",
+                                                                               "2026-01-01_00-00-00_2"]
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(InputFileError, match="or its subfolders"):
+        trajectory_paths(tmp_path / "empty")
