@@ -24,7 +24,7 @@ install: $(STAMP)
 demo: install
 	$(BIN)/fishsim mesh out_dir=$(DEMO)
 	$(BIN)/fishsim simulate out_dir=$(DEMO) overwrite=true
-	$(BIN)/fishsim render $(DEMO)/trajectory.h5 out_dir=$(DEMO)/render stride=3 pngs=false
+	$(BIN)/fishsim render $(DEMO)/trajectory.h5 out_dir=$(DEMO)/render pngs=false
 	@echo "demo outputs are in $(DEMO)/"
 
 test: install

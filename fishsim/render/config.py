@@ -23,7 +23,8 @@ class RenderConfig:
         two normalised pressure fields; ``labels`` names the panels (default: file names).
     field: the colour-mapped fluid field: pressure (Pa), vorticity (1/s) or speed (m/s).
     sample: the batch index b of ``/solid/q[t, b]``.
-    start, stop, stride: the frames rendered, ``range(start, stop, stride)``; stop < 0 = all.
+    start, stop, stride: the frames rendered, ``range(start, stop, stride)``; stop < 0 = all;
+        stride null (default): the frames whose fluid was stored (no frame shows a stale fluid).
     width, dpi: image width in pixels, rounded up to a multiple of 16 for video codecs (the
         height follows the view's aspect ratio, x and y at the same scale); resolution.
     follow, window: zoom on a window of ``window`` metres (0 = 3 fish lengths) that follows the
@@ -46,7 +47,7 @@ class RenderConfig:
     sample: int = 0
     start: int = 0
     stop: int = -1
-    stride: int = 1
+    stride: int | None = None
     width: int = 1200
     dpi: int = 100
     follow: bool = False
@@ -69,7 +70,7 @@ class RenderConfig:
         _require(self.field in FIELDS, f"field must be one of {', '.join(FIELDS)} (got '{self.field}')")
         _require(self.video in VIDEO_FORMATS,
                  f"video must be one of {', '.join(VIDEO_FORMATS)} (got '{self.video}')")
-        _require(self.stride >= 1, f"stride must be >= 1 (got {self.stride})")
+        _require(self.stride is None or self.stride >= 1, f"stride must be >= 1 or null (got {self.stride})")
         _require(self.start >= 0, f"start must be >= 0 (got {self.start})")
         _require(self.sample >= 0, f"sample must be >= 0 (got {self.sample})")
         _require(self.width >= 160, f"width must be >= 160 pixels (got {self.width})")

@@ -39,10 +39,25 @@ def trajectory_paths(path: str | Path) -> list[Path]:
     return [path]
 
 
-def frame_indices(n_frames: int, cfg: RenderConfig) -> list[int]:
-    """``range(start, stop, stride)`` clipped to the frames the file holds."""
+def frame_indices(n_frames: int, cfg: RenderConfig, fluid_frames=None) -> list[int]:
+    """``range(start, stop, stride)`` clipped to the frames the file holds; with ``stride``
+    null, the frames whose fluid is stored (``fluid_frames``: every frame then shows its own
+    fluid, none a stale one), or every frame without fluid."""
     stop = n_frames if cfg.stop < 0 else min(cfg.stop, n_frames)
-    return list(range(min(cfg.start, n_frames), stop, cfg.stride))
+    start = min(cfg.start, n_frames)
+    if cfg.stride is None and fluid_frames is not None and len(fluid_frames):
+        return [int(t) for t in fluid_frames if start <= t < stop]
+    return list(range(start, stop, cfg.stride or 1))
+
+
+def _shared_fluid_frames(runs: list[RenderData]):
+    """The fluid frames every run stored (None if a run has no fluid)."""
+    if not all(r.has_fluid for r in runs):
+        return None
+    shared = set(runs[0].fluid_frame.tolist())
+    for r in runs[1:]:
+        shared &= set(r.fluid_frame.tolist())
+    return sorted(shared)
 
 
 def run(cfg: RenderConfig) -> dict:
@@ -93,7 +108,7 @@ def render_file(path: Path, cfg: RenderConfig, out_dir: Path, console: Console |
 def render_frames(runs: list[RenderData], labels: list[str], cfg: RenderConfig, out_dir: Path) -> dict:
     """PNG per frame and the video, from one reused figure."""
     n = min(r.n_frames for r in runs)
-    frames = frame_indices(n, cfg)
+    frames = frame_indices(n, cfg, _shared_fluid_frames(runs))
     if not frames:
         raise InputFileError(f"{runs[0].path} holds {n} frames: nothing to render for "
                              f"start={cfg.start} stop={cfg.stop}")
@@ -138,7 +153,7 @@ def render_comparison(runs: list[RenderData], labels: list[str], cfg: RenderConf
 def _write_vtk(run: RenderData, cfg: RenderConfig, out_dir: Path) -> dict:
     from fishsim.io.vtk_io import write_vtk_series
 
-    files = write_vtk_series(run, out_dir / "vtk", frame_indices(run.n_frames, cfg))
+    files = write_vtk_series(run, out_dir / "vtk", frame_indices(run.n_frames, cfg, _shared_fluid_frames([run])))
     return {k: str(v) for k, v in files.items()}
 
 

@@ -16,7 +16,7 @@ from fishsim.render.synthetic import write_synthetic_trajectory
 
 
 def _cfg(path, out, **kw):
-    kw = {"width": 320, "progress": False, **kw}
+    kw = {"width": 320, "progress": False, "stride": 1, **kw}       # every frame unless a test says otherwise
     return RenderConfig(path=str(path), out_dir=str(out), **kw)
 
 
@@ -119,7 +119,7 @@ def test_renders_without_any_display_or_gl(traj, tmp_path):
         import sys
         from fishsim.render.config import RenderConfig
         from fishsim.render.run import run
-        run(RenderConfig(path={str(traj)!r}, out_dir={str(tmp_path)!r}, width=320, stop=2,
+        run(RenderConfig(path={str(traj)!r}, out_dir={str(tmp_path)!r}, width=320, stop=2, stride=1,
                          video="none", progress=False))
         gl = [m for m in sys.modules if "OpenGL" in m or m.startswith("pyvista")]
         assert not gl, gl
@@ -142,3 +142,13 @@ def test_a_folder_of_run_folders_finds_every_trajectory(tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(InputFileError, match="or its subfolders"):
         trajectory_paths(tmp_path / "empty")
+
+
+def test_default_stride_renders_the_frames_whose_fluid_was_stored(tmp_path):
+    from fishsim.render.run import frame_indices
+
+    path = write_synthetic_trajectory(tmp_path / "t.h5", n_frames=12, fluid_every=3)
+    (summary,) = run(_cfg(path, tmp_path / "out", video="none", stride=None)).values()
+    assert summary["frames"] == 4                                 # frames 0, 3, 6, 9 hold fluid
+    cfg = _cfg(path, tmp_path / "o2", video="none", stride=None)
+    assert frame_indices(12, cfg, None) == list(range(12))      # no fluid: every frame
