@@ -212,7 +212,7 @@ class SimulateConfig:
     coupling: CouplingConfig = field(default_factory=CouplingConfig)
     frames: int = 300
     h: float = 0.01
-    origin: list[float] = field(default_factory=lambda: [0.2, 0.125])
+    origin: list[float] = field(default_factory=lambda: [0.06, 0.125])
     hold_x: bool = False
     fluid_stride: int = 5
     vtk: bool = False

@@ -272,8 +272,10 @@ def require_physical(q: Tensor, qdot: Tensor, grid) -> None:
     W, H = grid.W * grid.dx, grid.H * grid.dx
     if bool(((x < 0) | (x > W) | (y < 0) | (y > H)).any()):
         raise SimulationBlowUp(f"a fish left the {W:.3g} x {H:.3g} m tank (node at x in [{float(x.min()):.3g}, "
-                               f"{float(x.max()):.3g}], y in [{float(y.min()):.3g}, {float(y.max()):.3g}] m): the "
-                               "coupling ran away (check coupling.added_mass_ratio, e.g. the default 5)")
+                               f"{float(x.max()):.3g}], y in [{float(y.min()):.3g}, {float(y.max()):.3g}] m): it "
+                               "swam through a wall (the solid does not collide with the walls: start it farther "
+                               "away with origin=..., or run fewer frames) or the coupling ran away (check "
+                               "coupling.added_mass_ratio, e.g. the default 5)")
     speed = float(qdot.detach().norm(dim=-1).max())
     if speed > MAX_SPEED:
         raise SimulationBlowUp(f"a node moves at {speed:.3g} m/s (> {MAX_SPEED:g} m/s): the coupling ran away "
