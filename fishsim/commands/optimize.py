@@ -34,6 +34,7 @@ from rich.table import Table
 
 from fishsim.config import OptimizeConfig, SimulateConfig, to_yaml
 from fishsim.errors import ConfigError, FishsimError, SimulationBlowUp
+from fishsim.fluid.hydronet.train import atomic_save
 from fishsim.io.outdir import make_out_dir
 from fishsim.optimize.methods import make_method
 from fishsim.optimize.problem import OBJECTIVES, PARAMETERS, Problem, Space
@@ -112,7 +113,7 @@ def optimise(problem: Problem, cfg: OptimizeConfig, name: str, folder: Path, con
             method.tell(z, ev.J, ev.grad_z)
             rows.append(_row(it, name, space, z, ev, method, rows))
             _save(folder, rows, space, cfg, name)
-            _atomic_torch({"method": method.state(), "rows": rows}, state_path)
+            atomic_save({"method": method.state(), "rows": rows}, state_path)
             bar.update(task, completed=it + 1, status=_status(rows))
             if not console.is_terminal:                 # piped or logged: a plain line per iteration
                 print(f"[{time.strftime('%H:%M:%S')}] optimize {name}: iteration {it + 1}/{o.iterations}, "
@@ -206,12 +207,6 @@ def _write_best(cfg: OptimizeConfig, space: Space, rows: list[dict], path: Path)
 def _atomic_text(path: Path, text: str) -> None:
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text(text)
-    os.replace(tmp, path)
-
-
-def _atomic_torch(obj, path: Path) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(obj, tmp)
     os.replace(tmp, path)
 
 
