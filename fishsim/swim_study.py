@@ -57,25 +57,14 @@ class SwimStudyConfig:
             raise ConfigError(f"swim.frames must be >= 1 (got {self.frames})")
 
 
-def ranks(x: np.ndarray) -> np.ndarray:
-    """Ranks 0..n-1 (ties get their mean rank)."""
-    order = np.argsort(x, kind="stable")
-    r = np.empty(len(x))
-    r[order] = np.arange(len(x), dtype=float)
-    for v in np.unique(x):
-        r[x == v] = r[x == v].mean()
-    return r
-
-
 def spearman(a, b) -> float:
     """Spearman rank correlation of two sequences (NaN if either is constant or has NaN)."""
+    from scipy.stats import spearmanr
+
     a, b = np.asarray(a, float), np.asarray(b, float)
-    if not (np.isfinite(a).all() and np.isfinite(b).all()):
+    if not (np.isfinite(a).all() and np.isfinite(b).all()) or a.std() == 0 or b.std() == 0:
         return math.nan
-    ra, rb = ranks(a), ranks(b)
-    if ra.std() == 0 or rb.std() == 0:
-        return math.nan
-    return float(np.corrcoef(ra, rb)[0, 1])
+    return float(spearmanr(a, b).statistic)
 
 
 def run_fluid(name: str, cfg: SwimStudyConfig, device: str = "cpu") -> dict:
