@@ -132,12 +132,13 @@ def run(cfg: SimulateConfig) -> dict:
     t_start = time.perf_counter()
 
     near_wall: dict[int, int] = {}                 # fish -> first frame within a body width of a wall
+    bounds = wall_bounds(cfg, sw.solid.mesh)
     with _progress() as progress:
         task = progress.add_task("simulate", total=cfg.frames)
 
         def on_frame(t, s, out, metrics):
             if sw.fluid is not None:
-                for b in wall_proximity(cfg, sw.solid.mesh, s.q):
+                for b in wall_proximity(bounds, s.q):
                     if b not in near_wall:
                         near_wall[b] = t + 1
                         progress.console.print(f"[yellow]warning: fish {b} came within a body width of the tank wall at "
@@ -162,8 +163,8 @@ def run(cfg: SimulateConfig) -> dict:
             writer.close(complete=False, message=f"stopped: {err}", attrs=_grid_attrs(cfg))
             raise type(err)(f"{err} (partial trajectory kept in {path}, marked incomplete)") from None
     wall = time.perf_counter() - t_start
-    summary = summarise(cfg, episode, history, wall)
     rows = fish_summaries(cfg, episode, history)
+    summary = summarise(episode, rows, len(history["head_x"]), wall)
     write_summary_csv(rows, out_dir / "summary.csv")
     failed = {str(b): {"frame": f, "reason": why} for b, (f, why) in sorted((failures or {}).items())}
     writer.close(complete=True, attrs={**_grid_attrs(cfg), "failed_fish": json.dumps(failed),
@@ -183,13 +184,18 @@ def run(cfg: SimulateConfig) -> dict:
     return summary
 
 
-def wall_proximity(cfg: SimulateConfig, mesh, q: torch.Tensor) -> list[int]:
-    """The fish [B] with a node within one body width (the mesh's largest thickness) of the
-    fluid region's edge (the inner side of the wall bands)."""
+def wall_bounds(cfg: SimulateConfig, mesh) -> tuple[list[float], list[float]]:
+    """(lo, hi) corners (x, y in m) of the region farther than one body width (the mesh's largest
+    thickness) from the fluid region's edge (the inner side of the wall bands)."""
     width = float(np.ptp(mesh.points[:, 1]))
     f, dx = cfg.fluid, cfg.fluid.dx
-    lo = torch.tensor([f.wall_x * dx + width, f.wall_y * dx + width], dtype=q.dtype, device=q.device)
-    hi = torch.tensor([(f.W - f.wall_x) * dx - width, (f.H - f.wall_y) * dx - width], dtype=q.dtype, device=q.device)
+    return ([f.wall_x * dx + width, f.wall_y * dx + width],
+            [(f.W - f.wall_x) * dx - width, (f.H - f.wall_y) * dx - width])
+
+
+def wall_proximity(bounds: tuple[list[float], list[float]], q: torch.Tensor) -> list[int]:
+    """The fish [B] with a node outside ``wall_bounds``, i.e. within a body width of a wall."""
+    lo, hi = (q.new_tensor(b) for b in bounds)
     close = ((q < lo) | (q > hi)).flatten(1).any(1)
     return torch.nonzero(close).flatten().tolist()
 
@@ -198,12 +204,11 @@ def _grid_attrs(cfg: SimulateConfig) -> dict:
     return {"grid_H": cfg.fluid.H, "grid_W": cfg.fluid.W, "grid_dx": cfg.fluid.dx, "fluid_model": cfg.fluid.model}
 
 
-def summarise(cfg: SimulateConfig, episode: Episode, history: dict, wall: float) -> dict:
-    """The run's summary: fish 0's numbers (``fish_summaries``), the batch size and the wall time
-    split solid/fluid/coupling."""
+def summarise(episode: Episode, rows: list[dict], n_frames: int, wall: float) -> dict:
+    """The run's summary: fish 0's numbers (``rows`` from ``fish_summaries``), the batch size and
+    the wall time split solid/fluid/coupling."""
     split = episode.swimmer.timer.seconds
-    rows = fish_summaries(cfg, episode, history)
-    return {"frames": len(history["head_x"]), "batch": len(rows), **{k: v for k, v in rows[0].items() if k != "fish"},
+    return {"frames": n_frames, "batch": len(rows), **{k: v for k, v in rows[0].items() if k != "fish"},
             "wall time [s]": wall, "solid [s]": split["solid"], "fluid [s]": split["fluid"],
             "coupling [s]": split["coupling"]}
 
