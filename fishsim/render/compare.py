@@ -34,10 +34,18 @@ def common_fluid_frame(runs: Sequence[RenderData], frame: int = -1) -> int:
         raise InputFileError("the comparison overlay needs stored pressure in both trajectories")
     if frame >= 0:
         return frame
+    shared = shared_fluid_frames(runs)
+    return max(shared) if shared else min(int(r.fluid_frame[-1]) for r in runs)
+
+
+def shared_fluid_frames(runs: Sequence[RenderData]) -> list[int] | None:
+    """The frame indices stored with fluid in every run, sorted (None if a run has no fluid)."""
+    if not all(r.has_fluid for r in runs):
+        return None
     shared = set(runs[0].fluid_frame.tolist())
     for r in runs[1:]:
         shared &= set(r.fluid_frame.tolist())
-    return max(shared) if shared else min(int(r.fluid_frame[-1]) for r in runs)
+    return sorted(shared)
 
 
 def normalised_pressure(run: RenderData, frame: int) -> np.ndarray:

@@ -19,6 +19,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from fishsim.errors import ConfigError, FishsimError, InputFileError
 from fishsim.io.outdir import make_out_dir
+from fishsim.render.compare import shared_fluid_frames
 from fishsim.render.config import RenderConfig
 from fishsim.render.data import RenderData, load_render_data
 from fishsim.render.scene import FrameFigure
@@ -48,16 +49,6 @@ def frame_indices(n_frames: int, cfg: RenderConfig, fluid_frames=None) -> list[i
     if cfg.stride is None and fluid_frames is not None and len(fluid_frames):
         return [int(t) for t in fluid_frames if start <= t < stop]
     return list(range(start, stop, cfg.stride or 1))
-
-
-def _shared_fluid_frames(runs: list[RenderData]):
-    """The fluid frames every run stored (None if a run has no fluid)."""
-    if not all(r.has_fluid for r in runs):
-        return None
-    shared = set(runs[0].fluid_frame.tolist())
-    for r in runs[1:]:
-        shared &= set(r.fluid_frame.tolist())
-    return sorted(shared)
 
 
 def run(cfg: RenderConfig) -> dict:
@@ -108,7 +99,7 @@ def render_file(path: Path, cfg: RenderConfig, out_dir: Path, console: Console |
 def render_frames(runs: list[RenderData], labels: list[str], cfg: RenderConfig, out_dir: Path) -> dict:
     """PNG per frame and the video, from one reused figure."""
     n = min(r.n_frames for r in runs)
-    frames = frame_indices(n, cfg, _shared_fluid_frames(runs))
+    frames = frame_indices(n, cfg, shared_fluid_frames(runs))
     if not frames:
         raise InputFileError(f"{runs[0].path} holds {n} frames: nothing to render for "
                              f"start={cfg.start} stop={cfg.stop}")
@@ -153,7 +144,7 @@ def render_comparison(runs: list[RenderData], labels: list[str], cfg: RenderConf
 def _write_vtk(run: RenderData, cfg: RenderConfig, out_dir: Path) -> dict:
     from fishsim.io.vtk_io import write_vtk_series
 
-    files = write_vtk_series(run, out_dir / "vtk", frame_indices(run.n_frames, cfg, _shared_fluid_frames([run])))
+    files = write_vtk_series(run, out_dir / "vtk", frame_indices(run.n_frames, cfg, shared_fluid_frames([run])))
     return {k: str(v) for k, v in files.items()}
 
 
