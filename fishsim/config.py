@@ -22,6 +22,7 @@ from fishsim.coupling.layer import CouplingConfig
 from fishsim.errors import ConfigError
 from fishsim.fluid.hydronet.train import TrainConfig
 from fishsim.fluid.pressure import PRESSURES
+from fishsim.mesh.triangulate import GRADED_ACROSS
 from fishsim.optimize.problem import ObjectiveConfig, ParamSpec
 from fishsim.render.config import RenderConfig
 from fishsim.solid.model import PDOptions, SolidMaterial
@@ -52,6 +53,7 @@ class FishConfig:
     mesh_file: str | None = None
     muscles: str = "layer"
     muscle_thickness: float = 0.3
+    elements_across: float | None = None
 
     def validate(self) -> None:
         _positive(**{"fish.length": self.length, "fish.edge_length": self.edge_length,
@@ -60,6 +62,9 @@ class FishConfig:
                  f"fish.muscles must be 'layer' or 'paper' (got '{self.muscles}')")
         _require(math.isfinite(self.muscle_thickness) and 0 < self.muscle_thickness <= 1,
                  f"fish.muscle_thickness is a fraction of the local half-width in (0, 1] (got {self.muscle_thickness})")
+        _require(self.elements_across is None or (math.isfinite(self.elements_across)
+                                                   and 0 <= self.elements_across <= 32),
+                 f"fish.elements_across must be null or in [0, 32] (got {self.elements_across}; try 6)")
         _require(self.profile in ("kern", "polynomial"),
                  f"fish.profile must be 'kern' or 'polynomial' (got '{self.profile}')")
         _require(0 < self.min_angle <= 33.8,
@@ -68,6 +73,14 @@ class FishConfig:
                  f"fish.edge_length={self.edge_length} m is too coarse for a {self.length} m fish")
         lo, hi = self.actuator_x_range
         _require(0 <= lo < hi <= 1, f"fish.actuator_x_range must satisfy 0 <= lo < hi <= 1 (got {lo}, {hi})")
+
+    def mesh_elements_across(self) -> float:
+        """``elements_across`` the mesher uses: as set, or by default GRADED_ACROSS (6) for the
+        muscle layer and 2 (the paper's uniform mesh, on which PAPER_C is calibrated) for
+        ``muscles=paper``."""
+        if self.elements_across is not None:
+            return float(self.elements_across)
+        return 2.0 if self.muscles == "paper" else GRADED_ACROSS
 
 
 @dataclass

@@ -3,7 +3,7 @@ instead of growing into an out-of-memory kill.
 
 The estimate of an episode (bytes), with B fish, C = (H r) (W r) fluid cells on the internal grid
 (r the refinement), N mesh nodes (estimated from the edge length before meshing: the default
-0.2 m fish has 1181 nodes at 2 mm, N ~ (L / h_e)^2) and, for gradient runs, T frames:
+0.2 m fish has 1775 nodes at 2 mm (graded), N ~ (L / h_e)^2) and, for gradient runs, T frames:
 
     base 0.6 GB (Python, torch, compiled kernels)
     + B C 400 B          fluid state and the solver's / U-Net's work arrays per fish
@@ -22,7 +22,7 @@ from pathlib import Path
 
 from fishsim.errors import ConfigError
 
-NODES_DEFAULT, EDGE_DEFAULT, LENGTH_DEFAULT = 1181, 2.0e-3, 0.2
+NODES_DEFAULT, EDGE_DEFAULT, LENGTH_DEFAULT = 1775, 2.0e-3, 0.2
 
 
 def estimated_nodes(length: float, edge_length: float) -> int:

@@ -134,7 +134,8 @@ def test_render_a_real_simulation(tmp_path):
     q, rgb = data.q[7], fig.rgb()
     centroid = q[data.triangles].mean(1)                    # each outline node's adjacent elements
     inward = np.stack([centroid[(data.triangles == k).any(1)].mean(0) for k in data.surface]) - q[data.surface]
-    just_in, just_out = q[data.surface] + 0.6 * inward, q[data.surface] - 1.5 * inward
+    inward /= np.linalg.norm(inward, axis=1, keepdims=True)  # 1 mm ~ 2.6 pixels at this width
+    just_in, just_out = q[data.surface] + 0.8e-3 * inward, q[data.surface] - 2e-3 * inward
     assert _is_fish(_pixels(fig, rgb, just_in)).mean() > 0.9
     assert _is_fish(_pixels(fig, rgb, just_out)).mean() < 0.2
 

@@ -264,7 +264,9 @@ def test_truncated_backpropagation_equals_detached_windows(segment):
 
     ref = loss_and_grad(by_windows)
     got = loss_and_grad(truncated(k))
-    assert got[0] == pytest.approx(ref[0], rel=1e-12) and got[1] == pytest.approx(ref[1], rel=1e-9)
+    # the gradients agree to the adjoint solves' tolerance (their warm starts differ between the
+    # two call patterns), far below the truncation's own effect asserted last
+    assert got[0] == pytest.approx(ref[0], rel=1e-12) and got[1] == pytest.approx(ref[1], rel=1e-6)
     full, long = loss_and_grad(truncated(0)), loss_and_grad(truncated(n))
     assert long == pytest.approx(full, rel=1e-12) and abs(full[1] - got[1]) > 1e-3 * abs(full[1])
 

@@ -32,6 +32,7 @@ def build_fish_mesh(fish: FishConfig):
         actuator_spacing=fish.actuator_spacing,
         actuator_x_range=tuple(fish.actuator_x_range),
         tail_tip_width=fish.tail_tip_width,
+        elements_across=fish.mesh_elements_across(),
     )
 
 

@@ -2,7 +2,9 @@
 
 Pipeline of `make_fish_mesh` (docs/physics.md section 2, paper App. A Fig. 9):
   profile w(X) -> closed ccw outline (denser at the round head and the thin tail)
-  -> Triangle quality mesh (min angle, max area sqrt(3)/4 h^2) -> ccw triangles
+  -> Triangle quality mesh (min angle, max area sqrt(3)/4 h(X)^2 for the graded target edge
+  h(X) = clip(2 w(X) / n_across, h/4, h): at least n_across elements across the thin body)
+  -> ccw triangles
   -> surface polyline (the boundary edges chained ccw) -> actuator groups (spaced surface
   elements, top Y > 0 and bottom Y < 0).
 """
@@ -20,6 +22,9 @@ from fishsim.mesh.profile import Profile, check_outline, check_profile, make_pro
 MAX_MIN_ANGLE = 33.8
 #: Largest turning angle (rad) between outline segments: bounds the segment length on curves.
 OUTLINE_TURN = np.pi / 16
+#: Default elements across the rear body (`graded_edge`): the default fish's tail stroke is then
+#: within 1 % of the finest mesh from 3 mm to 1 mm edges (docs/validation.md).
+GRADED_ACROSS = 6.0
 #: Samples of the fine polyline the outline is resampled from.
 N_FINE = 4001
 
@@ -43,10 +48,30 @@ def outline_half_width(w: Profile, length: float, tail_tip_width: float) -> Prof
     return w_out
 
 
+def graded_edge(w_out: Profile, length: float, edge_length: float, elements_across: float):
+    """The target edge h(X) [m] of a body of half-width w_out(X), X in [0, L]: on the tail side of
+    the widest point h = clip(2 w(X) / n, h0/4, h0) with n = elements_across and h0 = edge_length,
+    so the thin, bending rear body is at least n elements across (linear triangles are too stiff
+    in bending when few span the thickness: the cantilever of docs/validation.md is 7.5 % too
+    stiff at 4 across, 1.9 % at 8); h0 on the head side. n = 2 grades only the outline (at most
+    the half-width), as the ungraded mesher always did."""
+    X = np.linspace(0.0, length, N_FINE)
+    x_peak = X[np.argmax(w_out(X))]
+    n = max(float(elements_across), 2.0)
+
+    def h(X: np.ndarray) -> np.ndarray:
+        X = np.asarray(X, dtype=np.float64)
+        thin = np.where(X < x_peak, 2.0 * w_out(X) / n, np.inf)
+        return np.clip(thin, 0.25 * edge_length, edge_length)
+
+    return h
+
+
 def _segment_target(xy: np.ndarray, half_width: np.ndarray, edge_length: float) -> np.ndarray:
     """Target outline segment length h [K] (m) at the fine polyline vertices xy [K, 2]:
     h = clip(min(OUTLINE_TURN / |kappa|, half_width), edge/4, edge), so segments shorten on the
-    curved head (curvature kappa, 1/m) and where the body is thin (pass inf to ignore width)."""
+    curved head (curvature kappa, 1/m) and where the body is thin (pass inf to ignore width;
+    a graded mesh passes its target edge h(X) here)."""
     d = np.diff(xy, axis=0)
     ds = np.linalg.norm(d, axis=1)
     heading = np.unwrap(np.arctan2(d[:, 1], d[:, 0]))
@@ -57,14 +82,15 @@ def _segment_target(xy: np.ndarray, half_width: np.ndarray, edge_length: float) 
     return np.clip(np.minimum(h_curve, half_width), 0.25 * edge_length, edge_length)
 
 
-def _top_stations(w_out: Profile, length: float, edge_length: float, n_top: int | None) -> np.ndarray:
+def _top_stations(w_out: Profile, length: float, edge_length: float, n_top: int | None,
+                  elements_across: float = 2.0) -> np.ndarray:
     """X [n_top + 1] (m) of the top outline vertices, from the head X = L down to the tail X = 0,
     spaced by the local target length (`_segment_target`), or n_top segments if given."""
     u = np.linspace(0.0, 1.0, N_FINE)
     X = 0.5 * length * (1.0 + np.cos(np.pi * u))  # head -> tail, clustered at both ends
     wX = w_out(X)
     xy = np.stack([X, wX], axis=1)
-    thin = np.where(X < X[np.argmax(wX)], wX, np.inf)  # refine for thinness on the tail side only
+    thin = graded_edge(w_out, length, edge_length, elements_across)(X)  # thin tail side only
     h = _segment_target(xy, thin, edge_length)
     ds = np.linalg.norm(np.diff(xy, axis=0), axis=1)
     n_cum = np.concatenate([[0.0], np.cumsum(ds * 0.5 * (1.0 / h[1:] + 1.0 / h[:-1]))])
@@ -72,12 +98,11 @@ def _top_stations(w_out: Profile, length: float, edge_length: float, n_top: int 
     return np.interp(np.linspace(0.0, n_cum[-1], n + 1), n_cum, X)
 
 
-def _end_points(x: float, half_width: float, edge_length: float, top_to_bottom: bool) -> np.ndarray:
+def _end_points(x: float, half_width: float, h: float, top_to_bottom: bool) -> np.ndarray:
     """Interior points [k, 2] of the straight end segment X = x, |Y| <= half_width (m), spaced
-    <= min(edge, half_width), ordered top -> bottom (tail) or bottom -> top (head)."""
+    <= h, ordered top -> bottom (tail) or bottom -> top (head)."""
     if half_width <= 0.0:
         return np.zeros((0, 2))
-    h = min(edge_length, max(half_width, 0.25 * edge_length))
     k = max(int(np.ceil(2.0 * half_width / h)), 1)
     y = np.linspace(half_width, -half_width, k + 1)[1:-1]
     y = y if top_to_bottom else y[::-1]
@@ -85,17 +110,19 @@ def _end_points(x: float, half_width: float, edge_length: float, top_to_bottom: 
 
 
 def sample_outline(w_out: Profile, length: float, edge_length: float,
-                   n_outline: int | None = None) -> np.ndarray:
+                   n_outline: int | None = None, elements_across: float = 2.0) -> np.ndarray:
     """Closed counter-clockwise outline xy [M, 2] (m) of |Y| <= w_out(X), X in [0, L]:
     bottom half tail -> head, head end (a point nose if w_out(L) ~ 0), top half head -> tail,
     then the blunt tail end X = 0. Mirror-symmetric about Y = 0. n_outline, if given, sets
-    roughly the number of points M."""
+    roughly the number of points M; segments follow `graded_edge` otherwise."""
     tol = 1e-9 * length
     w_tail, w_head = float(w_out(np.array([0.0]))[0]), float(w_out(np.array([length]))[0])
-    tail = _end_points(0.0, w_tail if w_tail > tol else 0.0, edge_length, top_to_bottom=True)
-    head = _end_points(length, w_head if w_head > tol else 0.0, edge_length, top_to_bottom=False)
+    h_tail = float(graded_edge(w_out, length, edge_length, elements_across)(np.array([0.0]))[0])
+    h_head = min(edge_length, max(w_head, 0.25 * edge_length))
+    tail = _end_points(0.0, w_tail if w_tail > tol else 0.0, h_tail, top_to_bottom=True)
+    head = _end_points(length, w_head if w_head > tol else 0.0, h_head, top_to_bottom=False)
     n_top = None if n_outline is None else (int(n_outline) - len(tail) - len(head)) // 2
-    X = _top_stations(w_out, length, edge_length, n_top)
+    X = _top_stations(w_out, length, edge_length, n_top, elements_across)
     top = np.stack([X, w_out(X)], axis=1)
     top[np.abs(top[:, 1]) <= tol, 1] = 0.0
     bottom = top[::-1] * np.array([1.0, -1.0])
@@ -170,17 +197,31 @@ def surface_polyline(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     return np.asarray(loop, dtype=np.int64)
 
 
-def triangulate_outline(xy: np.ndarray, edge_length: float, min_angle: float):
+def _area_switch(min_angle: float, max_area: float | None = None) -> str:
+    """Triangle's quality switches; its parser reads plain decimals only (no exponent)."""
+    num = (lambda v: np.format_float_positional(v, precision=8, fractional=False, trim="-"))
+    return f"pq{num(min_angle)}" + ("a" if max_area is None else f"a{num(max_area)}") + "Q"
+
+
+def triangulate_outline(xy: np.ndarray, edge_length: float, min_angle: float, size=None,
+                        max_passes: int = 6):
     """Quality triangulation of the closed polygon xy [M, 2] with Triangle:
     minimum angle `min_angle` (deg), maximum area sqrt(3)/4 edge_length^2 (an equilateral
-    triangle of side edge_length). Returns points [N, 2] float64, triangles [T, 3] int64 ccw."""
+    triangle of side edge_length). With `size` (a target edge h(X) [m] of the x coordinate,
+    e.g. `graded_edge`) the mesh is then refined until every element's area is at most
+    sqrt(3)/4 h(X_c)^2 at its centroid X_c (at most max_passes refinements).
+    Returns points [N, 2] float64, triangles [T, 3] int64 ccw."""
     m = len(xy)
-    pslg = {"vertices": xy, "segments": np.stack([np.arange(m), (np.arange(m) + 1) % m], axis=1)}
-    max_area = np.sqrt(3.0) / 4.0 * edge_length**2
-    # Triangle's switch parser reads plain decimals only (no exponent): write them positionally
-    opts = "pq{}a{}Q".format(*(np.format_float_positional(v, precision=8, fractional=False, trim="-")
-                              for v in (min_angle, max_area)))
-    out = triangle.triangulate(pslg, opts)
+    segments = np.stack([np.arange(m), (np.arange(m) + 1) % m], axis=1)
+    out = triangle.triangulate({"vertices": xy, "segments": segments},
+                               _area_switch(min_angle, np.sqrt(3.0) / 4.0 * edge_length**2))
+    for _ in range(max_passes if size is not None else 0):
+        points, tri = out["vertices"], out["triangles"]
+        limit = np.sqrt(3.0) / 4.0 * size(points[tri, 0].mean(axis=1)) ** 2
+        if np.all(np.abs(element_areas(points, tri)) <= limit * (1.0 + 1e-9)):
+            break
+        out = triangle.triangulate({"vertices": points, "segments": out["segments"], "triangles": tri,
+                                    "triangle_max_area": limit}, "r" + _area_switch(min_angle))
     points = np.ascontiguousarray(out["vertices"], dtype=np.float64)
     triangles = orient_ccw(points, np.asarray(out["triangles"], dtype=np.int64))
     return points, triangles
@@ -233,7 +274,8 @@ def _nearest_to_stations(x: np.ndarray, ids: np.ndarray, stations: np.ndarray, r
 def make_fish_mesh(length: float = 0.2, profile="kern", poly_coeffs=None, edge_length: float = 2e-3,
                    min_angle: float = 30.0, n_outline: int | None = None,
                    actuator_spacing: float = 4e-3, actuator_x_range: tuple[float, float] = (0.05, 0.95),
-                   tail_tip_width: float | None = None) -> FishMesh:
+                   tail_tip_width: float | None = None,
+                   elements_across: float = GRADED_ACROSS) -> FishMesh:
     """Triangulated fish of length L in its material frame (docs/physics.md section 2).
 
     length: L in metres (X = 0 tail, X = L head).
@@ -252,15 +294,20 @@ def make_fish_mesh(length: float = 0.2, profile="kern", poly_coeffs=None, edge_l
         (s < s_b = 0.04 L) of the Kern profile.
     tail_tip_width: full width in metres of the blunt tail tip, default w_t = 0.01 L (the profile
         is clamped to half of it near X = 0, see `outline_half_width`); 0 keeps a pointed tail.
+    elements_across: grade the mesh so that the body behind its widest point is at least this
+        many elements across (`graded_edge`): linear triangles are too stiff in bending with few
+        across. 2 (or less) grades only the outline: the paper's uniform mesh.
     Raises ConfigError for impossible arguments, MeshError for an unusable profile.
     """
     _check_arguments(length, edge_length, min_angle, actuator_spacing, actuator_x_range)
     w = make_profile(profile, length, poly_coeffs)
     check_profile(w, length)
     tip = 0.01 * length if tail_tip_width is None else float(tail_tip_width)
-    xy = sample_outline(outline_half_width(w, length, tip), length, edge_length, n_outline)
+    w_out = outline_half_width(w, length, tip)
+    xy = sample_outline(w_out, length, edge_length, n_outline, elements_across)
     check_outline(xy)
-    points, triangles = triangulate_outline(xy, edge_length, min_angle)
+    size = graded_edge(w_out, length, edge_length, elements_across) if elements_across > 2 else None
+    points, triangles = triangulate_outline(xy, edge_length, min_angle, size)
     surface = surface_polyline(points, triangles)
     actuator = actuator_groups(points, triangles, length, actuator_spacing, actuator_x_range)
     mesh = FishMesh(points=points, triangles=triangles, surface=surface, actuator=actuator,

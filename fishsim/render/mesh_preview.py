@@ -18,7 +18,7 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Patch
 
 from fishsim.mesh.fish_mesh import ACTUATOR_BOTTOM, ACTUATOR_TOP, FishMesh
-from fishsim.mesh.triangulate import element_angles
+from fishsim.mesh.triangulate import element_angles, element_areas
 
 #: Face colours per actuator id: none, top (red), bottom (light blue), as in paper Fig. 9.
 FACE_COLORS = ("#f2f2f2", "#d62728", "#8ecae6")
@@ -87,8 +87,7 @@ def _draw_layer(ax, mesh: FishMesh, thickness: float, x_range: Sequence[float]) 
     half = 0.5 * (w_top - w_bot)
     for inner in (w_top - thickness * half, w_bot + thickness * half):
         ax.plot(1e3 * X, 1e3 * inner, color="black", linewidth=0.6, linestyle="--")
-    area = 0.5 * np.abs(np.cross(mesh.points[mesh.triangles[:, 1]] - mesh.points[mesh.triangles[:, 0]],
-                                 mesh.points[mesh.triangles[:, 2]] - mesh.points[mesh.triangles[:, 0]]))
+    area = np.abs(element_areas(mesh.points, mesh.triangles))
     min_angle = float(element_angles(mesh.points, mesh.triangles).min())
     label = lambda side, f: f"{side} layer: {int(np.sum(f > 1e-9))} elements, {1e6 * float(np.sum(f * area)):.0f} mm$^2$"
     return [

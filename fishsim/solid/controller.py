@@ -13,17 +13,20 @@ h > 0 shortens the top side and bends the body towards +Y there. A layer element
 a muscle is its element's centroid.
 
 Calibrated amplitudes, one per muscle model (muscles.py), each in vacuum at 5 Hz with the default
-material (E = 6e5 Pa, k_m = E, no volume term) on the default fish (make_fish_mesh(), 2 mm edges,
-1181 nodes), so that the tail tip's peak-to-peak lateral excursion over the second half of a
-120-frame episode (`fishsim simulate fluid=none frames=120`'s summary) is 30.0 mm = 0.15 L, the
-middle of docs/physics.md's 0.1-0.2 L:
-- DEFAULT_C = 12.6 1/m for the default muscle layer (thickness 0.3 of the local half-width,
-  X in [0.05, 0.95] L): 30.0 mm (29.8 mm at 12.5); largest contraction 0.22, at X = 0.05 L.
-  The stroke converges under refinement: 28.2 / 30.0 / 30.9 / 31.4 mm at 3 / 2 / 1.4 / 1 mm
-  edges (README, benchmarks/study_solid_convergence.py).
-- PAPER_C = 35 1/m for the paper's station muscles (largest contraction 0.36; the envelope's tail
-  value C L/10 = 0.7 lies behind the first muscle at X = 0.05 L): 30.0 mm on the default mesh
-  only (45.6 / 30.1 / 16.7 / 9.2 mm at 3 / 2 / 1.4 / 1 mm edges).
+material (E = 6e5 Pa, k_m = E, no volume term) on that model's default fish mesh, so that the tail
+tip's peak-to-peak lateral excursion over the second half of a 120-frame episode (`fishsim
+simulate fluid=none frames=120`'s summary) is 30.0 mm = 0.15 L, the middle of docs/physics.md's
+0.1-0.2 L:
+- DEFAULT_C = 12.1 1/m for the default muscle layer (thickness 0.3 of the local half-width,
+  X in [0.05, 0.95] L) on the graded mesh (2 mm edges, at least 6 elements across the rear body,
+  1775 nodes): 30.07 mm (29.84 mm at 12.0). The stroke is mesh-converged: 31.2 / 31.2 / 31.2 /
+  31.5 mm at 3 / 2 / 1.4 / 1 mm edges and C = 12.6 (README, `fishsim validate suite=solid`).
+  On the paper's uniform mesh (fish.elements_across=2), where linear triangles are too stiff in
+  the thin rear body, C = 12.6 gave 30.0 mm at 2 mm and converged slowly (28.2 / 30.0 / 30.9 /
+  31.4 mm); the project's results before the graded mesh were measured there.
+- PAPER_C = 35 1/m for the paper's station muscles on the paper's uniform mesh (largest
+  contraction 0.36; the envelope's tail value C L/10 = 0.7 lies behind the first muscle at
+  X = 0.05 L): 30.0 mm on the 2 mm mesh only (45.6 / 30.1 / 16.7 / 9.2 mm at 3 / 2 / 1.4 / 1 mm).
 """
 
 from __future__ import annotations
@@ -37,7 +40,7 @@ from fishsim.solid.model import SolidModel
 
 # Calibrated amplitudes (1/m): tail peak-to-peak excursion 30.0 mm = 0.15 L at 5 Hz in vacuum on
 # the default mesh (module docstring), with the default muscle layer and with the paper's stations.
-DEFAULT_C = 12.6
+DEFAULT_C = 12.1
 PAPER_C = 35.0
 
 

@@ -23,7 +23,7 @@ from fishsim.mesh import (
     polynomial_profile,
     surface_elements,
 )
-from fishsim.mesh.triangulate import edge_list, outline_half_width
+from fishsim.mesh.triangulate import edge_list, graded_edge, outline_half_width
 
 L = 0.2
 W_H, S_B, S_T, W_T = 0.04 * L, 0.04 * L, 0.95 * L, 0.01 * L
@@ -126,6 +126,25 @@ def test_edge_length_near_target(mesh):
     q = mesh_quality(mesh)
     assert 1e-3 < q["edge_mean"] < 2e-3
     assert q["max_area"] <= np.sqrt(3.0) / 4.0 * 2e-3**2 * (1 + 1e-9)
+
+
+def test_graded_mesh_spans_the_rear_body_with_enough_elements():
+    """Behind the widest point each element is no larger than the graded target sqrt(3)/4 h(X)^2,
+    h = clip(2 w(X) / n, h0 / 4, h0), so a cut across the body at X meets about n elements or more;
+    the uniform mesh (n = 2) has far fewer across its thin rear body."""
+    w_out = outline_half_width(kern_profile(L), L, W_T)
+    counts = {}
+    for n in (2, 6):
+        m = make_fish_mesh(elements_across=n)
+        xc = m.points[m.triangles, 0].mean(axis=1)
+        area = element_areas(m.points, m.triangles)
+        h = graded_edge(w_out, L, 2e-3, n)(xc)
+        assert np.all(area <= np.sqrt(3.0) / 4.0 * h**2 * (1 + 1e-9)) or n == 2
+        cut = 0.1 * L  # elements crossed by the line X = L/10 (full width 2 w = 5.3 mm); a row of
+        # triangles across the body is crossed about twice
+        x = m.points[m.triangles, 0]
+        counts[n] = int(np.sum((x.min(axis=1) < cut) & (x.max(axis=1) > cut)))
+    assert counts[6] >= 2 * 6 and counts[6] > 2 * counts[2]
 
 
 def test_surface_is_the_closed_ccw_boundary(mesh):
