@@ -29,9 +29,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from fishsim.coupling import CouplingConfig, fluid_to_solid, solid_to_fluid
+from fishsim.coupling import CouplingConfig, exchange_to_solid, fluid_to_solid, solid_to_fluid
 from fishsim.coupling.added_mass import stabilising_force
-from fishsim.errors import SimulationBlowUp
+from fishsim.errors import ConfigError, SimulationBlowUp
 from fishsim.fluid.base import Boundary, FluidModel, FluidParams, FluidState
 from fishsim.fluid.grid import union
 from fishsim.solid import SolidModel, pd_step, predicted_start
@@ -125,6 +125,9 @@ class Swimmer:
         self.solid, self.fluid, self.coupling = solid, fluid, coupling
         self.walls, self.fluid_dtype, self.hold_x = walls, fluid_dtype, hold_x
         self.surface = torch.as_tensor(solid.mesh.surface, dtype=torch.long)
+        if fluid is not None and coupling.force == "exchange" and not hasattr(fluid, "step_with_diagnostics"):
+            raise ConfigError("coupling.force=exchange needs the numerical fluid's momentum exchange "
+                              "(fluid=numerical); use coupling.force=pressure with this fluid")
         self.added_mass = torch.as_tensor(solid.added_mass) if solid.added_mass.any() else None
         self.timer = PhaseTimer()
 
@@ -150,13 +153,17 @@ class Swimmer:
 
     def boundary(self, state: SwimState) -> Boundary:
         """Step 1: the fish's soft mask and velocity, united with the tank walls."""
+        return self.fish_and_boundary(state)[1]
+
+    def fish_and_boundary(self, state: SwimState) -> tuple[Boundary, Boundary]:
+        """(the fish's own Boundary, the fish united with the tank walls)."""
         fish = solid_to_fluid(state.q, state.qdot, self.surface, self.fluid.grid, self.coupling,
                               dtype=self.fluid_dtype)
         if self.walls is None:
-            return fish
+            return fish, fish
         B = state.q.shape[0]
         walls = Boundary(self.walls.mask.expand(B, -1, -1, -1), self.walls.velocity.expand(B, -1, -1, -1))
-        return union(fish, walls)
+        return fish, union(fish, walls)
 
     def node_mass(self, like: Tensor) -> Tensor:
         """Lumped nodal masses [N] (kg per unit depth) as ``like``'s dtype and device."""
@@ -179,6 +186,28 @@ class Swimmer:
         thickness = params.muscle_thickness.to("cpu", torch.float64)
         return layer_weights(self.solid, thickness, params.muscle_x_range)
 
+    def fluid_step(self, state: SwimState, fish: Boundary, boundary: Boundary, params: SwimParams,
+                   t: int, start: SwimState | None) -> tuple[FluidState, Tensor]:
+        """Steps 2-3: the fluid's step and the force it exerts on the fish's nodes, by the sampled
+        pressure or (``coupling.force=exchange``) by momentum exchange (fishsim.coupling)."""
+        t0, dev = time.perf_counter(), state.q.device
+        if self.coupling.force == "exchange":
+            fluid, diag = self.fluid.step_with_diagnostics(state.fluid, boundary, params.fluid)
+        else:
+            fluid = self.fluid.step(state.fluid, boundary, params.fluid,
+                                    start=None if start is None else start.fluid.p)
+        require_finite(fluid_vector_potential_a=fluid.a, fluid_pressure_p=fluid.p)
+        t0 = self.timer.add("fluid", t0, dev)
+        if self.coupling.force == "exchange":
+            share = diag.body_share(fish.mask, boundary.mask)
+            f_ext = exchange_to_solid(state.q, diag.cell_forces(params.fluid.rho, share), self.surface,
+                                      self.fluid.grid, self.coupling, step=t + 1)
+        else:
+            f_ext = fluid_to_solid(state.q, fluid.p, boundary, self.surface, self.fluid.grid,
+                                   self.coupling, step=t + 1)
+        self.timer.add("coupling", t0, dev)
+        return fluid, f_ext
+
     def frame(self, state: SwimState, params: SwimParams, t: int,
               start: SwimState | None = None,
               muscles: tuple[Tensor, Tensor] | None = None) -> tuple[SwimState, FrameOutput]:
@@ -191,15 +220,10 @@ class Swimmer:
         fluid, boundary = state.fluid, None
         f_ext = torch.zeros_like(state.q)
         if self.fluid is not None:
-            boundary = self.boundary(state)
+            fish, boundary = self.fish_and_boundary(state)
             t0 = clock.add("coupling", t0, dev)
-            fluid = self.fluid.step(state.fluid, boundary, params.fluid,
-                                    start=None if start is None else start.fluid.p)
-            require_finite(fluid_vector_potential_a=fluid.a, fluid_pressure_p=fluid.p)
-            t0 = clock.add("fluid", t0, dev)
-            f_ext = fluid_to_solid(state.q, fluid.p, boundary, self.surface, self.fluid.grid,
-                                   self.coupling, step=t + 1)
-            t0 = clock.add("coupling", t0, dev)
+            fluid, f_ext = self.fluid_step(state, fish, boundary, params, t, start)
+            t0 = time.perf_counter()
         if muscles is None:
             muscles = self.muscle_weights(params)
         weight, share = (None, None) if muscles is None else muscles

@@ -11,7 +11,7 @@ from fishsim.commands.simulate import batch_params, build_episode
 from fishsim.config import load_config
 from fishsim.coupling import fluid_to_solid
 from fishsim.coupling.layer import CouplingConfig
-from fishsim.errors import SimulationBlowUp
+from fishsim.errors import ConfigError, SimulationBlowUp
 from fishsim.fluid.numerical import NumericalFluid
 from fishsim.rollout import Swimmer, SwimState, rollout
 
@@ -55,10 +55,12 @@ def head_distance(sw, cfg, ep, omega, C, E, frames):
     return m["head_x"][-1].sum() - m["head_x"][0].sum()
 
 
-@pytest.mark.parametrize("fluid", ["none", "numerical", "hydronet"])
+@pytest.mark.parametrize("fluid", ["none", "numerical", "numerical-exchange", "hydronet"])
 def test_distance_gradient_matches_finite_differences(fluid, tiny_model):
     # HydroNet's recovered pressure: solved tightly, so its implicit gradient is the exact one
     extra = [f"fluid.model_file={tiny_model}", "fluid.pressure_tol=1e-12"] if fluid == "hydronet" else []
+    if fluid == "numerical-exchange":   # the momentum-exchange force (coupling.force=exchange)
+        fluid, extra = "numerical", ["coupling.force=exchange"]
     cfg, sw, ep = small_swimmer([f"fluid={fluid}", *extra])
     x0 = {"omega": 2 * math.pi * 5.0, "C": 6.0, "E": 6e5}
     frames = 5
@@ -269,6 +271,11 @@ def test_truncated_backpropagation_equals_detached_windows(segment):
     assert got[0] == pytest.approx(ref[0], rel=1e-12) and got[1] == pytest.approx(ref[1], rel=1e-6)
     full, long = loss_and_grad(truncated(0)), loss_and_grad(truncated(n))
     assert long == pytest.approx(full, rel=1e-12) and abs(full[1] - got[1]) > 1e-3 * abs(full[1])
+
+
+def test_exchange_force_needs_the_numerical_fluid(tiny_model):
+    with pytest.raises(ConfigError, match="coupling.force=exchange"):
+        small_swimmer(["fluid=hydronet", f"fluid.model_file={tiny_model}", "coupling.force=exchange"])
 
 
 def test_a_fish_leaving_the_tank_stops_the_run():

@@ -1,7 +1,9 @@
 """The coupling layer: solid -> fluid (b, v_d) and fluid -> solid (f_ext) (docs/physics.md section 7).
 
     solid_to_fluid(q, qdot, surface, grid, cfg) -> Boundary(b, v_d)     step 1 of the coupled step
-    fluid_to_solid(q, p, boundary, surface, grid, cfg, step) -> f_ext   step 3
+    fluid_to_solid(q, p, boundary, surface, grid, cfg, step) -> f_ext   step 3 (sampled pressure)
+    exchange_to_solid(q, cell_force, surface, grid, cfg, step) -> f_ext
+                                                                        step 3 (momentum exchange)
 
 Only the fish is described here.  The rollout adds the tank walls (mask b_wall, velocity v_wall)
 and combines them as a union of soft sets:
@@ -22,6 +24,7 @@ import torch
 from torch import Tensor
 
 from fishsim.coupling.band import NODE, SEGMENT, band_margin, surface_band
+from fishsim.coupling.exchange import spread_to_surface
 from fishsim.coupling.forces import AVERAGE, PER_NODE, burn_in_scale, fext_from_surface
 from fishsim.coupling.ibm import BODY, CHORD, FLUID, LINEAR, MEAN, NONE, PAPER, ibm_force
 from fishsim.coupling.mask import ARITHMETIC, HARMONIC, boundary_velocity, soft_mask
@@ -35,6 +38,7 @@ _CHOICES = {
     "ibm_fit": (LINEAR, MEAN),
     "ibm_area": (CHORD, PAPER),
     "force_mode": (PER_NODE, AVERAGE),
+    "force": ("pressure", "exchange"),
 }
 
 
@@ -52,6 +56,11 @@ class CouplingConfig:
     ibm_weight: cells sampled for the pressure, "fluid" (1 - b) | "body" (b, paper) | "none".
     ibm_fit: "linear" (plane fit evaluated at the node) | "mean" (paper's weighted mean).
     ibm_area: "chord" (area vectors summing to 0) | "paper" (l_k n_k).
+    force: "pressure" (the IBM-sampled pressure, the paper's; any fluid) | "exchange" (the
+        momentum the numerical fluid's penalization exchanges with the body, viscous stress
+        included; fishsim.coupling.exchange).
+    sigma_spread: variance of the kernel spreading the exchanged force onto the surface nodes,
+        m^2 (default (1.5 dx)^2 = 1.40625e-5; exchange.py).
     force_mode: "per_node" (free swimming) | "average" (paper's optimisation mode).
     fix_lateral: drop the y force ("x-axis fixed", paper Sec. 4.4).
     n_burn_in: forces are scaled by min(1, t / n_burn_in) (paper Sec. 3.4); our default 20
@@ -72,6 +81,8 @@ class CouplingConfig:
     ibm_weight: str = FLUID
     ibm_fit: str = LINEAR
     ibm_area: str = CHORD
+    force: str = "pressure"
+    sigma_spread: float = 1.40625e-5
     force_mode: str = PER_NODE
     fix_lateral: bool = False
     n_burn_in: int = 20
@@ -79,7 +90,7 @@ class CouplingConfig:
     k_nearest: int = 12
 
     def __post_init__(self):
-        for name in ("xi", "sigma", "tau", "sigma_prime"):
+        for name in ("xi", "sigma", "tau", "sigma_prime", "sigma_spread"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"coupling.{name} must be > 0 (m^2), got {getattr(self, name)}")
         for name, allowed in _CHOICES.items():
@@ -128,5 +139,20 @@ def fluid_to_solid(q: Tensor, p: Tensor, boundary: Boundary, surface, grid: Grid
     idx = surface_index(surface, q.device)
     f = ibm_force(q[:, idx], p, boundary.mask, grid, cfg.sigma_prime, cfg.ibm_weight,
                   cfg.ibm_fit, cfg.ibm_area)
+    scale = 1.0 if step is None else burn_in_scale(step, cfg.n_burn_in)
+    return fext_from_surface(f, idx, q.shape[1], cfg.force_mode, cfg.fix_lateral, scale)
+
+
+def exchange_to_solid(q: Tensor, cell_force: Tensor, surface, grid: Grid, cfg: CouplingConfig,
+                      step: int | None = None) -> Tensor:
+    """External hydrodynamic force on every mesh node by momentum exchange, f_ext [B, N, 2] N.
+
+    cell_force: the fluid step's force on the fish per cell [B, 2, H, W] N/m
+    (``StepDiagnostics.cell_forces`` with the fish's ``body_share``). Spread onto the surface
+    nodes (fishsim.coupling.exchange), then burn-in, force_mode and fix_lateral as
+    ``fluid_to_solid``. Result in q.dtype; differentiable.
+    """
+    idx = surface_index(surface, q.device)
+    f, _ = spread_to_surface(q[:, idx], cell_force, grid, cfg.sigma_spread)
     scale = 1.0 if step is None else burn_in_scale(step, cfg.n_burn_in)
     return fext_from_surface(f, idx, q.shape[1], cfg.force_mode, cfg.fix_lateral, scale)
