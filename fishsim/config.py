@@ -80,7 +80,10 @@ class MeshCommandConfig:
     out_dir: str | None = None
 
     def validate(self) -> None:
+        from fishsim.io.mesh_io import writable_format
+
         self.fish.validate()
+        writable_format(self.output)
 
 
 @dataclass

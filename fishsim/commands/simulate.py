@@ -19,7 +19,7 @@ from fishsim.config import SimulateConfig, to_yaml
 from fishsim.errors import ConfigError, FishsimError
 from fishsim.fluid.factory import fluid_params, make_fluid, make_tank
 from fishsim.fluid.grid import curl, faces_to_centres
-from fishsim.io.outdir import make_out_dir, resolve_output
+from fishsim.io.outdir import make_out_dir, output_file
 from fishsim.io.trajectory import TrajectoryWriter, trajectory_series
 from fishsim.resources import check_memory
 from fishsim.rollout import METRICS, Swimmer, SwimParams, rollout
@@ -118,9 +118,7 @@ def fluid_record(t: int, state, out, dx: float) -> dict:
 def run(cfg: SimulateConfig) -> dict:
     """Simulate, writing the trajectory as it goes; print and return the summary."""
     out_dir = make_out_dir("simulate", cfg.out_dir)
-    path = resolve_output(out_dir, cfg.output)
-    if path.is_dir():
-        raise ConfigError(f"output={cfg.output} is a folder; name a file, e.g. output=trajectory.h5")
+    path = output_file(out_dir, cfg.output, "trajectory.h5")
     if path.exists() and not cfg.overwrite:
         raise ConfigError(f"{path} already exists (an earlier run's result); pass overwrite=true to replace it "
                           "or choose another out_dir / output")

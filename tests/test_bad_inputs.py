@@ -1,0 +1,66 @@
+"""Bad inputs to every command: one line on stderr, exit code 2, no traceback, and nothing left
+behind (no empty run folder, no stray lock file) -- for unusable out_dirs, outputs that name a
+folder, and input errors found after the run folder was made."""
+
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from fishsim.cli import app
+
+runner = CliRunner()
+TINY_SIM = ["fluid=none", "fish.edge_length=5e-3", "frames=2"]
+COMMANDS = {"mesh": ["fish.edge_length=5e-3"], "simulate": TINY_SIM, "render": ["path=x.h5"], "validate": [],
+            "optimize": TINY_SIM}
+
+
+def _one_line_error(result, *words: str) -> None:
+    lines = result.output.strip().splitlines()
+    assert result.exit_code == 2 and len(lines) == 1 and lines[0].startswith("error:"), result.output
+    for w in words:
+        assert w in lines[0], lines[0]
+
+
+def _files(folder: Path) -> set[str]:
+    return {str(p.relative_to(folder)) for p in folder.rglob("*")}
+
+
+@pytest.fixture
+def here(tmp_path, monkeypatch) -> Path:
+    """A fresh working folder holding a file, a folder and a junk trajectory x.h5."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "afile").write_text("x")
+    (tmp_path / "adir").mkdir()
+    (tmp_path / "x.h5").write_text("not an HDF5 file")
+    return tmp_path
+
+
+@pytest.mark.parametrize("command", list(COMMANDS))
+@pytest.mark.parametrize("out_dir, words", [("afile", "is a file, not a folder"), ("afile/sub", "cannot create out_dir"),
+                                            ("/proc", "cannot write in out_dir")])
+def test_an_unusable_out_dir_is_one_line(here, command, out_dir, words):
+    before = _files(here)
+    _one_line_error(runner.invoke(app, [command, *COMMANDS[command], f"out_dir={out_dir}"]), words)
+    assert _files(here) == before
+
+
+@pytest.mark.parametrize("command, example", [("simulate", "trajectory.h5"), ("mesh", "fish.vtu")])
+def test_an_output_naming_a_folder_is_one_line(here, command, example):
+    result = runner.invoke(app, [command, *COMMANDS[command], "out_dir=new", f"output={here / 'adir'}"])
+    _one_line_error(result, "is a folder", f"output={example}")
+    assert not (here / "new").exists() and not any((here / "adir").iterdir())
+
+
+@pytest.mark.parametrize("command, bad", [
+    ("mesh", "fish.mesh_file=missing.vtu"), ("mesh", "output=fish.stl"), ("simulate", "fish.mesh_file=missing.vtu"),
+    ("render", "path=x.h5"), ("validate", "model_file=missing.pt"), ("optimize", "fish.mesh_file=missing.vtu")])
+@pytest.mark.parametrize("out_dir", [None, "new/run", "adir"])
+def test_an_input_error_leaves_no_folder_behind(here, command, bad, out_dir):
+    """Default folders (outputs/<command>/<time>), a new out_dir and an existing empty one: after
+    the error the working folder is as it was."""
+    before = _files(here)
+    args = [command, *COMMANDS[command], bad] + ([f"out_dir={out_dir}"] if out_dir else [])
+    result = runner.invoke(app, args)
+    assert result.exit_code == 2 and result.output.startswith("error:"), result.output
+    assert _files(here) == before
