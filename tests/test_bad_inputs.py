@@ -1,18 +1,23 @@
 """Bad inputs to every command: one line on stderr, exit code 2, no traceback, and nothing left
 behind (no empty run folder, no stray lock file) -- for unusable out_dirs, outputs that name a
-folder, and input errors found after the run folder was made."""
+folder, input errors found after the run folder was made, and train-hydronet's folder and
+resume rules."""
 
 from pathlib import Path
 
 import pytest
+import torch
 from typer.testing import CliRunner
 
 from fishsim.cli import app
 
 runner = CliRunner()
 TINY_SIM = ["fluid=none", "fish.edge_length=5e-3", "frames=2"]
+TINY_TRAIN = ["iterations=2", "batch_size=2", "net.hidden=4", "net.depth=2", "pool.size=4", "pool.H=16", "pool.W=32",
+              "pool.fish_length=[0.04,0.05]", "pool.obstacle_cells=[2,3]", "val_every=1000000", "threads=1",
+              "compile_loss=false", "progress=false"]
 COMMANDS = {"mesh": ["fish.edge_length=5e-3"], "simulate": TINY_SIM, "render": ["path=x.h5"], "validate": [],
-            "optimize": TINY_SIM}
+            "optimize": TINY_SIM, "train-hydronet": TINY_TRAIN}
 
 
 def _one_line_error(result, *words: str) -> None:
@@ -54,7 +59,8 @@ def test_an_output_naming_a_folder_is_one_line(here, command, example):
 
 @pytest.mark.parametrize("command, bad", [
     ("mesh", "fish.mesh_file=missing.vtu"), ("mesh", "output=fish.stl"), ("simulate", "fish.mesh_file=missing.vtu"),
-    ("render", "path=x.h5"), ("validate", "model_file=missing.pt"), ("optimize", "fish.mesh_file=missing.vtu")])
+    ("render", "path=x.h5"), ("validate", "model_file=missing.pt"), ("optimize", "fish.mesh_file=missing.vtu"),
+    ("train-hydronet", "init_from=missing.pt")])
 @pytest.mark.parametrize("out_dir", [None, "new/run", "adir"])
 def test_an_input_error_leaves_no_folder_behind(here, command, bad, out_dir):
     """Default folders (outputs/<command>/<time>), a new out_dir and an existing empty one: after
@@ -64,3 +70,29 @@ def test_an_input_error_leaves_no_folder_behind(here, command, bad, out_dir):
     result = runner.invoke(app, args)
     assert result.exit_code == 2 and result.output.startswith("error:"), result.output
     assert _files(here) == before
+
+
+def test_train_hydronet_writes_to_a_new_run_folder_by_default(here):
+    first, second = (runner.invoke(app, ["train-hydronet", *TINY_TRAIN]) for _ in range(2))
+    assert first.exit_code == second.exit_code == 0, first.output + second.output
+    runs = sorted((here / "outputs" / "train-hydronet").iterdir())
+    assert len(runs) == 2 and all((r / "ckpt.pt").exists() and (r / "log.csv").exists() for r in runs)
+    assert not (here / "runs").exists()
+
+
+def test_train_hydronet_resume_needs_the_run_folder(here):
+    _one_line_error(runner.invoke(app, ["train-hydronet", *TINY_TRAIN, "resume=true"]), "resume=true needs out_dir=")
+    assert _files(here) == {"afile", "adir", "x.h5"}
+
+
+def test_train_hydronet_never_restarts_over_a_run_unasked(here):
+    """A second run into a run's folder is refused (ckpt.pt unchanged) unless it resumes, or
+    overwrites (then log.csv starts again: 2 rows, not the old run's 3 plus 2)."""
+    assert runner.invoke(app, ["train-hydronet", *TINY_TRAIN, "log_every=1", "out_dir=run"]).exit_code == 0
+    saved = (here / "run" / "ckpt.pt").read_bytes()
+    _one_line_error(runner.invoke(app, ["train-hydronet", *TINY_TRAIN, "out_dir=run"]), "resume=true", "overwrite=true")
+    assert (here / "run" / "ckpt.pt").read_bytes() == saved
+    more = runner.invoke(app, ["train-hydronet", *TINY_TRAIN, "log_every=1", "out_dir=run", "resume=true", "iterations=3"])
+    assert more.exit_code == 0 and torch.load(here / "run" / "ckpt.pt", weights_only=False)["iteration"] == 3
+    again = runner.invoke(app, ["train-hydronet", *TINY_TRAIN, "log_every=1", "out_dir=run", "overwrite=true"])
+    assert again.exit_code == 0 and len((here / "run" / "log.csv").read_text().splitlines()) == 1 + 2
