@@ -160,6 +160,8 @@ class FluidConfig:
     pressure: hydronet only, "recovered" (the pressure that best satisfies the momentum equation for
         the network's velocities, fishsim/fluid/pressure.py) or "network" (the network's own output).
     pressure_tol: hydronet only, relative residual of the pressure recovery's PCG solve.
+    strict_range: hydronet only, refuse a run whose rho, mu, dx or h lies outside the range the
+        model was trained for (default: a one-line warning; fishsim/fluid/hydronet/trained_range.py).
     """
 
     model: str = "numerical"
@@ -178,6 +180,7 @@ class FluidConfig:
     bf16: bool = False
     pressure: str = "recovered"
     pressure_tol: float = 1e-2
+    strict_range: bool = False
 
     def validate(self) -> None:
         _require(self.model in ("none", "numerical", "hydronet"),

@@ -1,7 +1,7 @@
 """Bad inputs to every command: one line on stderr, exit code 2, no traceback, and nothing left
 behind (no empty run folder, no stray lock file) -- for unusable out_dirs, outputs that name a
-folder, input errors found after the run folder was made, and train-hydronet's folder and
-resume rules."""
+folder, input errors found after the run folder was made, train-hydronet's folder and resume
+rules, and a HydroNet run outside the fluid its model was trained for."""
 
 from pathlib import Path
 
@@ -10,6 +10,9 @@ import torch
 from typer.testing import CliRunner
 
 from fishsim.cli import app
+from fishsim.fluid.factory import SHIPPED_HYDRONET
+from fishsim.fluid.hydronet import load_hydronet
+from fishsim.fluid.hydronet.trained_range import check_fluid, outside
 
 runner = CliRunner()
 TINY_SIM = ["fluid=none", "fish.edge_length=5e-3", "frames=2"]
@@ -96,3 +99,25 @@ def test_train_hydronet_never_restarts_over_a_run_unasked(here):
     assert more.exit_code == 0 and torch.load(here / "run" / "ckpt.pt", weights_only=False)["iteration"] == 3
     again = runner.invoke(app, ["train-hydronet", *TINY_TRAIN, "log_every=1", "out_dir=run", "overwrite=true"])
     assert again.exit_code == 0 and len((here / "run" / "log.csv").read_text().splitlines()) == 1 + 2
+
+
+PAPER_FLUID = {"rho": [50.0, 50.0], "mu": [1.25e-4, 1.25e-4], "dx": 2.5e-3, "h": 0.01}
+
+
+def test_the_shipped_model_knows_its_training_fluid():
+    assert load_hydronet(SHIPPED_HYDRONET).training_range == PAPER_FLUID
+    assert outside(PAPER_FLUID, 50.0, 1.25e-4, 2.5e-3, 0.01) == []
+    assert outside(PAPER_FLUID, 1000.0, 1e-3, 2.5e-3, 0.02) == ["rho = 1000", "mu = 0.001", "h = 0.02"]
+
+
+def test_a_fluid_outside_the_training_range_warns_or_is_refused(here, capsys):
+    model = load_hydronet(SHIPPED_HYDRONET)
+    assert check_fluid(model, "m.pt", 50.0, 1.25e-4, 2.5e-3, 0.01, strict=True) is None
+    message = check_fluid(model, "m.pt", 1000.0, 1e-3, 2.5e-3, 0.01, strict=False)
+    assert "rho in [50, 50]" in message and "rho = 1000, mu = 0.001" in message
+    assert capsys.readouterr().err.startswith("warning: HydroNet m.pt was trained for")
+    strict = runner.invoke(app, ["simulate", "fluid=hydronet", "fluid.rho=1000", "fluid.mu=1e-3", "fluid.strict_range=true",
+                                 "fish.edge_length=5e-3", "frames=1"])
+    _one_line_error(strict, "was trained for rho in [50, 50] kg/m^3, mu in [0.000125, 0.000125] Pa s", "rho = 1000",
+                    "fluid=numerical", "strict_range=true refuses it")
+    assert _files(here) == {"afile", "adir", "x.h5"}

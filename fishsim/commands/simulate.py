@@ -17,8 +17,9 @@ from rich.table import Table
 from fishsim.commands.mesh import build_fish_mesh, build_muscles
 from fishsim.config import SimulateConfig, to_yaml
 from fishsim.errors import ConfigError, FishsimError
-from fishsim.fluid.factory import fluid_params, make_fluid, make_tank
+from fishsim.fluid.factory import SHIPPED_HYDRONET, fluid_params, make_fluid, make_tank
 from fishsim.fluid.grid import curl, faces_to_centres
+from fishsim.fluid.hydronet.trained_range import check_fluid
 from fishsim.io.outdir import make_out_dir, output_file
 from fishsim.io.trajectory import TrajectoryWriter, trajectory_series
 from fishsim.resources import check_memory
@@ -45,6 +46,9 @@ def build_episode(cfg: SimulateConfig) -> Episode:
         raise ConfigError("device=cuda but torch sees no CUDA device (install a CUDA build of torch: see README)")
     mesh = build_fish_mesh(cfg.fish)
     fluid = make_fluid(cfg.fluid, device)
+    if cfg.fluid.model == "hydronet":
+        check_fluid(fluid.model, cfg.fluid.model_file or SHIPPED_HYDRONET, cfg.fluid.rho, cfg.fluid.mu,
+                    cfg.fluid.dx, cfg.h, cfg.fluid.strict_range)
     solid = SolidModel(mesh, cfg.solid.material, h=cfg.h, options=cfg.solid.pd,
                        added_mass_ratio=cfg.coupling.added_mass_ratio if fluid is not None else 0.0,
                        muscles=build_muscles(cfg.fish, mesh))

@@ -38,6 +38,7 @@ from fishsim.errors import ConfigError, InputFileError, Terminated
 from fishsim.fluid.base import Boundary, FluidParams, FluidState, rest_state
 from fishsim.fluid.hydronet.loss import LossConfig, LossTerms, hydronet_loss
 from fishsim.fluid.hydronet.pool import PoolConfig, ScenePool, advance, random_scene, scene_boundaries
+from fishsim.fluid.hydronet.trained_range import stored_range, training_range
 from fishsim.fluid.hydronet.unet import HydroNet, NetConfig
 
 
@@ -251,28 +252,34 @@ def compact_checkpoint(src: str | Path, dest: str | Path) -> Path:
     return dest
 
 
-def save_best(model: HydroNet, run: Run, out: Path) -> None:
+def save_best(model: HydroNet, run: Run, out: Path, cfg: TrainConfig) -> None:
+    """best.pt: the weights, the net config and the fluid range they were trained for."""
     atomic_save({"model": model.state_dict(), "net": asdict(model.cfg), "iteration": run.iteration,
-                 "val": run.best_val}, out / "best.pt")
+                 "val": run.best_val, "training_range": training_range(cfg.pool)}, out / "best.pt")
 
 
 def export_model(checkpoint: str | Path, dest: str | Path, metadata: dict) -> Path:
     """Ship a trained model: the weights and net config of ``checkpoint`` (best.pt or ckpt.pt,
-    no optimiser or pool) to ``dest`` and ``metadata`` (config, command, losses, evaluation) to
-    ``dest`` with suffix .json. Returns ``dest``; ``load_hydronet(dest)`` reads it back."""
+    no optimiser or pool) and the fluid range it was trained for to ``dest``, and ``metadata``
+    (config, command, losses, evaluation) with that range to ``dest`` with suffix .json. Returns ``dest``; ``load_hydronet(dest)`` reads it back."""
     import json
 
     sd = torch.load(checkpoint, map_location="cpu", weights_only=False)
     dest = Path(dest)
     dest.parent.mkdir(parents=True, exist_ok=True)
+    trained = stored_range(sd, Path(checkpoint))
+    if trained is None and "train_config" in metadata:
+        trained = training_range(metadata["train_config"]["pool"])
     atomic_save({"model": sd["model"], "net": sd["net"], "iteration": sd["iteration"],
-                 "val": sd.get("val", sd.get("best_val"))}, dest)
-    dest.with_suffix(".json").write_text(json.dumps(metadata, indent=2, default=str) + "\n")
+                 "val": sd.get("val", sd.get("best_val")), "training_range": trained}, dest)
+    meta = {**metadata, "training_range": trained}
+    dest.with_suffix(".json").write_text(json.dumps(meta, indent=2, default=str) + "\n")
     return dest
 
 
 def load_hydronet(path: str | Path, device="cpu") -> HydroNet:
-    """A trained HydroNet (eval mode) from best.pt or ckpt.pt; wrap it in ``HydroNetFluid``.
+    """A trained HydroNet (eval mode) from best.pt or ckpt.pt, with its ``training_range`` (None if
+    unknown; ``trained_range.check_fluid``); wrap it in ``HydroNetFluid``.
 
     Raises InputFileError (one line, how to fix) for a missing, unreadable or foreign file."""
 
@@ -286,6 +293,7 @@ def load_hydronet(path: str | Path, device="cpu") -> HydroNet:
         model.load_state_dict(sd["model"])
     except Exception as err:  # noqa: BLE001 - any failure here means the file is not a HydroNet
         raise InputFileError(f"{path} is not a readable HydroNet model ({type(err).__name__}); {hint}") from None
+    model.training_range = stored_range(sd, path)     # checked against a run's fluid: trained_range.py
     return model.eval()
 
 
@@ -429,7 +437,7 @@ def _after_step(run: Run, cfg: TrainConfig, out: Path, rank: int, world: int, lo
         run.last_val = validate(run.model, cfg)
         if run.last_val < run.best_val:
             run.best_val = run.last_val
-            save_best(run.model, run, out)
+            save_best(run.model, run, out, cfg)
     if log is not None and run.iteration % cfg.log_every == 0:
         log.log(run, terms)
     if _due(run, cfg, last_save, world):
