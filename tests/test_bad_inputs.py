@@ -1,7 +1,7 @@
 """Bad inputs to every command: one line on stderr, exit code 2, no traceback, and nothing left
 behind (no empty run folder, no stray lock file) -- for unusable out_dirs, outputs that name a
 folder, input errors found after the run folder was made, train-hydronet's folder and resume
-rules, and a HydroNet run outside the fluid its model was trained for."""
+rules, Hydra runner settings, and a HydroNet run outside the fluid its model was trained for."""
 
 from pathlib import Path
 
@@ -99,6 +99,15 @@ def test_train_hydronet_never_restarts_over_a_run_unasked(here):
     assert more.exit_code == 0 and torch.load(here / "run" / "ckpt.pt", weights_only=False)["iteration"] == 3
     again = runner.invoke(app, ["train-hydronet", *TINY_TRAIN, "log_every=1", "out_dir=run", "overwrite=true"])
     assert again.exit_code == 0 and len((here / "run" / "log.csv").read_text().splitlines()) == 1 + 2
+
+
+@pytest.mark.parametrize("args", [["hydra.sweeper.foo=1"], ["hydra/launcher=joblib"], ["hydra/sweeper=optuna"],
+                                  ["hydra.launcher.n_jobs=2"], ["hydra.mode=MULTIRUN"], ["+hydra.foo=1"],
+                                  ["--multirun"], ["-m"], ["controller.frequency=1,2"]])
+def test_hydra_runner_settings_are_one_line(here, args):
+    """fishsim runs no Hydra sweeper or launcher: such settings would silently do nothing."""
+    _one_line_error(runner.invoke(app, ["simulate", *TINY_SIM, *args]), "batch.frequency=[3,4,5]")
+    assert _files(here) == {"afile", "adir", "x.h5"}
 
 
 PAPER_FLUID = {"rho": [50.0, 50.0], "mu": [1.25e-4, 1.25e-4], "dx": 2.5e-3, "h": 0.01}
