@@ -23,6 +23,7 @@ app = typer.Typer(
 OVERRIDES = typer.Argument(None, help="Config overrides, key=value (e.g. fish.edge_length=3e-3).",
                            show_default=False)
 SHOW = typer.Option(False, "--show-config", help="Print the resolved config as YAML and exit.")
+MULTIRUN = typer.Option(False, "--multirun", "-m", hidden=True)   # Hydra's flag: refused with one line
 CONFIG = typer.Option(None, "--config", help="A YAML config to start from (e.g. a run's config or optimize's "
                       "best.yaml); overrides apply on top.", show_default=False)
 
@@ -112,8 +113,10 @@ def _command(name: str, summary: str, positional: tuple[str, ...] = ()) -> Calla
     epilog = "Config (group.key=default):\n\n" + describe(ROOTS[name]())
 
     def decorate(run_factory: Callable[[], Callable]) -> Callable:
-        def command(overrides: list[str] | None = OVERRIDES, show_config: bool = SHOW, config: str = CONFIG) -> None:
-            _execute(name, _positional(overrides, positional), show_config, run_factory(), config)
+        def command(overrides: list[str] | None = OVERRIDES, show_config: bool = SHOW, config: str = CONFIG,
+                    multirun: bool = MULTIRUN) -> None:
+            args = _positional(overrides, positional) + (["--multirun"] if multirun else [])
+            _execute(name, args, show_config, run_factory(), config)
 
         command.__doc__ = summary
         app.command(name=name, epilog=epilog)(command)

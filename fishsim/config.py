@@ -93,7 +93,10 @@ class MeshCommandConfig:
     out_dir: str | None = None
 
     def validate(self) -> None:
+        from fishsim.io.mesh_io import writable_format
+
         self.fish.validate()
+        writable_format(self.output)
 
 
 @dataclass
@@ -170,6 +173,8 @@ class FluidConfig:
     pressure: hydronet only, "recovered" (the pressure that best satisfies the momentum equation for
         the network's velocities, fishsim/fluid/pressure.py) or "network" (the network's own output).
     pressure_tol: hydronet only, relative residual of the pressure recovery's PCG solve.
+    strict_range: hydronet only, refuse a run whose rho, mu, dx or h lies outside the range the
+        model was trained for (default: a one-line warning; fishsim/fluid/hydronet/trained_range.py).
     """
 
     model: str = "numerical"
@@ -188,6 +193,7 @@ class FluidConfig:
     bf16: bool = False
     pressure: str = "recovered"
     pressure_tol: float = 1e-2
+    strict_range: bool = False
 
     def validate(self) -> None:
         _require(self.model in ("none", "numerical", "hydronet"),
@@ -356,6 +362,7 @@ def load_config(command: str, overrides: list[str] | None = None, config_file: s
     from hydra.errors import HydraException
 
     overrides = list(overrides or [])
+    _refuse_hydra_runner_keys(overrides)
     GlobalHydra.instance().clear()
     try:
         with initialize_config_dir(config_dir=config_dir(), version_base="1.3"):
@@ -368,6 +375,21 @@ def load_config(command: str, overrides: list[str] | None = None, config_file: s
         groups = {d.name for d in Path(config_dir()).iterdir() if d.is_dir()}
         raw = _merge_file(raw, config_file, [o for o in overrides if "=" in o and o.split("=")[0].lstrip("+~") not in groups])
     return to_dataclass(command, raw)
+
+
+NO_SWEEPS = ("for several values give a batch list (batch.frequency=[3,4,5]) or run the command once per value "
+             "(a shell loop); fishsim optimize searches parameters")
+
+
+def _refuse_hydra_runner_keys(overrides: list[str]) -> None:
+    """fishsim composes its config with Hydra's compose API and runs one job itself: Hydra's own
+    settings (hydra.*, hydra/sweeper, hydra/launcher, multirun) would be accepted and silently do
+    nothing, so a sweep the user asked for would never run. ConfigError (one line) instead."""
+    for o in overrides:
+        key = o.split("=", 1)[0].lstrip("+~")
+        if key in ("hydra", "--multirun") or key.startswith(("hydra.", "hydra/")):
+            raise ConfigError(f"config error: '{o}' is a setting of Hydra's job runner, which fishsim does not use "
+                              f"(no sweepers, launchers or multirun); {NO_SWEEPS}")
 
 
 def _merge_file(raw: Any, path: str, dotted: list[str]) -> Any:
@@ -427,4 +449,6 @@ def _one_line(err: Exception) -> str:
                 "`fishsim <command> --help` lists the config groups and keys)")
     for tail in (" full_key:", " Config search path:", " See https:"):
         text = text.split(tail)[0]
+    if text.startswith("Ambiguous value for argument"):       # Hydra's hint names --multirun, which fishsim lacks
+        text = text.split(" 3. To sweep over it")[0] + f"; {NO_SWEEPS}"
     return f"config error: {text.strip()}"

@@ -13,7 +13,7 @@ from rich.markup import escape
 from rich.table import Table
 
 from fishsim.config import FishConfig, MeshCommandConfig
-from fishsim.io.outdir import make_out_dir, resolve_output
+from fishsim.io.outdir import make_out_dir, output_file
 
 
 def build_fish_mesh(fish: FishConfig):
@@ -54,10 +54,10 @@ def run(cfg: MeshCommandConfig) -> dict:
     from fishsim.render.mesh_preview import plot_mesh
 
     out_dir = make_out_dir("mesh", cfg.out_dir)
+    mesh_path = output_file(out_dir, cfg.output, "fish.vtu")
     fish = cfg.fish
     mesh = build_fish_mesh(fish)
     quality = mesh_quality(mesh)
-    mesh_path = resolve_output(out_dir, cfg.output)
     stats = {"nodes": mesh.n_nodes, "elements": mesh.n_elements, "surface nodes": len(mesh.surface)}
     layer, fractions = None, None
     if fish.muscles == "layer":

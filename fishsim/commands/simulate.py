@@ -17,9 +17,10 @@ from rich.table import Table
 from fishsim.commands.mesh import build_fish_mesh, build_muscles
 from fishsim.config import SimulateConfig, to_yaml
 from fishsim.errors import ConfigError, FishsimError
-from fishsim.fluid.factory import fluid_params, make_fluid, make_tank
+from fishsim.fluid.factory import SHIPPED_HYDRONET, fluid_params, make_fluid, make_tank
 from fishsim.fluid.grid import curl, faces_to_centres
-from fishsim.io.outdir import make_out_dir, resolve_output
+from fishsim.fluid.hydronet.trained_range import check_fluid
+from fishsim.io.outdir import make_out_dir, output_file
 from fishsim.io.trajectory import TrajectoryWriter, trajectory_series
 from fishsim.resources import check_memory
 from fishsim.rollout import METRICS, Swimmer, SwimParams, rollout
@@ -45,6 +46,9 @@ def build_episode(cfg: SimulateConfig) -> Episode:
         raise ConfigError("device=cuda but torch sees no CUDA device (install a CUDA build of torch: see README)")
     mesh = build_fish_mesh(cfg.fish)
     fluid = make_fluid(cfg.fluid, device)
+    if cfg.fluid.model == "hydronet":
+        check_fluid(fluid.model, cfg.fluid.model_file or SHIPPED_HYDRONET, cfg.fluid.rho, cfg.fluid.mu,
+                    cfg.fluid.dx, cfg.h, cfg.fluid.strict_range)
     solid = SolidModel(mesh, cfg.solid.material, h=cfg.h, options=cfg.solid.pd,
                        added_mass_ratio=cfg.coupling.added_mass_ratio if fluid is not None else 0.0,
                        muscles=build_muscles(cfg.fish, mesh))
@@ -118,9 +122,7 @@ def fluid_record(t: int, state, out, dx: float) -> dict:
 def run(cfg: SimulateConfig) -> dict:
     """Simulate, writing the trajectory as it goes; print and return the summary."""
     out_dir = make_out_dir("simulate", cfg.out_dir)
-    path = resolve_output(out_dir, cfg.output)
-    if path.is_dir():
-        raise ConfigError(f"output={cfg.output} is a folder; name a file, e.g. output=trajectory.h5")
+    path = output_file(out_dir, cfg.output, "trajectory.h5")
     if path.exists() and not cfg.overwrite:
         raise ConfigError(f"{path} already exists (an earlier run's result); pass overwrite=true to replace it "
                           "or choose another out_dir / output")

@@ -10,16 +10,25 @@ from fishsim.fluid.hydronet.train import run as train
 
 
 def run(cfg: TrainConfig) -> dict:
-    """Train as configured and print where the model is; returns the trainer's summary."""
+    """Train as configured and print where the model is; returns the trainer's summary. A stop by
+    SIGINT / SIGTERM is re-raised after the save (exit 130 / 143) so that schedulers and scripts
+    see it."""
     summary = train(cfg)
     if summary["rank"] == 0:
-        state = "interrupted, checkpoint saved" if summary["interrupted"] else "done"
         Console().print(
-            f"train-hydronet {state}: iteration {summary['iteration']}, best validation loss "
+            f"train-hydronet {_state(summary)}: iteration {summary['iteration']}, best validation loss "
             f"{summary['best_val']:.3f}, {summary['it_per_s']:.2f} it/s "
             f"({summary['samples_per_s']:.1f} samples/s); outputs in {summary['out_dir']}/ "
-            f"(best.pt, ckpt.pt, log.csv, tb/); continue with resume=true")
-    if summary["interrupted"]:      # saved; now exit 130 / 143 so that schedulers and scripts see the stop
+            f"(best.pt, ckpt.pt, log.csv, tb/); continue with out_dir={summary['out_dir']} resume=true")
+    if summary["interrupted"]:
+        how = (f"checkpoint of iteration {summary['iteration']} saved" if summary["saved"] else
+               "stopped at once, the last checkpoint saved before kept")
         raise (Terminated if summary["interrupted"] == "SIGTERM" else KeyboardInterrupt)(
-            f"train-hydronet stopped by {summary['interrupted']} at iteration {summary['iteration']}, checkpoint saved")
+            f"train-hydronet stopped by {summary['interrupted']}, {how} in {summary['out_dir']}")
     return summary
+
+
+def _state(summary: dict) -> str:
+    if not summary["interrupted"]:
+        return "done"
+    return "interrupted, checkpoint saved" if summary["saved"] else "stopped at once by a second signal"

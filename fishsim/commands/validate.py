@@ -247,6 +247,7 @@ def run_hydronet(cfg: ValidateConfig) -> dict:
     from fishsim.fluid.base import Grid
     from fishsim.fluid.factory import SHIPPED_HYDRONET
     from fishsim.fluid.hydronet import HydroNetFluid, load_hydronet
+    from fishsim.fluid.hydronet.trained_range import check_fluid
     from fishsim.fluid.numerical import NumericalFluid
     from fishsim.render.plots import plot_fluid_comparison
 
@@ -255,6 +256,7 @@ def run_hydronet(cfg: ValidateConfig) -> dict:
     grid, device = Grid(s.H, s.W, s.dx), torch.device(cfg.device)
     path = cfg.model_file or SHIPPED_HYDRONET
     net = HydroNetFluid(load_hydronet(path, device), grid, bf16=cfg.bf16, pressure=cfg.pressure)
+    check_fluid(net.model, path, s.rho, s.mu, s.dx, s.h, strict=False)   # measuring that error is allowed
     columns = (TextColumn("validate hydronet"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
     with Progress(*columns, console=Console(stderr=True), transient=True) as bar:
         task = bar.add_task("steps", total=None)

@@ -54,10 +54,10 @@ def mesh_format(path: Path) -> str | None:
 GEOMETRY_ONLY = ("stl", "obj", "off", "ply", "wavefront-obj")
 
 
-def write_mesh(mesh: FishMesh, path, cell_data: dict[str, np.ndarray] | None = None) -> Path:
-    """Write `mesh` to `path` (format from the extension, .vtu if none; parent folders are
-    created) and return the path written. cell_data: extra per-element float fields [T] (e.g.
-    the muscle layer's muscle_top, muscle_bottom fractions)."""
+def writable_format(path) -> str:
+    """meshio's format for writing a fish to ``path`` (``mesh_path`` applied); ConfigError (one
+    line) for an unknown extension or a format that cannot carry the fish's data. Checked when
+    the config is validated, so a bad name fails before anything is meshed or written."""
     path = mesh_path(path)
     fmt = mesh_format(path)
     if fmt is None:
@@ -66,6 +66,15 @@ def write_mesh(mesh: FishMesh, path, cell_data: dict[str, np.ndarray] | None = N
     if fmt in GEOMETRY_ONLY:
         raise ConfigError(f"{path.suffix} files keep only the triangles, not the fish's surface order, length and "
                           "muscles that `fishsim simulate fish.mesh_file=...` needs; use .vtu, .vtk, .msh or .xdmf")
+    return fmt
+
+
+def write_mesh(mesh: FishMesh, path, cell_data: dict[str, np.ndarray] | None = None) -> Path:
+    """Write `mesh` to `path` (format from the extension, .vtu if none; parent folders are
+    created) and return the path written. cell_data: extra per-element float fields [T] (e.g.
+    the muscle layer's muscle_top, muscle_bottom fractions)."""
+    path = mesh_path(path)
+    fmt = writable_format(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     meshio.write(path, to_meshio(mesh, cell_data), file_format=fmt)
     return path

@@ -24,6 +24,8 @@ def test_metadata_describes_the_model(shipped):
     assert meta["net"] == {k: getattr(shipped.cfg, k) for k in meta["net"]}
     for key in ("commands", "train_config", "iterations", "wall_time_s", "final_losses", "evaluation"):
         assert key in meta, key
+    pool = meta["train_config"]["pool"]           # the range a run is checked against is the one it was trained on
+    assert meta["training_range"] == {"rho": pool["rho"], "mu": pool["mu"], "dx": pool["dx"], "h": pool["h"]}
     assert SHIPPED_HYDRONET.stat().st_size < 20e6
 
 
@@ -73,5 +75,7 @@ def test_save_load_round_trip_and_deterministic_steps(shipped, tmp_path):
         b = HydroNetFluid(again, grid).step(state, boundary, params)
         c = HydroNetFluid(again, grid).step(state, boundary, params)
     assert torch.equal(a.a, b.a) and torch.equal(a.p, b.p) and torch.equal(b.p, c.p)
-    assert json.loads(path.with_suffix(".json").read_text()) == {"note": "round trip"}
+    trained = {"rho": [50.0, 50.0], "mu": [1.25e-4, 1.25e-4], "dx": 2.5e-3, "h": 0.01}   # carried over, in both files
+    assert json.loads(path.with_suffix(".json").read_text()) == {"note": "round trip", "training_range": trained}
+    assert torch.load(path, weights_only=False)["training_range"] == trained == again.training_range
     assert np.isfinite(a.p.numpy()).all() and a.p.abs().max() > 0

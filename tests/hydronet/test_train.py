@@ -1,6 +1,7 @@
 """Training: exact resume, Ctrl-C, best model, loss decrease, config parsing, DDP (gloo)."""
 
 import os
+import signal
 import socket
 from dataclasses import replace
 
@@ -62,19 +63,35 @@ def test_compact_checkpoint_resumes_model_and_optimiser(cfg, tmp_path):
     assert T.run(replace(c2, iterations=5))["iteration"] == 5
 
 
-def test_keyboard_interrupt_saves_and_exits(cfg, monkeypatch):
-    """Ctrl-C inside the loop: a checkpoint at the last finished iteration, clean return."""
+def _signalling_step(monkeypatch, at: int, times: int) -> None:
+    """train_step sends this process ``times`` SIGINTs as iteration ``at`` + 1 begins."""
     real = T.train_step
 
     def step(run, c, net):
-        if run.iteration == 2:
-            raise KeyboardInterrupt
+        if run.iteration == at:
+            for _ in range(times):
+                os.kill(os.getpid(), signal.SIGINT)
         return real(run, c, net)
 
     monkeypatch.setattr(T, "train_step", step)
+
+
+def test_a_stop_signal_finishes_the_iteration_then_saves(cfg, monkeypatch):
+    """SIGINT as an iteration begins: that iteration completes, its end is checkpointed, and the
+    run returns interrupted (the CLI then exits 130)."""
+    _signalling_step(monkeypatch, at=1, times=1)
     out = T.run(cfg)
-    assert out["interrupted"] and out["iteration"] == 2
+    assert out["interrupted"] == "SIGINT" and out["saved"] and out["iteration"] == 2
     assert torch.load(os.path.join(cfg.out_dir, "ckpt.pt"), weights_only=False)["iteration"] == 2
+
+
+def test_a_second_signal_stops_at_once_keeping_the_last_checkpoint(cfg, monkeypatch):
+    """Two SIGINTs: the second raises mid-iteration, so nothing half-done is saved; ckpt.pt stays
+    the periodic one of iteration 3 (ckpt_every=3), from which a resume is exact."""
+    _signalling_step(monkeypatch, at=4, times=2)
+    out = T.run(cfg)
+    assert out["interrupted"] == "SIGINT" and not out["saved"]
+    assert torch.load(os.path.join(cfg.out_dir, "ckpt.pt"), weights_only=False)["iteration"] == 3
 
 
 def test_sigterm_saves_and_exits(cfg, tmp_path):
@@ -105,6 +122,8 @@ def test_best_model_loads_as_fluid_model(cfg):
     out = T.run(cfg)
     best = torch.load(os.path.join(cfg.out_dir, "best.pt"), weights_only=False)
     assert best["val"] == out["best_val"] <= out["last_val"]
+    assert best["training_range"] == {"rho": list(cfg.pool.rho), "mu": list(cfg.pool.mu), "dx": cfg.pool.dx,
+                                      "h": cfg.pool.h}
     fluid = HydroNetFluid(T.load_hydronet(os.path.join(cfg.out_dir, "best.pt")), cfg.pool.grid)
     _, state, boundary, params = ScenePool(cfg.pool, 2, seed=5).ask(2)
     new = fluid.step(state, boundary, params)

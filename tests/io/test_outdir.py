@@ -31,8 +31,10 @@ def test_a_finished_trajectory_is_not_overwritten_unless_asked(tmp_path):
 def test_default_folders_are_unique_within_one_second(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     a, b = make_out_dir("simulate", None), make_out_dir("simulate", None)
-    release_locks()
     assert a != b and a.parent == b.parent and a.is_dir() and b.is_dir()
+    (a / "result.txt").write_text("kept")
+    release_locks()                                  # b was never written to: removed, a kept
+    assert (a / "result.txt").exists() and not b.exists()
 
 
 def test_a_folder_in_use_by_another_run_is_refused(tmp_path):

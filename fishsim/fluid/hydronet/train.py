@@ -7,8 +7,11 @@ and tell the pool the new (detached) states, so the network trains on its own ro
 Outputs under ``out_dir``: ``ckpt.pt`` (latest: model, optimiser, pool, RNG, counters; written
 atomically, every ``ckpt_every`` iterations or ``ckpt_minutes``, and on Ctrl-C), ``best.pt`` (the
 model with the lowest validation loss: a fixed set of scenes rolled out from rest in eval mode),
-``log.csv`` and TensorBoard events in ``tb/``. ``resume=True`` continues exactly where ``ckpt.pt``
-stopped. Ctrl-C or ``kill PID`` (SIGTERM) saves ``ckpt.pt`` and exits cleanly. Command line:
+``log.csv`` and TensorBoard events in ``tb/``, all under ``out_dir`` (default: a new
+outputs/train-hydronet/<time>). ``resume=True`` continues exactly where ``ckpt.pt`` stopped:
+Ctrl-C or ``kill PID`` (SIGTERM) finishes the current iteration, saves ``ckpt.pt`` and stops
+(a second signal stops at once, the last checkpoint kept), so a resumed run equals an
+uninterrupted one bit for bit. Command line:
 ``fishsim train-hydronet key=value ...`` (keys of TrainConfig, dotted for groups: ``net.hidden=16
 pool.H=64``). Multi-GPU/CPU: ``torchrun --nproc_per_node N -m fishsim train-hydronet ...``
 (DistributedDataParallel; each rank its own pool, ``ckpt_rank{r}.pt``).
@@ -35,6 +38,7 @@ from fishsim.errors import ConfigError, InputFileError, Terminated
 from fishsim.fluid.base import Boundary, FluidParams, FluidState, rest_state
 from fishsim.fluid.hydronet.loss import LossConfig, LossTerms, hydronet_loss
 from fishsim.fluid.hydronet.pool import PoolConfig, ScenePool, advance, random_scene, scene_boundaries
+from fishsim.fluid.hydronet.trained_range import stored_range, training_range
 from fishsim.fluid.hydronet.unet import HydroNet, NetConfig
 
 
@@ -50,12 +54,14 @@ class TrainConfig:
     compile: torch.compile the trunk (measured slower on CPU); compile_loss: torch.compile the
     loss (~80 s once; then the Koren residual's forward + backward runs 10x faster). log_every, ckpt_every (iterations), ckpt_minutes,
     val_every, val_scenes, val_steps: bookkeeping. grad_clip: max gradient norm (0: off).
-    resume: continue from ``out_dir/ckpt.pt`` exactly (its lr replaced by ``lr``).
+    out_dir: the run's folder; null: a new outputs/train-hydronet/<time> (``fishsim.io.outdir``).
+    resume: continue from ``out_dir/ckpt.pt`` exactly (its lr replaced by ``lr``); needs out_dir.
+    overwrite: start a new run in an out_dir that holds one (else refused: a run is never lost).
     init_from: start a new run from the weights of this best.pt / ckpt.pt (fresh optimiser and
     pool: fine-tuning on another crop size or fluid range); ignored when resuming.
     """
 
-    out_dir: str = "runs/hydronet"
+    out_dir: str | None = None
     iterations: int = 200_000
     batch_size: int = 16
     lr: float = 1e-3
@@ -79,6 +85,7 @@ class TrainConfig:
     val_steps: int = 40
     grad_clip: float = 0.0
     resume: bool = False
+    overwrite: bool = False
     init_from: str = ""
     progress: bool = True
 
@@ -102,6 +109,11 @@ class TrainConfig:
         _check(0 <= lo <= hi, f"pool.fish_amp must be a range 0 <= low <= high, got [{lo}, {hi}]")
         _check(self.net.condition or (p.rho[0] == p.rho[1] and p.mu[0] == p.mu[1]),
                "a fluid range (pool.rho / pool.mu low < high) needs net.condition=true")
+        _check(not self.resume or bool(self.out_dir), RESUME_NEEDS_OUT_DIR)
+
+
+RESUME_NEEDS_OUT_DIR = ("resume=true needs out_dir=<the folder of the run to continue> (without it every run "
+                        "starts in a new outputs/train-hydronet/<time> folder)")
 
 
 def _check(ok: bool, message: str) -> None:
@@ -240,28 +252,34 @@ def compact_checkpoint(src: str | Path, dest: str | Path) -> Path:
     return dest
 
 
-def save_best(model: HydroNet, run: Run, out: Path) -> None:
+def save_best(model: HydroNet, run: Run, out: Path, cfg: TrainConfig) -> None:
+    """best.pt: the weights, the net config and the fluid range they were trained for."""
     atomic_save({"model": model.state_dict(), "net": asdict(model.cfg), "iteration": run.iteration,
-                 "val": run.best_val}, out / "best.pt")
+                 "val": run.best_val, "training_range": training_range(cfg.pool)}, out / "best.pt")
 
 
 def export_model(checkpoint: str | Path, dest: str | Path, metadata: dict) -> Path:
     """Ship a trained model: the weights and net config of ``checkpoint`` (best.pt or ckpt.pt,
-    no optimiser or pool) to ``dest`` and ``metadata`` (config, command, losses, evaluation) to
-    ``dest`` with suffix .json. Returns ``dest``; ``load_hydronet(dest)`` reads it back."""
+    no optimiser or pool) and the fluid range it was trained for to ``dest``, and ``metadata``
+    (config, command, losses, evaluation) with that range to ``dest`` with suffix .json. Returns ``dest``; ``load_hydronet(dest)`` reads it back."""
     import json
 
     sd = torch.load(checkpoint, map_location="cpu", weights_only=False)
     dest = Path(dest)
     dest.parent.mkdir(parents=True, exist_ok=True)
+    trained = stored_range(sd, Path(checkpoint))
+    if trained is None and "train_config" in metadata:
+        trained = training_range(metadata["train_config"]["pool"])
     atomic_save({"model": sd["model"], "net": sd["net"], "iteration": sd["iteration"],
-                 "val": sd.get("val", sd.get("best_val"))}, dest)
-    dest.with_suffix(".json").write_text(json.dumps(metadata, indent=2, default=str) + "\n")
+                 "val": sd.get("val", sd.get("best_val")), "training_range": trained}, dest)
+    meta = {**metadata, "training_range": trained}
+    dest.with_suffix(".json").write_text(json.dumps(meta, indent=2, default=str) + "\n")
     return dest
 
 
 def load_hydronet(path: str | Path, device="cpu") -> HydroNet:
-    """A trained HydroNet (eval mode) from best.pt or ckpt.pt; wrap it in ``HydroNetFluid``.
+    """A trained HydroNet (eval mode) from best.pt or ckpt.pt, with its ``training_range`` (None if
+    unknown; ``trained_range.check_fluid``); wrap it in ``HydroNetFluid``.
 
     Raises InputFileError (one line, how to fix) for a missing, unreadable or foreign file."""
 
@@ -275,6 +293,7 @@ def load_hydronet(path: str | Path, device="cpu") -> HydroNet:
         model.load_state_dict(sd["model"])
     except Exception as err:  # noqa: BLE001 - any failure here means the file is not a HydroNet
         raise InputFileError(f"{path} is not a readable HydroNet model ({type(err).__name__}); {hint}") from None
+    model.training_range = stored_range(sd, path)     # checked against a run's fluid: trained_range.py
     return model.eval()
 
 
@@ -290,6 +309,7 @@ class Logger:
         from rich.console import Console
 
         self.cfg, self.t0, self.i0 = cfg, time.perf_counter(), start
+        trim_log(out / "log.csv", start)
         new = not (out / "log.csv").exists()
         self.csv_file = open(out / "log.csv", "a", newline="")  # noqa: SIM115 (closed in close())
         self.csv = csv.writer(self.csv_file)
@@ -337,6 +357,29 @@ class Logger:
         self.csv_file.close()
         if self.tb is not None:
             self.tb.close()
+
+
+def trim_log(path: Path, start: int) -> None:
+    """Drop the rows of log.csv after iteration ``start``, the checkpoint this run starts from
+    (rows a run wrote after its last checkpoint before a SIGKILL, or of a replaced run), and a
+    row cut short, so that a resumed log holds each iteration once."""
+    if not path.exists():
+        return
+    lines = path.read_text().splitlines(keepends=True)
+    keep = lines[:1] + [line for line in lines[1:] if _row_iteration(line) is not None
+                        and _row_iteration(line) <= start]
+    if len(keep) < len(lines):
+        tmp = path.with_name(path.name + ".tmp")
+        tmp.write_text("".join(keep))
+        os.replace(tmp, path)
+
+
+def _row_iteration(line: str) -> int | None:
+    """The iteration of a whole log.csv row (None for a row cut short)."""
+    try:
+        return int(line.split(",", 1)[0]) if line.endswith("\n") else None
+    except ValueError:
+        return None
 
 
 # ---------------------------------------------------------------------------------- run
@@ -394,7 +437,7 @@ def _after_step(run: Run, cfg: TrainConfig, out: Path, rank: int, world: int, lo
         run.last_val = validate(run.model, cfg)
         if run.last_val < run.best_val:
             run.best_val = run.last_val
-            save_best(run.model, run, out)
+            save_best(run.model, run, out, cfg)
     if log is not None and run.iteration % cfg.log_every == 0:
         log.log(run, terms)
     if _due(run, cfg, last_save, world):
@@ -404,10 +447,14 @@ def _after_step(run: Run, cfg: TrainConfig, out: Path, rank: int, world: int, lo
 
 
 def _restore(run: Run, cfg: TrainConfig, out: Path, rank: int, device: torch.device) -> None:
-    """resume: everything from out/ckpt.pt; else init_from: the weights only."""
+    """resume: everything from out/ckpt.pt; else init_from: the weights only. A run already in
+    ``out`` is continued (resume) or replaced (overwrite), never silently restarted."""
     if cfg.resume and not (out / "ckpt.pt").exists():
         raise ConfigError(f"resume=true but {out} holds no ckpt.pt to continue; drop resume=true to start "
                           "training, or give the out_dir of the run to continue")
+    if not (cfg.resume or cfg.overwrite) and (out / "ckpt.pt").exists():
+        raise ConfigError(f"{out} already holds a training run (ckpt.pt); pass resume=true to continue it, "
+                          "overwrite=true to start again, or another out_dir")
     if cfg.resume:
         load_checkpoint(run, out, rank, cfg.lr)
     elif cfg.init_from:
@@ -442,57 +489,111 @@ def load_weights(model: nn.Module, data: dict, path: Path) -> None:
     model.load_state_dict(theirs)
 
 
-def _raise_interrupt(signum, frame):
-    raise Terminated(f"signal {signum}")
+class StopRequest:
+    """What SIGINT / SIGTERM ask of a training run. The first sets ``signal`` and the loop stops
+    at the next iteration boundary, so the checkpoint it saves (model, Adam, pool and its RNG,
+    torch's RNG) continues bit for bit; a second one stops at once (KeyboardInterrupt, or
+    Terminated for SIGTERM) without saving, the last checkpoint kept."""
+
+    def __init__(self) -> None:
+        self.signal: str | None = None
+
+    def handle(self, signum, frame) -> None:
+        name = "SIGTERM" if signum == signal.SIGTERM else "SIGINT"
+        if self.signal is not None:
+            raise (Terminated if name == "SIGTERM" else KeyboardInterrupt)(f"a second {name}")
+        self.signal = name
 
 
 @contextlib.contextmanager
-def interruptible():
-    """Within: Ctrl-C and SIGTERM raise KeyboardInterrupt, so ``kill PID`` also saves and exits
-    (a shell starts background jobs with SIGINT ignored). Handlers are restored on exit."""
+def stop_requests():
+    """Within: SIGINT and SIGTERM set the yielded StopRequest (also for a background job whose
+    shell ignores SIGINT, and ``kill PID``); the previous handlers are restored on exit."""
+    stop = StopRequest()
     if threading.current_thread() is not threading.main_thread():
-        yield
+        yield stop
         return
     old = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
-    signal.signal(signal.SIGINT, signal.default_int_handler)
-    signal.signal(signal.SIGTERM, _raise_interrupt)
+    for s in old:
+        signal.signal(s, stop.handle)
     try:
-        yield
+        yield stop
     finally:
         for s, h in old.items():
             signal.signal(s, h)
 
 
-def run(cfg: TrainConfig | dict) -> dict:
-    """Train HydroNet as configured (a TrainConfig or the same as a nested dict); returns a
-    summary (iterations, losses, this session's iterations/s and samples/s, paths)."""
-    cfg = train_config(cfg)
-    if cfg.threads > 0:
-        torch.set_num_threads(cfg.threads)
-    rank, world, device = _setup_distributed(cfg)
-    out = Path(cfg.out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    run_, net = build(cfg, rank, world, device)
-    _restore(run_, cfg, out, rank, device)
-    log = Logger(out, cfg, run_.iteration) if rank == 0 else None
-    start, t0, interrupted, terms = run_.iteration, time.perf_counter(), False, None
-    last_save = t_last = t0
-    try:
-        with interruptible():
-            while run_.iteration < cfg.iterations:
+def _stop_now(stop: StopRequest, world: int, device: torch.device) -> bool:
+    """Has any rank been asked to stop? (all ranks agree, so they stop at the same iteration)"""
+    if world == 1:
+        return stop.signal is not None
+    code = torch.tensor([{None: 0, "SIGINT": 1, "SIGTERM": 2}[stop.signal]], device=device)
+    dist.all_reduce(code, op=dist.ReduceOp.MAX)
+    stop.signal = {0: None, 1: "SIGINT", 2: "SIGTERM"}[int(code.item())]
+    return stop.signal is not None
+
+
+def _loop(run_: Run, cfg: TrainConfig, net: nn.Module, out: Path, rank: int, world: int,
+          log: Logger | None) -> tuple[str | bool, LossTerms | None, bool]:
+    """Iterate until ``cfg.iterations`` or a stop request; returns (the stopping signal's name or
+    False, the last loss terms, whether the state is whole: False after a forced stop)."""
+    terms, last_save = None, time.perf_counter()
+    t_last = last_save
+    with stop_requests() as stop:
+        try:
+            while run_.iteration < cfg.iterations and not _stop_now(stop, world, run_.pool.device):
                 terms = train_step(run_, cfg, net)
                 now = time.perf_counter()
                 run_.elapsed, t_last = run_.elapsed + now - t_last, now
                 last_save = _after_step(run_, cfg, out, rank, world, log, terms, last_save)
-    except KeyboardInterrupt as err:            # Terminated (SIGTERM) is one too
-        interrupted = "SIGTERM" if isinstance(err, Terminated) else "SIGINT"
-    save_checkpoint(run_, cfg, out, rank)
+        except KeyboardInterrupt as err:            # a second signal (Terminated is one too)
+            return ("SIGTERM" if isinstance(err, Terminated) else "SIGINT"), terms, False
+    return (stop.signal or False) if run_.iteration < cfg.iterations else False, terms, True
+
+
+def _run_folder(cfg: TrainConfig, rank: int, world: int) -> Path:
+    """The run's folder, made and locked by rank 0 (``make_out_dir``: out_dir, or a new unique
+    outputs/train-hydronet/<time>); under torchrun the other ranks are told which."""
+    from fishsim.io.outdir import make_out_dir
+
+    if cfg.resume and not cfg.out_dir:
+        raise ConfigError(RESUME_NEEDS_OUT_DIR)
+    if world == 1:
+        return make_out_dir("train-hydronet", cfg.out_dir)
+    box: list = [None]
+    if rank == 0:
+        try:
+            box = [str(make_out_dir("train-hydronet", cfg.out_dir))]
+        except ConfigError as err:
+            box = [err]
+    dist.broadcast_object_list(box, 0)
+    if isinstance(box[0], Exception):
+        raise ConfigError(str(box[0]))
+    return Path(box[0])
+
+
+def run(cfg: TrainConfig | dict) -> dict:
+    """Train HydroNet as configured (a TrainConfig or the same as a nested dict); returns a
+    summary (iterations, losses, this session's iterations/s and samples/s, paths; interrupted:
+    the stopping signal's name or False; saved: whether the checkpoint is of the last iteration)."""
+    cfg = train_config(cfg)
+    if cfg.threads > 0:
+        torch.set_num_threads(cfg.threads)
+    rank, world, device = _setup_distributed(cfg)
+    out = _run_folder(cfg, rank, world)
+    run_, net = build(cfg, rank, world, device)
+    _restore(run_, cfg, out, rank, device)
+    log = Logger(out, cfg, run_.iteration) if rank == 0 else None
+    start, t0 = run_.iteration, time.perf_counter()
+    interrupted, terms, whole = _loop(run_, cfg, net, out, rank, world, log)
+    if whole:
+        save_checkpoint(run_, cfg, out, rank)
     if log is not None:
         log.close()
     if world > 1:
         dist.destroy_process_group()
     rate = (run_.iteration - start) / max(time.perf_counter() - t0, 1e-9)
-    return {"iteration": run_.iteration, "interrupted": interrupted, "best_val": run_.best_val,
+    return {"iteration": run_.iteration, "interrupted": interrupted, "saved": whole, "best_val": run_.best_val,
             "last_val": run_.last_val, "loss": terms.objective.item() if terms is not None else math.nan,
             "it_per_s": rate, "samples_per_s": rate * cfg.batch_size * world, "out_dir": str(out), "rank": rank}
 

@@ -1,0 +1,77 @@
+"""The fluid a HydroNet was trained for, and the check that a run stays inside it.
+
+A HydroNet learns one fluid (or a range of them with ``net.condition``), on one cell size and
+one time step: outside them its steps are extrapolated and can be far off (the shipped model at
+rho = 1000, mu = 1e-3: a 34 % one-step error) without any sign in the output. So every model
+file carries its ``training_range`` (rho and mu ranges, dx, h; written by ``save_best`` and
+``export_model``, or for an older file in the ``.json`` metadata beside it), and a run outside
+it warns in one line, or is refused when the config asks for that (``fluid.strict_range``).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from fishsim.errors import ConfigError
+
+RTOL = 1e-6   # float32 round trips of dx = 2.5e-3 and friends are "equal"
+
+
+def training_range(pool) -> dict:
+    """{rho: [lo, hi], mu: [lo, hi], dx, h} of a PoolConfig (or its dict, as stored in a checkpoint)."""
+    get = (lambda k: pool[k]) if isinstance(pool, dict) else (lambda k: getattr(pool, k))
+    return {"rho": [float(v) for v in get("rho")], "mu": [float(v) for v in get("mu")],
+            "dx": float(get("dx")), "h": float(get("h"))}
+
+
+def stored_range(data: dict, path: Path) -> dict | None:
+    """The training range of a loaded model file: its own entry, that of a checkpoint's config,
+    or the ``training_range`` of the ``.json`` metadata beside it; None if none is known."""
+    if "training_range" in data:
+        return data["training_range"]
+    if isinstance(data.get("config"), dict) and "pool" in data["config"]:
+        return training_range(data["config"]["pool"])
+    meta = Path(path).with_suffix(".json")
+    if meta.is_file():
+        try:
+            return json.loads(meta.read_text()).get("training_range")
+        except (OSError, ValueError):
+            return None
+    return None
+
+
+def outside(trained: dict, rho: float, mu: float, dx: float, h: float) -> list[str]:
+    """What of (rho, mu, dx, h) lies outside ``trained``, as 'name = value' strings."""
+    checks = [("rho", rho, *trained["rho"]), ("mu", mu, *trained["mu"]),
+              ("dx", dx, trained["dx"], trained["dx"]), ("h", h, trained["h"], trained["h"])]
+    return [f"{name} = {v:g}" for name, v, lo, hi in checks if not lo * (1 - RTOL) <= v <= hi * (1 + RTOL)]
+
+
+def describe(trained: dict) -> str:
+    """'rho in [50, 50] kg/m^3, mu in [0.000125, 0.000125] Pa s, dx = 0.0025 m, h = 0.01 s'."""
+    (r0, r1), (m0, m1) = trained["rho"], trained["mu"]
+    return (f"rho in [{r0:g}, {r1:g}] kg/m^3, mu in [{m0:g}, {m1:g}] Pa s, dx = {trained['dx']:g} m, "
+            f"h = {trained['h']:g} s")
+
+
+def check_fluid(model, path, rho: float, mu: float, dx: float, h: float, strict: bool) -> str | None:
+    """Warn (one line on stderr) or, when ``strict``, raise ConfigError if (rho, mu, dx, h) is
+    outside the range the HydroNet ``model`` (loaded from ``path``) was trained for; returns the
+    message (None inside the range, or for a model whose range is unknown)."""
+    trained = getattr(model, "training_range", None)
+    wrong = outside(trained, rho, mu, dx, h) if trained else []
+    if not wrong:
+        return None
+    message = (f"HydroNet {path} was trained for {describe(trained)}; this run has {', '.join(wrong)}, outside "
+               f"that range, so its fluid is extrapolated and can be far off: use fluid=numerical, or a model "
+               f"trained for it (fishsim train-hydronet pool.rho=[{rho:g},{rho:g}] pool.mu=[{mu:g},{mu:g}] "
+               f"pool.dx={dx:g} pool.h={h:g})")
+    if strict:
+        raise ConfigError(message + "; fluid.strict_range=true refuses it")
+    from rich.console import Console
+    from rich.markup import escape
+
+    Console(stderr=True, soft_wrap=True).print(f"[yellow]warning: {escape(message)} (fluid.strict_range=true "
+                                               "refuses such runs)[/]")
+    return message
