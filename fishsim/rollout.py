@@ -125,6 +125,7 @@ class Swimmer:
         self.solid, self.fluid, self.coupling = solid, fluid, coupling
         self.walls, self.fluid_dtype, self.hold_x = walls, fluid_dtype, hold_x
         self.surface = torch.as_tensor(solid.mesh.surface, dtype=torch.long)
+        self.triangles = torch.as_tensor(solid.mesh.triangles, dtype=torch.long)
         if fluid is not None and coupling.force == "exchange" and not hasattr(fluid, "step_with_diagnostics"):
             raise ConfigError("coupling.force=exchange needs the numerical fluid's momentum exchange "
                               "(fluid=numerical); use coupling.force=pressure with this fluid")
@@ -236,8 +237,10 @@ class Swimmer:
         if self.hold_x:
             q, qdot = hold_centroid_x(q, qdot, state.q, self.node_mass(q))
         require_finite(solid_positions_q=q, solid_velocities_qdot=qdot)
+        require_no_inversion(q, self.triangles)
         if self.fluid is not None:
             require_physical(q, qdot, self.fluid.grid)
+            require_bounded_force(f_ext, params.fluid.rho, self.solid.mesh.length)
         clock.add("solid", t0, dev)
         return SwimState(q, qdot, fluid, state.qdot), FrameOutput(f_ext, contraction, boundary)
 
@@ -304,6 +307,33 @@ def require_physical(q: Tensor, qdot: Tensor, grid) -> None:
     if speed > MAX_SPEED:
         raise SimulationBlowUp(f"a node moves at {speed:.3g} m/s (> {MAX_SPEED:g} m/s): the coupling ran away "
                                "(check coupling.added_mass_ratio, e.g. the default 5)")
+
+
+def require_no_inversion(q: Tensor, triangles: Tensor) -> None:
+    """Raise SimulationBlowUp when an element of the deformed fish q [B, N, 2] is inverted (its
+    signed area <= 0; triangles [T, 3] ccw in the rest shape): the solid has folded over itself,
+    which no elastic swimmer does."""
+    p = q.detach()[:, triangles.to(q.device)]                              # [B, T, 3, 2]
+    e1, e2 = p[:, :, 1] - p[:, :, 0], p[:, :, 2] - p[:, :, 0]
+    area = e1[..., 0] * e2[..., 1] - e1[..., 1] * e2[..., 0]
+    if bool((area <= 0).any()):
+        b, k = divmod(int(torch.argmin(area.reshape(-1))), area.shape[1])
+        raise SimulationBlowUp(f"element {k} of fish {b} is inverted (the body folded over itself): the "
+                               "muscles or forces are too strong for the material (lower controller.amplitude, "
+                               "raise solid.youngs_modulus) or the coupling ran away")
+
+
+def require_bounded_force(f_ext: Tensor, rho, length: float) -> None:
+    """Raise SimulationBlowUp when the fluid's total force on a fish exceeds
+    rho MAX_SPEED^2 L (N/m: the dynamic pressure of a MAX_SPEED flow over the whole body), which
+    no flow the speed check allows can produce."""
+    bound = torch.as_tensor(rho, dtype=f_ext.dtype, device=f_ext.device).reshape(-1) * MAX_SPEED**2 * length
+    force = f_ext.detach().sum(1).norm(dim=-1)
+    if bool((force > bound).any()):
+        b = int(torch.argmax(force / bound))
+        raise SimulationBlowUp(f"the fluid pushes fish {b} with {float(force[b]):.3g} N/m (> rho U^2 L = "
+                               f"{float(bound[min(b, len(bound) - 1)]):.3g} N/m at U = {MAX_SPEED:g} m/s): the "
+                               "coupling ran away (check coupling.added_mass_ratio, e.g. the default 5)")
 
 
 def require_finite(**fields: Tensor) -> None:

@@ -290,3 +290,18 @@ def test_a_fish_leaving_the_tank_stops_the_run():
         require_physical(q + torch.tensor([0.0, 0.15], dtype=torch.float64), torch.zeros_like(q), grid)
     with pytest.raises(SimulationBlowUp, match="moves at 30 m/s"):
         require_physical(q, torch.full_like(q, 30.0 / 2 ** 0.5), grid)
+
+
+def test_an_inverted_element_or_a_runaway_force_stops_the_run():
+    from fishsim.rollout import require_bounded_force, require_no_inversion
+
+    tri = torch.tensor([[0, 1, 2]])
+    q = torch.tensor([[[0.0, 0.0], [1e-3, 0.0], [0.0, 1e-3]]], dtype=torch.float64)
+    require_no_inversion(q, tri)
+    with pytest.raises(SimulationBlowUp, match="element 0 of fish 0 is inverted"):
+        require_no_inversion(q * torch.tensor([1.0, -1.0], dtype=torch.float64), tri)
+    f = torch.zeros(2, 3, 2, dtype=torch.float64)
+    require_bounded_force(f, torch.tensor([50.0, 50.0]), 0.2)        # bound 50 * 400 * 0.2 = 4000 N/m
+    f[1, 0, 0] = 4001.0
+    with pytest.raises(SimulationBlowUp, match=r"pushes fish 1 with 4e\+03 N/m"):
+        require_bounded_force(f, torch.tensor([50.0, 50.0]), 0.2)
