@@ -15,14 +15,17 @@ Layout (every time series has the frame axis first and a batch axis B second)::
     attributes: fishsim_version, h, units, complete, n_frames (final), message
 
 The file is written as ``<name>.part`` and renamed to its name when the run ends (complete or
-stopped and marked incomplete). It is opened in HDF5 single-writer/multiple-reader mode after
-all datasets are declared and flushed every ``flush_every`` frames: a killed run leaves a
-readable ``<name>.part`` holding every flushed frame, with ``complete = False``.
+stopped and marked incomplete). Frames are kept in memory and appended every ``flush_every``
+frames with the file opened, written and closed again, so between flushes the file on disk is a
+closed, consistent HDF5 file: a killed run (even SIGKILL) leaves a ``<name>.part`` that plain
+h5py and HDF5 tools open without ``h5clear``, holding every flushed frame, with
+``complete = False``; and a running simulation's file can be read (between its flushes).
 """
 
 from __future__ import annotations
 
 import os
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -38,8 +41,8 @@ UNITS = "SI: m, s, kg, Pa; 2D forces per unit depth (N/m); densities per unit ar
 class TrajectoryWriter:
     """Append frames to a trajectory file.
 
-    series: {dataset path: (per-frame shape, dtype)} for every time series the run will write;
-        all are declared before the first frame (a requirement of SWMR mode).
+    series: {dataset path: (per-frame shape, dtype)} for every time series the run will write,
+        declared when the file is created.
     static: {dataset path: array} written once (mesh, controller parameters).
     """
 
@@ -48,47 +51,51 @@ class TrajectoryWriter:
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.partial = partial_path(self.path)
-        self.file = h5py.File(self.partial, "w", libver="latest")
-        self.counts = {name: 0 for name in series}
+        self.pending: dict[str, list[np.ndarray]] = {name: [] for name in series}
         self.flush_every = flush_every
         self._frames = 0
-        f = self.file
-        f.attrs.update(fishsim_version=__version__, h=h, units=UNITS, complete=False, n_frames=0,
-                       message="running (or killed before the end)")
-        f.create_dataset("config", data=config_yaml)
-        for name, arr in static.items():
-            f.create_dataset(name, data=np.asarray(arr))
-        for name, (shape, dtype) in series.items():
-            f.create_dataset(name, shape=(0, *shape), maxshape=(None, *shape), dtype=dtype,
-                             chunks=(1, *shape), compression="gzip" if np.prod(shape) > 4096 else None,
-                             compression_opts=1 if np.prod(shape) > 4096 else None)
-        f.swmr_mode = True
+        with h5py.File(self.partial, "w") as f:
+            f.attrs.update(fishsim_version=__version__, h=h, units=UNITS, complete=False, n_frames=0,
+                           message="running (or killed before the end)")
+            f.create_dataset("config", data=config_yaml)
+            for name, arr in static.items():
+                f.create_dataset(name, data=np.asarray(arr))
+            for name, (shape, dtype) in series.items():
+                big = np.prod(shape) > 4096
+                f.create_dataset(name, shape=(0, *shape), maxshape=(None, *shape), dtype=dtype,
+                                 chunks=(1, *shape), compression="gzip" if big else None,
+                                 compression_opts=1 if big else None)
 
     def append(self, values: dict[str, np.ndarray]) -> None:
         """Append one frame of the named series (any subset, e.g. fluid only every k frames)."""
         for name, value in values.items():
-            ds = self.file[name]
-            n = self.counts[name]
-            ds.resize(n + 1, axis=0)
-            ds[n] = np.asarray(value, dtype=ds.dtype)
-            self.counts[name] = n + 1
+            self.pending[name].append(np.array(value))
 
     def end_frame(self) -> None:
-        """Mark the end of a frame; flushes to disk every ``flush_every`` frames."""
+        """Mark the end of a frame; writes to disk every ``flush_every`` frames."""
         self._frames += 1
         if self._frames % self.flush_every == 0:
-            self.file.flush()
+            self.flush()
+
+    def flush(self, attrs: dict | None = None) -> None:
+        """Append the frames held in memory to the file (opened and closed again) and record
+        n_frames and any ``attrs``."""
+        with h5py.File(self.partial, "r+") as f:
+            for name, rows in self.pending.items():
+                if rows:
+                    ds = f[name]
+                    n = ds.shape[0]
+                    ds.resize(n + len(rows), axis=0)
+                    ds[n:] = np.stack(rows).astype(ds.dtype, copy=False)
+                    rows.clear()
+            f.attrs["n_frames"] = self._frames
+            f.attrs.update(attrs or {})
 
     def close(self, complete: bool, message: str = "", attrs: dict | None = None) -> None:
-        """Flush, close, and record whether the run finished (``complete``), why not, and any
-        extra file attributes (grid size, summary numbers)."""
-        self.file.flush()
-        self.file.close()
-        with h5py.File(self.partial, "r+") as f:
-            f.attrs.update(attrs or {})
-            f.attrs["complete"] = bool(complete)
-            f.attrs["n_frames"] = self._frames
-            f.attrs["message"] = message or ("complete" if complete else "incomplete")
+        """Write what is left and record whether the run finished (``complete``), why not, and
+        any extra file attributes (grid size, summary numbers); then rename to the final name."""
+        self.flush({**(attrs or {}), "complete": bool(complete),
+                    "message": message or ("complete" if complete else "incomplete")})
         os.replace(self.partial, self.path)
 
 
@@ -114,19 +121,26 @@ class Trajectory:
         return self.data[key]
 
 
-def open_trajectory(path: Path) -> h5py.File:
-    """Open for reading: normally first (a truncated or foreign file fails in milliseconds);
-    in SWMR mode only for a file that a writer still holds or that a killed writer left marked
-    open (HDF5 then refuses a normal open)."""
-    try:
-        return h5py.File(path, "r")
-    except OSError as err:
-        text = str(err)
-        held = any(w in text for w in ("already open for write", "consistency flags", "unable to lock"))
-        if "truncated" in text or not (held or isinstance(err, BlockingIOError)):
-            reason = "truncated: the file is cut short" if "truncated" in text else err.__class__.__name__
-            raise InputFileError(f"{path} is not a readable HDF5 file ({reason}); it may be corrupt, "
-                                 "cut short, or not a fishsim trajectory") from None
+def open_trajectory(path: Path, wait: float = 5.0) -> h5py.File:
+    """Open for reading: normally (a truncated or foreign file fails in milliseconds). A file a
+    running simulation is appending to at this moment is locked for the few milliseconds of its
+    flush: retried for up to ``wait`` seconds. A file left by a killed run of an older fishsim, which
+    kept it open in SWMR mode, is marked open for writing: read in SWMR mode."""
+    deadline = time.monotonic() + wait
+    while True:
+        try:
+            return h5py.File(path, "r")
+        except OSError as err:
+            text = str(err)
+            if "truncated" in text:
+                raise InputFileError(f"{path} is not a readable HDF5 file (truncated: the file is cut short); "
+                                     "it may be corrupt, cut short, or not a fishsim trajectory") from None
+            if any(w in text for w in ("already open for write", "consistency flags")):
+                break
+            if not ("unable to lock" in text or isinstance(err, BlockingIOError)) or time.monotonic() > deadline:
+                raise InputFileError(f"{path} is not a readable HDF5 file ({err.__class__.__name__}); it may be "
+                                     "corrupt, cut short, or not a fishsim trajectory") from None
+            time.sleep(0.05)
     try:
         return h5py.File(path, "r", libver="latest", swmr=True)
     except OSError as err:

@@ -88,8 +88,7 @@ def write_synthetic_trajectory(path: str | Path, n_frames: int = 12, H: int = 20
         _write_frame(w, t, t * h, points, surface, start, speed, batch, (H, W, dx) if fluid else None,
                      fluid and t % fluid_every == 0)
     if not complete:
-        w.file.flush()
-        w.file.close()          # as a killed run: attributes never finalised, the file left as <name>.part
+        w.flush()               # as a killed run: attributes never finalised, the file left as <name>.part
         return w.partial
     w.close(complete=True)
     if grid_attrs and fluid:
