@@ -38,6 +38,25 @@ def test_hold_x_keeps_the_centroid_while_the_fish_pushes():
     assert float((y - y[0]).abs().max()) > 0        # free in y
 
 
+def test_swim_tunnel_inflow_costs_thrust_and_keeps_the_fish_in_place():
+    """The swim tunnel (hold_x + fluid.inflow): the fish stays put against the flow, and the same
+    gait makes less net thrust the faster the water comes at it (its drag grows), so the steady
+    swimming speed is where the thrust crosses zero."""
+    from fishsim.rollout import rollout
+
+    J = {}
+    for U in (0.0, -0.1):                    # the fish faces +x: the tunnel's water flows in -x
+        pb = problem("hold_x=true", "objective=thrust", "coupling.force_mode=average", "frames=25",
+                     "controller.frequency=8", f"fluid.inflow={U}")
+        ep = pb.episode
+        with torch.no_grad():
+            _, m = rollout(ep.swimmer, ep.swimmer.initial_state(ep.params, ep.origin), ep.params, 25)
+        cx = m["centroid_x"][:, 0]
+        assert float((cx - cx[0]).abs().max()) < 1e-12
+        J[U] = float(m["thrust_x"][5:].mean())
+    assert J[-0.1] < J[0.0] - 1e-3 * abs(J[0.0])
+
+
 def test_batched_population_equals_members_one_by_one():
     pb = problem("frames=15", "params.frequency.lower=2", "params.frequency.upper=12")
     z = torch.tensor([[0.2], [0.5], [0.9]], dtype=torch.float64)
