@@ -11,7 +11,8 @@ import typer
 
 from fishsim.config import ROOTS, load_config, to_yaml
 from fishsim.errors import FishsimError, Terminated
-from fishsim.io.outdir import release_locks
+from fishsim.io import runrecord
+from fishsim.io.outdir import folders_written, release_locks
 
 app = typer.Typer(
     add_completion=False,
@@ -62,23 +63,30 @@ def _execute(command: str, overrides: list[str] | None, show: bool, run: Callabl
     """Compose, validate and run; user errors become one line on stderr and exit code 2;
     Ctrl-C exits 130 and SIGTERM 143, after the command kept its partial results."""
     _handle_stop_signals()
+    status = "failed"
     try:
         cfg = load_config(command, overrides, config)
         if show:
             typer.echo(to_yaml(cfg))
             return
+        runrecord.begin(command, to_yaml(cfg), list(overrides or []))
         run(cfg)
+        status = "complete"
     except FishsimError as err:
+        status = f"error: {err}"
         typer.secho(f"error: {err}", fg=typer.colors.RED, err=True)
         raise typer.Exit(code=2) from None
     except Terminated as err:
+        status = "terminated (SIGTERM)"
         typer.secho(f"terminated (SIGTERM): partial results were kept ({err})", fg=typer.colors.YELLOW, err=True)
         raise typer.Exit(code=143) from None
     except KeyboardInterrupt as err:
+        status = "interrupted (SIGINT)"
         typer.secho(f"interrupted: partial results were kept ({err})" if str(err) else
                     "interrupted: partial results were kept", fg=typer.colors.YELLOW, err=True)
         raise typer.Exit(code=130) from None
     finally:
+        runrecord.end(folders_written(), status)
         release_locks()
 
 

@@ -96,6 +96,11 @@ def lock(folder: Path) -> None:
         _created.append(lock_file)
 
 
+def folders_written() -> list[Path]:
+    """The folders this process holds that a run has written a file in (not just the lock)."""
+    return [Path(key) for key in _held if _has_files(Path(key), ignore=Path(key) / LOCK_NAME)]
+
+
 def release_locks() -> None:
     """Release the folders this process locked (the CLI calls it when a command ends), first
     removing what it created and left unused (``discard_unused``)."""
