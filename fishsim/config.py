@@ -361,7 +361,7 @@ def load_config(command: str, overrides: list[str] | None = None, config_file: s
     from hydra.core.global_hydra import GlobalHydra
     from hydra.errors import HydraException
 
-    overrides = list(overrides or [])
+    overrides = [_run_dir_as_out_dir(o) for o in overrides or []]
     _refuse_hydra_runner_keys(overrides)
     GlobalHydra.instance().clear()
     try:
@@ -379,6 +379,12 @@ def load_config(command: str, overrides: list[str] | None = None, config_file: s
 
 NO_SWEEPS = ("for several values give a batch list (batch.frequency=[3,4,5]) or run the command once per value "
              "(a shell loop); fishsim optimize searches parameters")
+
+
+def _run_dir_as_out_dir(override: str) -> str:
+    """Hydra's ``hydra.run.dir=X`` (where a run writes) is fishsim's ``out_dir=X``."""
+    key, _, value = override.partition("=")
+    return f"out_dir={value}" if key.lstrip("+") == "hydra.run.dir" else override
 
 
 def _refuse_hydra_runner_keys(overrides: list[str]) -> None:

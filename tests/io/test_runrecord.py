@@ -33,3 +33,10 @@ def test_log_text_drops_control_codes_overwritten_text_and_keeps_its_ends():
     lines = log_text(long).split("\n")
     assert len(lines) == MAX_LOG_LINES + 1 and lines[0] == "0" and lines[-1] == str(3 * MAX_LOG_LINES - 1)
     assert "lines left out" in lines[MAX_LOG_LINES // 2]
+
+
+def test_hydra_run_dir_is_the_output_folder(tmp_path):
+    out = tmp_path / "hydra_dir"
+    result = runner.invoke(app, ["mesh", f"hydra.run.dir={out}", "fish.edge_length=5e-3", "preview=false"])
+    assert result.exit_code == 0, result.output
+    assert (out / "fish.vtu").exists() and (out / ".hydra" / "config.yaml").exists()
