@@ -218,7 +218,8 @@ class SimulateConfig:
     frames: number of frames of h seconds.  origin: (x, y) in m of the fish's material origin
     (the tail tip) in the tank.  hold_x: hold the fish's centroid x fixed (the paper's thrust
     set-up; the fish undulates and sways in y but cannot travel; ``fishsim.rollout.Swimmer``).  fluid_stride: store the fluid fields every k frames.
-    vtk / vtk_stride: also write ParaView frames every vtk_stride frames (a multiple of fluid_stride).  flush_every: HDF5 flush period (frames).
+    flush_every: HDF5 write period (frames). ParaView opens the run through the XDMF sidecar
+    written beside the trajectory (fishsim.io.xdmf).
     device: cpu | cuda.  overwrite: replace an existing output (else refused: a finished run is never lost).
     check_memory: refuse a run whose estimated memory exceeds what is available (fishsim/resources.py).
     """
@@ -234,8 +235,6 @@ class SimulateConfig:
     origin: list[float] = field(default_factory=lambda: [0.06, 0.125])
     hold_x: bool = False
     fluid_stride: int = 5
-    vtk: bool = False
-    vtk_stride: int = 5
     flush_every: int = 10
     device: str = "cpu"
     output: str = "trajectory.h5"
@@ -248,11 +247,7 @@ class SimulateConfig:
             part.validate()
         _require(self.frames >= 1, f"frames must be >= 1 (got {self.frames})")
         _positive(h=self.h)
-        _require(self.fluid_stride >= 1 and self.vtk_stride >= 1 and self.flush_every >= 1,
-                 "fluid_stride, vtk_stride and flush_every must be >= 1")
-        _require(not self.vtk or self.vtk_stride % self.fluid_stride == 0,
-                 f"vtk_stride ({self.vtk_stride}) must be a multiple of fluid_stride ({self.fluid_stride}) "
-                 "so that every ParaView fluid frame was stored")
+        _require(self.fluid_stride >= 1 and self.flush_every >= 1, "fluid_stride and flush_every must be >= 1")
         _require(self.device in ("cpu", "cuda") or self.device.startswith("cuda:"),
                  f"device must be cpu or cuda (got '{self.device}')")
         if self.fluid.model != "none":

@@ -102,18 +102,37 @@ def test_simulate_missing_or_corrupt_hydronet_exit_code_2(tmp_path):
         assert result.exit_code == 2 and words in result.output and "fishsim train-hydronet" in result.output
 
 
-def test_simulate_vtk_writes_fish_and_fluid_series(tmp_path):
-    """vtk=true with the default strides (fluid stored at frames 4, 9, ..., fish exported at 0, 5,
-    ...): both ParaView series are non-empty, one fluid file per exported fish frame."""
-    import xml.etree.ElementTree as ET
+def test_simulate_writes_an_xdmf_that_vtk_reads_as_the_trajectory(tmp_path):
+    """The XDMF sidecar (fishsim/io/xdmf.py) points into trajectory.h5: VTK's XDMF reader (the one
+    ParaView has) gives, for every fish of the batch, the nodes, velocities and actuators of the
+    file at a frame, and every stored fluid frame's cells with the file's pressure."""
+    import h5py
+    import vtk
+    from vtk.util.numpy_support import vtk_to_numpy
 
-    result = runner.invoke(app, ["simulate", *NUMERICAL, "frames=10", "vtk=true", f"out_dir={tmp_path}"])
-    assert result.exit_code == 0, result.output
-    for name, expected in (("fish", 2), ("fluid", 2)):
-        pvd = ET.parse(tmp_path / "paraview" / f"{name}.pvd").getroot()
-        files = [d.get("file") for d in pvd.iter("DataSet")]
-        assert len(files) == expected, (name, files)
-        assert all((tmp_path / "paraview" / f).exists() for f in files)
+    args = ["simulate", *NUMERICAL, "frames=6", "fluid_stride=2", "batch.frequency=[3,5]", f"out_dir={tmp_path}"]
+    assert runner.invoke(app, args).exit_code == 0
+    reader = vtk.vtkXdmfReader()
+    reader.SetFileName(str(tmp_path / "trajectory.xdmf"))
+    reader.UpdateInformation()
+    reader.UpdateTimeStep(0.04)                      # frame 3 (t = 0.01 (t + 1)), a stored fluid frame
+    out = reader.GetOutputDataObject(0)
+    names = [out.GetMetaData(i).Get(vtk.vtkCompositeDataSet.NAME()) for i in range(out.GetNumberOfBlocks())]
+    assert names == ["fish_0", "fluid_0", "fish_1", "fluid_1"]
+    with h5py.File(tmp_path / "trajectory.h5", "r") as f:
+        k = list(f["fluid/frame"][()]).index(3)
+        for i, name in enumerate(names):
+            block, b = out.GetBlock(i), int(name[-1])
+            if name.startswith("fish"):
+                np.testing.assert_array_equal(vtk_to_numpy(block.GetPoints().GetData())[:, :2], f["solid/q"][3, b])
+                np.testing.assert_array_equal(vtk_to_numpy(block.GetPointData().GetArray("velocity"))[:, :2],
+                                              f["solid/qdot"][3, b])
+                np.testing.assert_array_equal(vtk_to_numpy(block.GetCellData().GetArray("actuator")), f["mesh/actuator"][()])
+            else:
+                np.testing.assert_array_equal(vtk_to_numpy(block.GetCellData().GetArray("p")), f["fluid/p"][k, b].ravel())
+                x0, x1, y0, y1, _, _ = block.GetCell(1).GetBounds()   # cell (row 0, column 1)
+                dx = f.attrs["grid_dx"]
+                np.testing.assert_allclose([x0, x1, y0, y1], [dx, 2 * dx, 0, dx], atol=1e-12)
 
 
 def test_render_a_real_simulation(tmp_path):

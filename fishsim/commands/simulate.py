@@ -22,6 +22,7 @@ from fishsim.fluid.grid import curl, faces_to_centres
 from fishsim.fluid.hydronet.trained_range import check_fluid
 from fishsim.io.outdir import make_out_dir, output_file
 from fishsim.io.trajectory import TrajectoryWriter, trajectory_series
+from fishsim.io.xdmf import write_xdmf
 from fishsim.resources import check_memory
 from fishsim.rollout import METRICS, Swimmer, SwimParams, rollout
 from fishsim.solid import SolidModel
@@ -163,6 +164,7 @@ def run(cfg: SimulateConfig) -> dict:
                 rollout(sw, state, episode.params, cfg.frames, on_frame=on_frame, failures=failures)
         except (FishsimError, KeyboardInterrupt) as err:
             writer.close(complete=False, message=f"stopped: {err}", attrs=_grid_attrs(cfg))
+            write_xdmf(path)
             raise type(err)(f"{err} (partial trajectory kept in {path}, marked incomplete)") from None
     wall = time.perf_counter() - t_start
     rows = fish_summaries(cfg, episode, history)
@@ -180,8 +182,7 @@ def run(cfg: SimulateConfig) -> dict:
         summary["failed fish"] = ", ".join(failed)
     if len(rows) > 1:
         _print_fish(rows, failed)
-    if cfg.vtk:
-        summary["paraview"] = str(_write_vtk(path, out_dir, cfg.vtk_stride))
+    summary["paraview"] = str(write_xdmf(path))
     _print(summary)
     return summary
 
@@ -248,16 +249,6 @@ def write_summary_csv(rows: list[dict], path) -> None:
         w = csv.DictWriter(fh, fieldnames=list(rows[0]))
         w.writeheader()
         w.writerows(rows)
-
-
-def _write_vtk(path, out_dir, stride: int):
-    from fishsim.io.vtk_io import write_vtk_series
-    from fishsim.render.data import load_render_data
-
-    data = load_render_data(path)
-    # the fluid is stored after frames t with (t + 1) % fluid_stride == 0; export on that cadence
-    written = write_vtk_series(data, out_dir / "paraview", frames=range(stride - 1, data.n_frames, stride))
-    return written["fish"]
 
 
 def _progress() -> Progress:
