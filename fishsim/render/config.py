@@ -31,8 +31,10 @@ class RenderConfig:
         fish centroid.
     percentile: colour limits are this percentile of |field| over the whole run (robust).
     normalize: divide the field of every frame by its max |value| (limits -1..1).
-    arrows, arrow_length: draw f_ext on surface nodes; the run's 95th-percentile force is drawn
-        ``arrow_length`` metres long (0 = 0.12 fish lengths).
+    arrows, arrow_length, arrow_count: draw f_ext as about ``arrow_count`` arrows along the
+        surface, each the total force on its run of consecutive surface nodes (0: one per node);
+        the run's 95th-percentile arrow is drawn ``arrow_length`` metres long (0 = 0.12 fish
+        lengths).
     video, fps: mp4 (falls back to gif without ffmpeg), gif or none; frames per second.
     pngs: write one PNG per rendered frame.
     overlay_frame: the frame of the comparison overlay (-1 = last frame with fluid in both).
@@ -56,6 +58,7 @@ class RenderConfig:
     normalize: bool = False
     arrows: bool = True
     arrow_length: float = 0.0
+    arrow_count: int = 40
     video: str = "mp4"
     fps: int = 20
     pngs: bool = True
@@ -76,7 +79,8 @@ class RenderConfig:
         _require(self.width >= 160, f"width must be >= 160 pixels (got {self.width})")
         _require(self.dpi > 0 and self.fps > 0, "dpi and fps must be > 0")
         _require(0 < self.percentile <= 100, f"percentile must be in (0, 100] (got {self.percentile})")
-        _require(self.window >= 0 and self.arrow_length >= 0, "window and arrow_length must be >= 0")
+        _require(self.window >= 0 and self.arrow_length >= 0 and self.arrow_count >= 0,
+                 "window, arrow_length and arrow_count must be >= 0")
 
 
 def _require(cond: bool, msg: str) -> None:

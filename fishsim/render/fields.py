@@ -55,8 +55,20 @@ def colour_limits(frames: np.ndarray, name: str, percentile: float = 99.0,
     return (-top, top) if DIVERGING[name] else (0.0, top)
 
 
-def force_scale(f_ext: np.ndarray, surface: np.ndarray, percentile: float = 95.0) -> float:
-    """The ``percentile`` of the force magnitude on surface nodes over the run [N/m] (robust
-    against a few spikes); 0 if there are no forces."""
-    mags = np.linalg.norm(f_ext[:, surface], axis=-1)
+def arrow_forces(f_ext: np.ndarray, surface: np.ndarray, n_arrows: int) -> tuple[np.ndarray, np.ndarray]:
+    """Forces drawn as about ``n_arrows`` arrows: the surface polyline cut into runs of
+    k = ceil(S / n_arrows) consecutive nodes, each run's total force [F, A, 2] (N/m, so the
+    arrows add up to the fish's total) at its middle node (mesh indices [A]); n_arrows <= 0 or
+    >= S: one arrow per surface node."""
+    S = len(surface)
+    k = 1 if n_arrows <= 0 or n_arrows >= S else -(-S // n_arrows)
+    starts = np.arange(0, S, k)
+    ends = np.minimum(starts + k, S)
+    return surface[(starts + ends - 1) // 2], np.add.reduceat(f_ext[:, surface], starts, axis=1)
+
+
+def force_scale(forces: np.ndarray, percentile: float = 95.0) -> float:
+    """The ``percentile`` of the arrows' force magnitude over the run [N/m] (robust against a
+    few spikes); 0 if there are no forces."""
+    mags = np.linalg.norm(forces, axis=-1)
     return float(np.nanpercentile(mags, percentile)) if mags.size else 0.0

@@ -16,7 +16,15 @@ from matplotlib.figure import Figure
 
 from fishsim.render.config import RenderConfig
 from fishsim.render.data import RenderData
-from fishsim.render.fields import COLORMAPS, UNITS, colour_limits, field_frames, force_scale, normalised
+from fishsim.render.fields import (
+    COLORMAPS,
+    UNITS,
+    arrow_forces,
+    colour_limits,
+    field_frames,
+    force_scale,
+    normalised,
+)
 
 FISH_FACE, FISH_EDGE, ARROW = "0.3", "0.08", "red"
 MARGIN = {"left": 62, "gap": 62, "top": 46, "bottom": 44, "cbar": 112, "no_cbar": 24}  # pixels
@@ -77,11 +85,11 @@ class Panel:
         if not self.cfg.arrows or f_scale <= 0:
             return None
         length = self.cfg.arrow_length or 0.12 * self.data.fish_length
-        s = self.data.surface
-        q, f = self.data.q[0, s], self.data.f_ext[0, s]
+        self.anchor, self.forces = arrow_forces(self.data.f_ext, self.data.surface, self.cfg.arrow_count)
+        q, f = self.data.q[0, self.anchor], self.forces[0]
         return self.ax.quiver(q[:, 0], q[:, 1], f[:, 0], f[:, 1], color=ARROW, angles="xy",
-                              scale_units="xy", scale=f_scale / length, pivot="tip", width=0.0025,
-                              zorder=3)
+                              scale_units="xy", scale=f_scale / length, pivot="tip", width=0.0015,
+                              alpha=0.8, zorder=3)
 
     def dynamic_artists(self) -> list:
         """What changes from frame to frame, in drawing order (spines redrawn over the image)."""
@@ -93,8 +101,8 @@ class Panel:
         d = self.data
         self.fish.set_verts(self._verts(t))
         if self.arrows is not None:
-            self.arrows.set_offsets(d.q[t, d.surface])
-            self.arrows.set_UVC(d.f_ext[t, d.surface, 0], d.f_ext[t, d.surface, 1])
+            self.arrows.set_offsets(d.q[t, self.anchor])
+            self.arrows.set_UVC(self.forces[t, :, 0], self.forces[t, :, 1])
         k = d.fluid_index(t) if self.image is not None else None
         if self.image is not None:
             self.image.set_visible(k is not None)
@@ -126,7 +134,7 @@ class FrameFigure:
         self.size, axes_boxes, cbar_box = self._layout(window, has_cbar)
         self.fig = Figure(figsize=(self.size[0] / cfg.dpi, self.size[1] / cfg.dpi), dpi=cfg.dpi)
         FigureCanvasAgg(self.fig)
-        f_scale = max(force_scale(r.f_ext, r.surface) for r in self.runs)
+        f_scale = max(force_scale(arrow_forces(r.f_ext, r.surface, cfg.arrow_count)[1]) for r in self.runs)
         cmap = COLORMAPS[cfg.field]
         self.panels = [Panel(self.fig.add_axes(box), r, f, self.clim, cmap, cfg, f_scale, window)
                        for box, r, f in zip(axes_boxes, self.runs, frames)]
