@@ -33,7 +33,7 @@ def test_simulate_writes_valid_trajectory(tmp_path):
     np.testing.assert_allclose(tr["controller/frequency"], [4.0, 6.0])
     np.testing.assert_allclose(tr["metrics/time"], 0.01 * np.arange(1, 7))
     assert np.isfinite(tr["solid/f_ext"]).all() and np.abs(tr["solid/f_ext"]).max() > 0
-    assert tr.attrs["grid_W"] == 120
+    assert tr.attrs["grid_w"] == 120
     # the stored config reproduces the run's config
     from omegaconf import OmegaConf
     assert OmegaConf.create(tr.config_yaml).fluid.W == 120

@@ -97,7 +97,7 @@ def open_writer(cfg: SimulateConfig, episode: Episode, path) -> TrajectoryWriter
         "controller/wave_number": p.controller.gamma.cpu().numpy(),
         "controller/youngs_modulus": p.E.cpu().numpy(),
     }
-    return TrajectoryWriter(path, series, static, to_yaml(cfg), cfg.h, cfg.flush_every)
+    return TrajectoryWriter(path, series, static, to_yaml(cfg), cfg.h, cfg.flush_every, dx=cfg.fluid.dx)
 
 
 def frame_record(t: int, state, out, metrics: dict, h: float) -> dict:
@@ -204,7 +204,7 @@ def wall_proximity(bounds: tuple[list[float], list[float]], q: torch.Tensor) -> 
 
 
 def _grid_attrs(cfg: SimulateConfig) -> dict:
-    return {"grid_H": cfg.fluid.H, "grid_W": cfg.fluid.W, "grid_dx": cfg.fluid.dx, "fluid_model": cfg.fluid.model}
+    return {"grid_h": cfg.fluid.H, "grid_w": cfg.fluid.W, "grid_dx": cfg.fluid.dx, "fluid_model": cfg.fluid.model}
 
 
 def summarise(episode: Episode, rows: list[dict], n_frames: int, wall: float) -> dict:

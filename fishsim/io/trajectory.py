@@ -34,6 +34,7 @@ import numpy as np
 
 from fishsim import __version__
 from fishsim.errors import InputFileError
+from fishsim.io import conventions
 
 UNITS = "SI: m, s, kg, Pa; 2D forces per unit depth (N/m); densities per unit area"
 
@@ -47,7 +48,8 @@ class TrajectoryWriter:
     """
 
     def __init__(self, path: str | Path, series: dict[str, tuple[tuple, str]],
-                 static: dict[str, np.ndarray], config_yaml: str, h: float, flush_every: int = 10):
+                 static: dict[str, np.ndarray], config_yaml: str, h: float, flush_every: int = 10,
+                 dx: float | None = None):
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.partial = partial_path(self.path)
@@ -61,10 +63,12 @@ class TrajectoryWriter:
             for name, arr in static.items():
                 f.create_dataset(name, data=np.asarray(arr))
             for name, (shape, dtype) in series.items():
-                big = np.prod(shape) > 4096
+                big = np.prod(shape) > 4096          # fields: a chunk per frame; small series: blocks of frames
                 f.create_dataset(name, shape=(0, *shape), maxshape=(None, *shape), dtype=dtype,
-                                 chunks=(1, *shape), compression="gzip" if big else None,
-                                 compression_opts=1 if big else None)
+                                 chunks=(1 if big else max(1, min(256, 4096 // max(int(np.prod(shape)), 1))), *shape),
+                                 compression="gzip" if big else None, compression_opts=1 if big else None)
+            for name in [*static, *series]:
+                conventions.describe(f, name, dx)
 
     def append(self, values: dict[str, np.ndarray]) -> None:
         """Append one frame of the named series (any subset, e.g. fluid only every k frames)."""
@@ -89,7 +93,8 @@ class TrajectoryWriter:
                     ds[n:] = np.stack(rows).astype(ds.dtype, copy=False)
                     rows.clear()
             f.attrs["n_frames"] = self._frames
-            f.attrs.update(attrs or {})
+            f.attrs.update({conventions.snake(k): v for k, v in (attrs or {}).items()})
+            conventions.grow(f, self._frames, f["fluid/frame"][()] if "fluid/frame" in f else None)
 
     def close(self, complete: bool, message: str = "", attrs: dict | None = None) -> None:
         """Write what is left and record whether the run finished (``complete``), why not, and

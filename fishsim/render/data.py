@@ -127,8 +127,9 @@ def _read_fluid(path: Path, sample: int, n: int) -> tuple[dict[str, np.ndarray],
 def _grid(attrs: dict, fluid: dict) -> tuple[int, int, float] | None:
     """(H, W, dx) from the file's grid attributes, else from the fluid array shape."""
     dx = float(attrs.get("grid_dx", DEFAULT_DX))
-    if "grid_H" in attrs and "grid_W" in attrs:
-        return int(attrs["grid_H"]), int(attrs["grid_W"]), dx
+    for h, w in (("grid_h", "grid_w"), ("grid_H", "grid_W")):    # grid_H/W: files before 2026-11-25
+        if h in attrs and w in attrs:
+            return int(attrs[h]), int(attrs[w]), dx
     if "p" in fluid:
         H, W = fluid["p"].shape[-2:]
         return int(H), int(W), dx

@@ -93,7 +93,7 @@ def write_synthetic_trajectory(path: str | Path, n_frames: int = 12, H: int = 20
     w.close(complete=True)
     if grid_attrs and fluid:
         with h5py.File(path, "r+") as f:
-            f.attrs.update(grid_H=H, grid_W=W, grid_dx=dx)
+            f.attrs.update(grid_h=H, grid_w=W, grid_dx=dx)
     return Path(path)
 
 

@@ -4,6 +4,7 @@ import subprocess
 import sys
 import textwrap
 
+import h5py
 import numpy as np
 import pytest
 
@@ -84,3 +85,29 @@ def test_bad_files(tmp_path):
     junk.write_text("not hdf5")
     with pytest.raises(InputFileError, match="not a readable HDF5"):
         read_trajectory(junk)
+
+
+def test_xarray_opens_a_trajectory_with_named_dimensions_and_units(tmp_path):
+    """netCDF conventions (fishsim/io/conventions.py): named dimensions, units, long names, the
+    growing frame scale, snake_case attributes."""
+    xr = pytest.importorskip("xarray")
+    pytest.importorskip("h5netcdf")
+    from typer.testing import CliRunner
+
+    from fishsim.cli import app
+    from tests.test_cli_simulate import NUMERICAL
+
+    assert CliRunner().invoke(app, ["simulate", *NUMERICAL, "frames=4", "fluid_stride=2",
+                                    "batch.frequency=[3,5]", f"out_dir={tmp_path}"]).exit_code == 0
+    path = tmp_path / "trajectory.h5"
+    solid = xr.open_dataset(path, engine="h5netcdf", group="solid")
+    assert solid["q"].dims == ("frame", "fish", "node", "xy") and solid["q"].attrs["units"] == "m"
+    assert solid.sizes["frame"] == 4 and solid.sizes["fish"] == 2
+    fluid = xr.open_dataset(path, engine="h5netcdf", group="fluid")
+    assert fluid["p"].dims == ("fluid_frame", "fish", "y", "x") and fluid["p"].attrs["units"] == "Pa"
+    assert fluid["a"].dims == ("fluid_frame", "fish", "y_vertex", "x_vertex") and fluid.sizes["fluid_frame"] == 2
+    root = xr.open_dataset(path, engine="h5netcdf")
+    np.testing.assert_array_equal(root["frame"], np.arange(4))
+    np.testing.assert_allclose(root["x"][:2], [0.5 * 5e-3, 1.5 * 5e-3])
+    with h5py.File(path, "r") as f:
+        assert all(k == k.lower() and " " not in k for k in f.attrs)
