@@ -234,3 +234,16 @@ def test_init_from_a_foreign_or_misshapen_file_is_one_line(cfg, tmp_path):
         T.run(replace(cfg, init_from=str(junk)))
     with pytest.raises(ConfigError, match=r"do not fit this network: tensor '.*' is \[16"):
         T.run(replace(cfg, init_from=str(SHIPPED_HYDRONET)))
+
+
+def test_resume_after_an_architecture_change_is_one_line(cfg):
+    """A checkpoint of another network shape: a ConfigError naming the first tensor that differs,
+    not a torch traceback."""
+    from fishsim.errors import FishsimError
+
+    T.run(replace(cfg, iterations=3))
+    wider = replace(cfg, net=replace(cfg.net, hidden=cfg.net.hidden + 4), iterations=6, resume=True)
+    with pytest.raises(FishsimError) as err:
+        T.run(wider)
+    assert "\n" not in str(err.value) and "do not fit this network" in str(err.value)
+    assert "set net.* to match" in str(err.value)
