@@ -8,11 +8,9 @@ import sys
 from collections.abc import Callable
 
 import typer
+from typer.core import TyperCommand
 
-from fishsim.config import ROOTS, load_config, to_yaml
 from fishsim.errors import FishsimError, Terminated
-from fishsim.io import runrecord
-from fishsim.io.outdir import folders_written, release_locks
 
 app = typer.Typer(
     add_completion=False,
@@ -44,6 +42,24 @@ def describe(defaults, prefix: str = "") -> str:
     return "\n\n".join(["top level: " + "  ".join(keys)] + groups)
 
 
+class _ConfigHelp(TyperCommand):
+    """A command whose epilog, the list of its config keys, is built only when its help is shown:
+    building it imports the config dataclasses (and with them torch), which ``fishsim --help``
+    and ``fishsim --version`` do not need."""
+
+    @property
+    def epilog(self) -> str | None:
+        if self._epilog is None and self.name is not None:
+            from fishsim.config import ROOTS
+
+            self._epilog = "Config (group.key=default):\n\n" + describe(ROOTS[self.name]())
+        return self._epilog
+
+    @epilog.setter
+    def epilog(self, value: str | None) -> None:
+        self._epilog = value
+
+
 def _on_sigterm(signum, frame) -> None:
     raise Terminated("terminated (SIGTERM)")
 
@@ -62,6 +78,10 @@ def _handle_stop_signals() -> None:
 def _execute(command: str, overrides: list[str] | None, show: bool, run: Callable, config: str | None = None) -> None:
     """Compose, validate and run; user errors become one line on stderr and exit code 2;
     Ctrl-C exits 130 and SIGTERM 143, after the command kept its partial results."""
+    from fishsim.config import load_config, to_yaml
+    from fishsim.io import runrecord
+    from fishsim.io.outdir import folders_written, release_locks
+
     _handle_stop_signals()
     status = "failed"
     try:
@@ -118,8 +138,6 @@ def _positional(args: list[str] | None, keys: tuple[str, ...]) -> list[str]:
 def _command(name: str, summary: str, positional: tuple[str, ...] = ()) -> Callable:
     """Register ``fishsim <name>`` with help text generated from its structured config; bare
     arguments fill the config keys named in ``positional``."""
-    epilog = "Config (group.key=default):\n\n" + describe(ROOTS[name]())
-
     def decorate(run_factory: Callable[[], Callable]) -> Callable:
         def command(overrides: list[str] | None = OVERRIDES, show_config: bool = SHOW, config: str = CONFIG,
                     multirun: bool = MULTIRUN) -> None:
@@ -127,7 +145,7 @@ def _command(name: str, summary: str, positional: tuple[str, ...] = ()) -> Calla
             _execute(name, args, show_config, run_factory(), config)
 
         command.__doc__ = summary
-        app.command(name=name, epilog=epilog)(command)
+        app.command(name=name, cls=_ConfigHelp)(command)
         return run_factory
 
     return decorate
