@@ -28,6 +28,7 @@ import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Self
 
 import h5py
 import numpy as np
@@ -113,7 +114,9 @@ def partial_path(path: Path) -> Path:
 
 @dataclass
 class Trajectory:
-    """A trajectory read back: every dataset as a numpy array, keyed by its path."""
+    """A trajectory read back: every dataset keyed by its path, as a numpy array, or (read with
+    ``lazy=True``) as the open file's h5py dataset, read only where sliced (``tr["fluid/p"][10, 0]``);
+    a lazy trajectory holds the file open until ``close()`` or the end of a ``with`` block."""
 
     data: dict[str, np.ndarray]
     attrs: dict
@@ -121,9 +124,21 @@ class Trajectory:
     complete: bool
     n_frames: int
     path: Path = field(default_factory=Path)
+    file: h5py.File | None = None
 
     def __getitem__(self, key: str) -> np.ndarray:
         return self.data[key]
+
+    def close(self) -> None:
+        if self.file is not None:
+            self.file.close()
+            self.file = None
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
 
 def open_trajectory(path: Path, wait: float = 5.0) -> h5py.File:
@@ -153,8 +168,9 @@ def open_trajectory(path: Path, wait: float = 5.0) -> h5py.File:
                              "it may be corrupt or not a fishsim trajectory") from None
 
 
-def read_trajectory(path: str | Path, load_fluid: bool = True) -> Trajectory:
-    """Read a trajectory file; a crashed run's file is read up to its last flushed frame."""
+def read_trajectory(path: str | Path, load_fluid: bool = True, lazy: bool = False) -> Trajectory:
+    """Read a trajectory file; a crashed run's file is read up to its last flushed frame.
+    ``lazy``: keep the file open and read nothing until sliced (large runs; see ``Trajectory``)."""
     path = Path(path)
     if not path.exists():
         part = partial_path(path)
@@ -162,28 +178,33 @@ def read_trajectory(path: str | Path, load_fluid: bool = True) -> Trajectory:
                 else "run `fishsim simulate` to make one")
         raise InputFileError(f"no such trajectory file: {path} ({hint})")
     f = open_trajectory(path)
-    with f:
+    try:
         if "config" not in f or "metrics/time" not in f:
             raise InputFileError(f"{path} is an HDF5 file but not a fishsim trajectory "
                                  "(no /config or /metrics/time)")
-        data: dict[str, np.ndarray] = {}
+        data: dict = {}
 
         def visit(name: str, obj) -> None:
             wanted = load_fluid or not name.startswith("fluid/")
             if isinstance(obj, h5py.Dataset) and name != "config" and wanted:
-                data[name] = obj[()]
+                data[name] = obj if lazy else obj[()]
 
         f.visititems(visit)
         attrs = dict(f.attrs)
         config_yaml = f["config"][()].decode() if isinstance(f["config"][()], bytes) else str(f["config"][()])
+    except BaseException:
+        f.close()
+        raise
+    if not lazy:
+        f.close()
     complete = bool(attrs.get("complete", False))
     n_frames = int(attrs["n_frames"]) if complete else _flushed_frames(data)
-    return Trajectory(data, attrs, config_yaml, complete, n_frames, path)
+    return Trajectory(data, attrs, config_yaml, complete, n_frames, path, f if lazy else None)
 
 
 def _flushed_frames(data: dict[str, np.ndarray]) -> int:
     """Frames flushed to a possibly incomplete file (metrics/time is written last in a frame)."""
-    return len(data.get("metrics/time", ()))
+    return len(data["metrics/time"]) if "metrics/time" in data else 0
 
 
 def trajectory_series(n_nodes: int, batch: int, n_act: int, metrics: list[str],

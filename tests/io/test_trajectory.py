@@ -111,3 +111,16 @@ def test_xarray_opens_a_trajectory_with_named_dimensions_and_units(tmp_path):
     np.testing.assert_allclose(root["x"][:2], [0.5 * 5e-3, 1.5 * 5e-3])
     with h5py.File(path, "r") as f:
         assert all(k == k.lower() and " " not in k for k in f.attrs)
+
+
+def test_lazy_read_slices_the_open_file_like_the_eager_read(tmp_path):
+    path = tmp_path / "t.h5"
+    w = _writer(path)
+    for t in range(3):
+        _frame(w, t)
+    w.close(complete=True)
+    eager = read_trajectory(path)
+    with read_trajectory(path, lazy=True) as lazy:
+        assert isinstance(lazy["solid/q"], h5py.Dataset) and lazy.n_frames == eager.n_frames == 3
+        np.testing.assert_array_equal(lazy["solid/q"][2, 0], eager["solid/q"][2, 0])
+    assert lazy.file is None
