@@ -10,7 +10,7 @@ from collections.abc import Callable
 import typer
 from typer.core import TyperCommand
 
-from fishsim.errors import FishsimError, Terminated
+from fishsim.errors import ConfigError, FishsimError, Terminated
 
 app = typer.Typer(
     add_completion=False,
@@ -22,7 +22,9 @@ app = typer.Typer(
 OVERRIDES = typer.Argument(None, help="Config overrides, key=value (e.g. fish.edge_length=3e-3).",
                            show_default=False)
 SHOW = typer.Option(False, "--show-config", help="Print the resolved config as YAML and exit.")
-MULTIRUN = typer.Option(False, "--multirun", "-m", hidden=True)   # Hydra's flag: refused with one line
+MULTIRUN = typer.Option(False, "--multirun", "-m", help="Sweep: one job per combination of comma lists "
+                        "(key=a,b), through Hydra's launchers (hydra/launcher=joblib | submitit_slurm); "
+                        "summary.csv collects the jobs.")
 CONFIG = typer.Option(None, "--config", help="A YAML config to start from (e.g. a run's config or optimize's "
                       "best.yaml); overrides apply on top.", show_default=False)
 
@@ -83,6 +85,9 @@ def _execute(command: str, overrides: list[str] | None, show: bool, run: Callabl
     from fishsim.io.outdir import folders_written, release_locks
 
     _handle_stop_signals()
+    if "--multirun" in (overrides or []):
+        _sweep(command, [o for o in overrides if o != "--multirun"], run, config)
+        return
     status = "failed"
     try:
         cfg = load_config(command, overrides, config)
@@ -108,6 +113,20 @@ def _execute(command: str, overrides: list[str] | None, show: bool, run: Callabl
     finally:
         runrecord.end(folders_written(), status)
         release_locks()
+
+
+def _sweep(command: str, overrides: list[str], run: Callable, config: str | None) -> None:
+    """``-m``: a Hydra multirun of ``command`` (fishsim.multirun); one-line errors, exit 2."""
+    from fishsim.multirun import sweep
+
+    try:
+        if config is not None:
+            raise ConfigError("--config and -m do not combine yet: give the sweep's overrides on the command line")
+        folder = sweep(command, overrides, run)
+    except FishsimError as err:
+        typer.secho(f"error: {err}", fg=typer.colors.RED, err=True)
+        raise typer.Exit(code=2) from None
+    typer.echo(f"sweep done: {folder}/summary.csv")
 
 
 def _version(show: bool) -> None:

@@ -372,8 +372,9 @@ def load_config(command: str, overrides: list[str] | None = None, config_file: s
     return to_dataclass(command, raw)
 
 
-NO_SWEEPS = ("for several values give a batch list (batch.frequency=[3,4,5]) or run the command once per value "
-             "(a shell loop); fishsim optimize searches parameters")
+NO_SWEEPS = ("for several values give a batch list (batch.frequency=[3,4,5]) or sweep with -m "
+             "(fishsim simulate -m controller.frequency=3,5, hydra/launcher=joblib to run jobs in parallel); "
+             "fishsim optimize searches parameters")
 
 
 def _run_dir_as_out_dir(override: str) -> str:
@@ -383,14 +384,14 @@ def _run_dir_as_out_dir(override: str) -> str:
 
 
 def _refuse_hydra_runner_keys(overrides: list[str]) -> None:
-    """fishsim composes its config with Hydra's compose API and runs one job itself: Hydra's own
-    settings (hydra.*, hydra/sweeper, hydra/launcher, multirun) would be accepted and silently do
-    nothing, so a sweep the user asked for would never run. ConfigError (one line) instead."""
+    """A single run (no -m) composes its config with Hydra's compose API and runs itself: Hydra's
+    job-runner settings (hydra.*, hydra/sweeper, hydra/launcher) would be accepted and silently do
+    nothing. ConfigError (one line) instead; with -m they go to Hydra (fishsim.multirun)."""
     for o in overrides:
         key = o.split("=", 1)[0].lstrip("+~")
         if key in ("hydra", "--multirun") or key.startswith(("hydra.", "hydra/")):
-            raise ConfigError(f"config error: '{o}' is a setting of Hydra's job runner, which fishsim does not use "
-                              f"(no sweepers, launchers or multirun); {NO_SWEEPS}")
+            raise ConfigError(f"config error: '{o}' is a setting of Hydra's job runner, used only by sweeps: add -m "
+                              f"(fishsim.multirun); {NO_SWEEPS}")
 
 
 def _merge_file(raw: Any, path: str, dotted: list[str]) -> Any:
@@ -450,6 +451,6 @@ def _one_line(err: Exception) -> str:
                 "`fishsim <command> --help` lists the config groups and keys)")
     for tail in (" full_key:", " Config search path:", " See https:"):
         text = text.split(tail)[0]
-    if text.startswith("Ambiguous value for argument"):       # Hydra's hint names --multirun, which fishsim lacks
+    if text.startswith("Ambiguous value for argument"):       # a sweep without -m
         text = text.split(" 3. To sweep over it")[0] + f"; {NO_SWEEPS}"
     return f"config error: {text.strip()}"

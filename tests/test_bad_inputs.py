@@ -103,9 +103,9 @@ def test_train_hydronet_never_restarts_over_a_run_unasked(here):
 
 @pytest.mark.parametrize("args", [["hydra.sweeper.foo=1"], ["hydra/launcher=joblib"], ["hydra/sweeper=optuna"],
                                   ["hydra.launcher.n_jobs=2"], ["hydra.mode=MULTIRUN"], ["+hydra.foo=1"],
-                                  ["--multirun"], ["-m"], ["controller.frequency=1,2"]])
+                                  ["controller.frequency=1,2"]])
 def test_hydra_runner_settings_are_one_line(here, args):
-    """fishsim runs no Hydra sweeper or launcher: such settings would silently do nothing."""
+    """Without -m Hydra's sweeper and launcher settings would silently do nothing: refused."""
     _one_line_error(runner.invoke(app, ["simulate", *TINY_SIM, *args]), "batch.frequency=[3,4,5]")
     assert _files(here) == {"afile", "adir", "x.h5"}
 
