@@ -25,7 +25,8 @@ class RenderData:
     points [N,2] material coordinates; triangles [T,3]; surface [S] node indices;
     time [n] s; q, qdot, f_ext [n,N,2] (m, m/s, N/m); fluid: {p, vx, vy, mask: [n_f,H,W]} at
     cell centres (row = y, column = x); fluid_frame [n_f] the frame index of each fluid frame;
-    grid (H, W, dx) or None (vacuum run without grid attributes).
+    grid (H, W, dx) or None (vacuum run without grid attributes); actuator [T] the muscle side
+    of each triangle (0 none, 1 top, 2 bottom) if the file has it.
     """
 
     path: Path
@@ -41,6 +42,7 @@ class RenderData:
     grid: tuple[int, int, float] | None = None
     complete: bool = True
     message: str = ""
+    actuator: np.ndarray | None = None
 
     @property
     def n_frames(self) -> int:
@@ -98,6 +100,7 @@ def load_render_data(path: str | Path, sample: int = 0) -> RenderData:
         f_ext=tr["solid/f_ext"][:n, sample] if "solid/f_ext" in tr.data else zeros,
         complete=tr.complete,
         message=str(tr.attrs.get("message", "")),
+        actuator=np.asarray(tr["mesh/actuator"], int) if "mesh/actuator" in tr.data else None,
     )
     data.fluid, data.fluid_frame = _read_fluid(path, sample, n)
     data.grid = _grid(tr.attrs, data.fluid)

@@ -102,6 +102,8 @@ def test_vtk_series_loads_back(traj, tmp_path):
     assert len(vtu.points) == n_nodes and len(vtu.cells_dict["triangle"]) == n_tris
     np.testing.assert_allclose(vtu.points[:, :2], q3)
     assert set(vtu.point_data) == {"velocity", "force"}
+    with h5py.File(traj) as f:
+        np.testing.assert_array_equal(vtu.cell_data["actuator"][0], f["mesh/actuator"][()])
     fluid = pv.get_reader(summary["vtk"]["fluid"])
     assert fluid.time_values == pytest.approx([0.0, 0.06])           # fluid frames 0 and 6
     fluid.set_active_time_value(0.06)
