@@ -305,3 +305,25 @@ def test_an_inverted_element_or_a_runaway_force_stops_the_run():
     f[1, 0, 0] = 4001.0
     with pytest.raises(SimulationBlowUp, match=r"pushes fish 1 with 4e\+03 N/m"):
         require_bounded_force(f, torch.tensor([50.0, 50.0]), 0.2)
+
+
+@pytest.mark.parametrize("fluid", ["numerical", "none"])
+def test_gradient_is_deterministic_across_runs_and_thread_counts(fluid):
+    """Same inputs, same gradient: bit for bit on repeated runs, and within 1e-10 relative in
+    float64 across torch thread counts (reductions may be split differently)."""
+    cfg, sw, ep = small_swimmer([f"fluid={fluid}"])
+    threads = torch.get_num_threads()
+
+    def grad(n_threads):
+        torch.set_num_threads(n_threads)
+        omega = torch.tensor([2 * math.pi * 5.0], dtype=torch.float64, requires_grad=True)
+        d = head_distance(sw, cfg, ep, omega, torch.tensor([6.0], dtype=torch.float64),
+                          torch.tensor([6e5], dtype=torch.float64), 6)
+        return torch.autograd.grad(d, omega)[0].item()
+
+    try:
+        one, again, two = grad(1), grad(1), grad(2)
+    finally:
+        torch.set_num_threads(threads)
+    assert one == again
+    assert abs(two - one) <= 1e-10 * abs(one)
