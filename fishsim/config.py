@@ -168,6 +168,9 @@ class FluidConfig:
     substeps: numerical solver only, sub-steps per frame on the r = 1 grid (r times more on the
         refined one); a floor that the CFL safety net raises per fish only for runaway speeds.
     penalization_iterations: numerical solver only, penalize -> project passes per stage (K).
+    scheme: numerical solver only, advection interpolation: "koren" (third order, TVD limited by
+        min/max: a piecewise-smooth frame map) | "albada" (second order, van Albada limiter and
+        upwinding written as smooth functions: smoother gradients; fishsim.fluid.grid.albada).
     model_file: hydronet only, a trained model (best.pt); null: the shipped fishsim/assets/hydronet.pt.
     bf16: hydronet only, run the U-Net trunk in bfloat16 (faster on CPUs with AMX and on GPUs).
     pressure: hydronet only, "recovered" (the pressure that best satisfies the momentum equation for
@@ -189,6 +192,7 @@ class FluidConfig:
     refinement: int = 1
     substeps: int = 8
     penalization_iterations: int = 2
+    scheme: str = "koren"
     model_file: str | None = None
     bf16: bool = False
     pressure: str = "recovered"
@@ -204,6 +208,7 @@ class FluidConfig:
                  "fluid.wall_y / fluid.wall_x must be >= 0 and leave room for the fluid")
         _require(self.refinement in (1, 2, 4), f"fluid.refinement must be 1, 2 or 4 (got {self.refinement})")
         _require(1 <= self.substeps <= 64, f"fluid.substeps must be in [1, 64] (got {self.substeps})")
+        _require(self.scheme in ("koren", "albada"), f"fluid.scheme must be koren or albada (got '{self.scheme}')")
         _require(1 <= self.penalization_iterations <= 16,
                  f"fluid.penalization_iterations must be in [1, 16] (got {self.penalization_iterations})")
         _require(self.pressure in PRESSURES,

@@ -263,3 +263,20 @@ def test_cuda_matches_cpu():
     s_gpu = m.step(m.initial_state(1, device="cuda", dtype=D), bd_gpu, pr_gpu)
     torch.testing.assert_close(s_gpu.a.cpu(), s_cpu.a)
     torch.testing.assert_close(s_gpu.p.cpu(), s_cpu.p)
+
+
+def test_albada_interpolation_is_second_order_and_smooth():
+    """fluid.scheme=albada: exact for linear data (second order), between its neighbours for
+    monotone data, and differentiable where the Koren limiter has kinks (its median switches)."""
+    from fishsim.fluid.grid import albada, koren
+
+    c, d = torch.tensor(1.0, dtype=torch.float64), torch.tensor(2.0, dtype=torch.float64)
+    assert float(albada(torch.tensor(0.0, dtype=torch.float64), c, d, 1e-8)) == pytest.approx(1.5, rel=1e-8)
+    u = torch.linspace(0.0, 0.999, 50, dtype=torch.float64)          # monotone u <= c <= d
+    face = albada(u, c, d, 1e-8)
+    assert bool(((face >= c) & (face <= d)).all())
+    point = (torch.tensor([9 / 11], dtype=torch.float64, requires_grad=True), c.reshape(1).requires_grad_(),
+             d.reshape(1).requires_grad_())        # Koren's kink: its third-order value (5c + 2d - u) / 6 = 3c - 2u
+    assert torch.autograd.gradcheck(lambda a, b, e: albada(a, b, e, 1e-8), point)
+    k = [torch.autograd.grad(koren(point[0] + s, point[1], point[2]), point[0])[0].item() for s in (-1e-6, 1e-6)]
+    assert abs(k[0] - k[1]) > 0.1                                            # Koren's derivative jumps there
