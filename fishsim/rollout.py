@@ -34,6 +34,7 @@ from fishsim.coupling.added_mass import stabilising_force
 from fishsim.errors import ConfigError, SimulationBlowUp
 from fishsim.fluid.base import Boundary, FluidModel, FluidParams, FluidState
 from fishsim.fluid.grid import union
+from fishsim.fluid.numerical import RefinedState
 from fishsim.solid import SolidModel, pd_step, predicted_start
 from fishsim.solid.controller import WaveController
 
@@ -352,18 +353,23 @@ def require_finite(**fields: Tensor) -> None:
 
 
 def _flatten(state: SwimState) -> tuple[Tensor, ...]:
+    """The state as a fixed tuple of tensors (checkpoint segments pass these): q, qdot,
+    qdot_prev and, with a fluid, a, p and the refined fluid's fine potential (an empty tensor
+    when there is none), so that a refined fluid keeps its fine-scale flow across segments."""
     qdot_prev = state.qdot if state.qdot_prev is None else state.qdot_prev
     if state.fluid is None:
         return state.q, state.qdot, qdot_prev
-    return state.q, state.qdot, qdot_prev, state.fluid.a, state.fluid.p
+    fine = getattr(state.fluid, "fine_a", None)
+    return state.q, state.qdot, qdot_prev, state.fluid.a, state.fluid.p, state.fluid.a.new_empty(0) if fine is None else fine
 
 
 def _unflatten(tensors: tuple[Tensor, ...]) -> SwimState:
     if len(tensors) == 3:
         q, qdot, qdot_prev = tensors
         return SwimState(q, qdot, qdot_prev=qdot_prev)
-    q, qdot, qdot_prev, a, p = tensors
-    return SwimState(q, qdot, FluidState(a=a, p=p), qdot_prev)
+    q, qdot, qdot_prev, a, p, fine = tensors
+    fluid = FluidState(a=a, p=p) if fine.numel() == 0 else RefinedState(a=a, p=p, fine_a=fine)
+    return SwimState(q, qdot, fluid, qdot_prev)
 
 
 def _param_tensors(params: SwimParams) -> tuple[Tensor, ...]:
@@ -516,7 +522,10 @@ def park(state: SwimState, params: SwimParams, alive: Tensor, rest: SwimState) -
         return state, params
     fluid = state.fluid
     if fluid is not None:
-        fluid = FluidState(a=_select(alive, fluid.a, rest.fluid.a), p=_select(alive, fluid.p, rest.fluid.p))
+        fine = getattr(fluid, "fine_a", None)
+        a, p = _select(alive, fluid.a, rest.fluid.a), _select(alive, fluid.p, rest.fluid.p)
+        fluid = (FluidState(a=a, p=p) if fine is None else            # a parked fish's fine flow: at rest
+                 RefinedState(a=a, p=p, fine_a=_select(alive, fine, torch.zeros_like(fine))))
     qdot_prev = _select(alive, state.qdot_prev, rest.qdot_prev if rest.qdot_prev is not None else torch.zeros_like(rest.q))
     parked = SwimState(_select(alive, state.q, rest.q), _select(alive, state.qdot, rest.qdot), fluid, qdot_prev)
     C = params.controller.C
@@ -527,7 +536,11 @@ def park(state: SwimState, params: SwimParams, alive: Tensor, rest: SwimState) -
 def _sample(state: SwimState, params: SwimParams, b: int) -> tuple[SwimState, SwimParams]:
     """Sample b of a batch as a batch of one."""
     one = lambda x: None if x is None else x[b:b + 1]
-    fluid = None if state.fluid is None else FluidState(a=one(state.fluid.a), p=one(state.fluid.p))
+    fluid = state.fluid
+    if fluid is not None:
+        fine = getattr(fluid, "fine_a", None)
+        fluid = (FluidState(a=one(fluid.a), p=one(fluid.p)) if fine is None else
+                 RefinedState(a=one(fluid.a), p=one(fluid.p), fine_a=one(fine)))
     c = params.controller
     controller = dataclasses.replace(c, C=one(c.C), omega=one(c.omega), gamma=one(c.gamma))
     fp = None if params.fluid is None else dataclasses.replace(params.fluid, rho=one(params.fluid.rho),

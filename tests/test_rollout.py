@@ -1,6 +1,7 @@
 """The coupled rollout: gradients of the swimming distance against central finite differences,
 checkpointing equals plain backprop, and the physics of a fish in the numerical fluid."""
 
+import dataclasses
 import math
 
 import numpy as np
@@ -12,7 +13,7 @@ from fishsim.config import load_config
 from fishsim.coupling import fluid_to_solid
 from fishsim.coupling.layer import CouplingConfig
 from fishsim.errors import ConfigError, SimulationBlowUp
-from fishsim.fluid.numerical import NumericalFluid
+from fishsim.fluid.numerical import NumericalFluid, RefinedState
 from fishsim.rollout import Swimmer, SwimState, rollout
 
 SMALL = ["fish.edge_length=4e-3", "fluid.H=32", "fluid.W=96", "fluid.dx=6e-3", "origin=[0.2,0.096]",
@@ -327,3 +328,22 @@ def test_gradient_is_deterministic_across_runs_and_thread_counts(fluid):
         torch.set_num_threads(threads)
     assert one == again
     assert abs(two - one) <= 1e-10 * abs(one)
+
+
+def test_a_refined_fluid_keeps_its_fine_flow_across_checkpoint_segments():
+    """fluid.refinement=2 carries the fine grid's potential in its state: a checkpointed rollout
+    (segments of 2 frames) and a parked failure-isolation pass give the same episode as a plain
+    rollout (they used to drop the fine flow at every segment boundary)."""
+    cfg = load_config("simulate", [*SMALL, "fluid=numerical", "fluid.refinement=2"])
+    ep = build_episode(cfg)
+    sw, params = ep.swimmer, ep.params
+    C = params.controller.C.clone().requires_grad_(True)
+    params = dataclasses.replace(params, controller=dataclasses.replace(params.controller, C=C))
+    plain, _ = rollout(sw, sw.initial_state(params, ep.origin), params, 6)
+    checkpointed, _ = rollout(sw, sw.initial_state(params, ep.origin), params, 6, segment=2, failures={})
+    assert isinstance(checkpointed.fluid, RefinedState)
+    torch.testing.assert_close(checkpointed.q, plain.q, rtol=0, atol=1e-12)
+    torch.testing.assert_close(checkpointed.fluid.fine_a, plain.fluid.fine_a, rtol=0, atol=1e-9)
+    (g_plain,) = torch.autograd.grad(plain.q[..., 1].sum(), C)
+    (g_checkpointed,) = torch.autograd.grad(checkpointed.q[..., 1].sum(), C)
+    torch.testing.assert_close(g_checkpointed, g_plain, rtol=1e-6, atol=0)
