@@ -32,9 +32,8 @@ from torch import Tensor
 from fishsim.coupling import CouplingConfig, exchange_to_solid, fluid_to_solid, solid_to_fluid
 from fishsim.coupling.added_mass import stabilising_force
 from fishsim.errors import ConfigError, SimulationBlowUp
-from fishsim.fluid.base import Boundary, FluidModel, FluidParams, FluidState
+from fishsim.fluid.base import Boundary, FluidModel, FluidParams, FluidState, RefinedState
 from fishsim.fluid.grid import union
-from fishsim.fluid.numerical import RefinedState
 from fishsim.solid import SolidModel, pd_step, predicted_start
 from fishsim.solid.controller import WaveController
 

@@ -64,6 +64,15 @@ class FluidState:
 
 
 @dataclass(frozen=True)
+class RefinedState(FluidState):
+    """A ``FluidState`` on the r = 1 grid that also carries the potential of a refined solver's
+    fine grid (``fine_a`` [B, 1, rH+1, rW+1], m^2/s), so successive steps keep the fine-scale
+    flow (fishsim.fluid.numerical); the rollout carries it across checkpoint segments."""
+
+    fine_a: Tensor | None = None
+
+
+@dataclass(frozen=True)
 class Boundary:
     """Solid/wall description for one fluid step, given per cell.
 

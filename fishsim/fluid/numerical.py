@@ -56,7 +56,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from fishsim.errors import SimulationBlowUp
-from fishsim.fluid.base import Boundary, FluidParams, FluidState, Grid, rest_state
+from fishsim.fluid.base import Boundary, FluidParams, FluidState, Grid, RefinedState, rest_state
 from fishsim.fluid.dct import neumann_inverse, solve_neumann_poisson
 from fishsim.fluid.grid import (
     NO_SLIP,
@@ -73,14 +73,6 @@ from fishsim.fluid.grid import (
     zero_walls,
 )
 from fishsim.fluid.residual import per_sample
-
-
-@dataclass(frozen=True)
-class RefinedState(FluidState):
-    """A ``FluidState`` on the r = 1 grid that also carries the potential of the fine grid
-    (``fine_a`` [B, 1, rH+1, rW+1], m^2/s) used by a refined ``NumericalFluid``."""
-
-    fine_a: Tensor | None = None
 
 
 @dataclass(frozen=True)
