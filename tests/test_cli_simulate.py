@@ -272,3 +272,12 @@ def test_stop_signals_keep_a_marked_partial_file(tmp_path, sig, code, ignored):
     tr = read_trajectory(tmp_path / "trajectory.h5")
     assert not tr.complete and 3 <= tr.n_frames < 2000 and "partial results were kept" in err
     assert ("SIGTERM" in tr.attrs["message"]) == (sig == signal.SIGTERM)
+
+
+def test_debug_preset_is_a_tiny_episode(tmp_path):
+    """experiment=debug: the coarse fish in a 40 x 120 tank for 20 frames (seconds)."""
+    from fishsim.config import load_config
+
+    cfg = load_config("simulate", ["experiment=debug"])
+    assert (cfg.fluid.H, cfg.fluid.W, cfg.frames, cfg.fish.edge_length) == (40, 120, 20, 5e-3)
+    assert load_config("optimize", ["experiment=debug"]).frames == 20
