@@ -85,15 +85,26 @@ class StepDiagnostics:
         area the body and wall bands exert on the fluid.
     dx: spacing of ``penalty`` (the fine grid), m.
     refinement: r.
-    inertia: b_f (v' - v) / h on the (fine) faces, m/s^2: the rate of change of the velocity of
-        the fluid held in the bodies (volume fraction b_f), which moves with them.
+    mask, start, end, h: the step's (fine) face masks b_f, velocities v before and v' after it
+        and its length, kept (not copied) so that ``inertia`` is computed only when asked for.
     """
 
     substeps: int
     penalty: Faces
     dx: float
     refinement: int
-    inertia: Faces | None = None
+    mask: Faces | None = None
+    start: Faces | None = None
+    end: Faces | None = None
+    h: float | None = None
+
+    @property
+    def inertia(self) -> Faces | None:
+        """b_f (v' - v) / h on the (fine) faces, m/s^2: the rate of change of the velocity of the
+        fluid held in the bodies (volume fraction b_f), which moves with them."""
+        if self.mask is None:
+            return None
+        return tuple(bc * (c - o) / self.h for bc, c, o in zip(self.mask, self.end, self.start))
 
     def force(self, rho: Tensor | float, region: Tensor | None = None) -> Tensor:
         """Hydrodynamic force on the penalized body, [B, 2] (x, y) in N/m (per unit depth):
@@ -308,8 +319,7 @@ class NumericalFluid:
             new = RefinedState(a=_mean_free(a[..., ::r, ::r]), p=F.avg_pool2d(p, r), fine_a=a)
         else:
             new = FluidState(a=a, p=p)
-        inertia = tuple(bc * (c - o) / h for bc, c, o in zip(b, v, v_start))
-        diag = StepDiagnostics(n, tuple(q / h for q in pen_sum), dx, r, inertia)
+        diag = StepDiagnostics(n, tuple(q / h for q in pen_sum), dx, r, b, v_start, v, h)
         return new, diag
 
     def _substep(self, v: Faces, b: Faces, v_d: Faces, nu: Tensor, dt: Tensor):
