@@ -118,9 +118,13 @@ def _values(dim: str, n: int, dx: float | None) -> np.ndarray:
     return np.arange(n)
 
 
-def grow(f: h5py.File, frames: int, fluid_frames: np.ndarray | None) -> None:
-    """Extend the growing scales: frame to 0..frames-1, fluid_frame to the stored fluid frames."""
-    for dim, values in (("frame", np.arange(frames)), ("fluid_frame", fluid_frames)):
-        if dim in f and values is not None and len(values) > f[dim].shape[0]:
-            f[dim].resize(len(values), axis=0)
-            f[dim][:] = values
+def grow(f: h5py.File) -> None:
+    """Extend the growing scales to their datasets' length, writing only the new entries: frame
+    to 0..frames-1 (/metrics/time's length), fluid_frame to /fluid/frame's values."""
+    for dim, source in (("frame", "metrics/time"), ("fluid_frame", "fluid/frame")):
+        if dim not in f or source not in f:
+            continue
+        old, new = f[dim].shape[0], f[source].shape[0]
+        if new > old:
+            f[dim].resize(new, axis=0)
+            f[dim][old:] = np.arange(old, new) if dim == "frame" else f[source][old:new]

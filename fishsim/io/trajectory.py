@@ -95,7 +95,7 @@ class TrajectoryWriter:
                     rows.clear()
             f.attrs["n_frames"] = self._frames
             f.attrs.update({conventions.snake(k): v for k, v in (attrs or {}).items()})
-            conventions.grow(f, self._frames, f["fluid/frame"][()] if "fluid/frame" in f else None)
+            conventions.grow(f)
 
     def close(self, complete: bool, message: str = "", attrs: dict | None = None) -> None:
         """Write what is left and record whether the run finished (``complete``), why not, and
