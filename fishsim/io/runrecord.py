@@ -23,8 +23,6 @@ import sys
 import time
 from pathlib import Path
 
-from omegaconf import OmegaConf
-
 MAX_LOG_LINES = 4000
 _ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]|\x1b\][^\x07]*\x07")
 
@@ -78,6 +76,7 @@ def end(folders: list[Path], status: str) -> None:
     if not folders:
         return
     from fishsim import __version__
+    from fishsim.config import to_yaml
 
     commit, dirty = git_commit()
     about = {"command": run["command"], "fishsim_version": __version__, "git_commit": commit,
@@ -88,8 +87,8 @@ def end(folders: list[Path], status: str) -> None:
         hydra = Path(folder) / ".hydra"
         hydra.mkdir(exist_ok=True)
         (hydra / "config.yaml").write_text(run["config"])
-        (hydra / "overrides.yaml").write_text(OmegaConf.to_yaml(OmegaConf.create(run["overrides"])))
-        (hydra / "fishsim.yaml").write_text(OmegaConf.to_yaml(OmegaConf.create(about)))
+        (hydra / "overrides.yaml").write_text(to_yaml(run["overrides"]))
+        (hydra / "fishsim.yaml").write_text(to_yaml(about))
         (Path(folder) / f"{run['command']}.log").write_text(log)
 
 
