@@ -57,8 +57,10 @@ class Panel:
     """One run drawn in one axes; ``update(t)`` moves the fish, arrows, field and time stamp."""
 
     def __init__(self, ax, data: RenderData, frames: np.ndarray | None, clim, cmap: str,
-                 cfg: RenderConfig, f_scale: float, window: tuple[float, float] | None):
+                 cfg: RenderConfig, f_scale: float, window: tuple[float, float] | None,
+                 arrows: tuple[np.ndarray, np.ndarray]):
         self.ax, self.data, self.frames, self.cfg, self.window = ax, data, frames, cfg, window
+        self.anchor, self.forces = arrows     # ``arrow_forces`` of the run: anchor nodes, forces
         x0, x1, y0, y1 = data.extent()
         ax.set_xlim(x0, x1)
         ax.set_ylim(y0, y1)
@@ -85,7 +87,6 @@ class Panel:
         if not self.cfg.arrows or f_scale <= 0:
             return None
         length = self.cfg.arrow_length or 0.12 * self.data.fish_length
-        self.anchor, self.forces = arrow_forces(self.data.f_ext, self.data.surface, self.cfg.arrow_count)
         q, f = self.data.q[0, self.anchor], self.forces[0]
         return self.ax.quiver(q[:, 0], q[:, 1], f[:, 0], f[:, 1], color=ARROW, angles="xy",
                               scale_units="xy", scale=f_scale / length, pivot="tip", width=0.0015,
@@ -134,10 +135,11 @@ class FrameFigure:
         self.size, axes_boxes, cbar_box = self._layout(window, has_cbar)
         self.fig = Figure(figsize=(self.size[0] / cfg.dpi, self.size[1] / cfg.dpi), dpi=cfg.dpi)
         FigureCanvasAgg(self.fig)
-        f_scale = max(force_scale(arrow_forces(r.f_ext, r.surface, cfg.arrow_count)[1]) for r in self.runs)
+        arrows = [arrow_forces(r.f_ext, r.surface, cfg.arrow_count) for r in self.runs]
+        f_scale = max(force_scale(forces) for _, forces in arrows)
         cmap = COLORMAPS[cfg.field]
-        self.panels = [Panel(self.fig.add_axes(box), r, f, self.clim, cmap, cfg, f_scale, window)
-                       for box, r, f in zip(axes_boxes, self.runs, frames)]
+        self.panels = [Panel(self.fig.add_axes(box), r, f, self.clim, cmap, cfg, f_scale, window, a)
+                       for box, r, f, a in zip(axes_boxes, self.runs, frames, arrows)]
         self.colorbar = self._colorbar(cbar_box) if has_cbar else None
         self._dynamic = [a for p in self.panels for a in p.dynamic_artists()]
         self._background = None
