@@ -77,7 +77,8 @@ def _handle_stop_signals() -> None:
         signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
-def _execute(command: str, overrides: list[str] | None, show: bool, run: Callable, config: str | None = None) -> None:
+def _execute(command: str, overrides: list[str] | None, show: bool, run: Callable, config: str | None = None,
+             multirun: bool = False) -> None:
     """Compose, validate and run; user errors become one line on stderr and exit code 2;
     Ctrl-C exits 130 and SIGTERM 143, after the command kept its partial results."""
     from fishsim.config import load_config, to_yaml
@@ -85,8 +86,8 @@ def _execute(command: str, overrides: list[str] | None, show: bool, run: Callabl
     from fishsim.io.outdir import folders_written, release_locks
 
     _handle_stop_signals()
-    if "--multirun" in (overrides or []):
-        _sweep(command, [o for o in overrides if o != "--multirun"], run, config)
+    if multirun:
+        _sweep(command, list(overrides or []), run, config)
         return
     status = "failed"
     try:
@@ -160,8 +161,7 @@ def _command(name: str, summary: str, positional: tuple[str, ...] = ()) -> Calla
     def decorate(run_factory: Callable[[], Callable]) -> Callable:
         def command(overrides: list[str] | None = OVERRIDES, show_config: bool = SHOW, config: str = CONFIG,
                     multirun: bool = MULTIRUN) -> None:
-            args = _positional(overrides, positional) + (["--multirun"] if multirun else [])
-            _execute(name, args, show_config, run_factory(), config)
+            _execute(name, _positional(overrides, positional), show_config, run_factory(), config, multirun)
 
         command.__doc__ = summary
         app.command(name=name, cls=_ConfigHelp)(command)
