@@ -6,7 +6,7 @@ import torch
 
 from fishsim.fluid.base import Boundary, FluidParams, FluidState
 from fishsim.fluid.grid import closed_tank, stream_function, vector_to_faces
-from fishsim.fluid.hydronet.loss import LossConfig, boundary_loss, hydronet_loss, momentum_loss
+from fishsim.fluid.hydronet.loss import LossConfig, boundary_loss, hydronet_loss, momentum_loss, teacher_loss
 from fishsim.fluid.residual import boundary_face_masks, fluid_face_masks
 
 from .conftest import paper_params
@@ -122,3 +122,27 @@ def test_koren_residual_sees_checkerboard_noise(grid):
     central = momentum_loss(state, state, bd, params, grid, "central")
     koren = momentum_loss(state, state, bd, params, grid, "koren")
     assert koren > 100 * central
+
+
+def test_teacher_term_is_zero_on_the_solvers_own_step_and_counts_cells_per_step(grid):
+    """L_t vanishes when the network's step is the numerical solver's (a moving body in the
+    tank), and a uniform velocity error of one cell per step on every face gives L_t = 1."""
+    from fishsim.fluid.grid import union
+    from fishsim.fluid.numerical import NumericalFluid
+
+    tank = closed_tank(grid, 2, 3, 1)
+    yy, xx = torch.meshgrid(torch.arange(grid.H), torch.arange(grid.W), indexing="ij")
+    disc = (((xx - grid.W / 2) ** 2 + (yy - grid.H / 2) ** 2) < 9).float()[None, None]
+    body = Boundary(disc, torch.stack([0.1 * disc[:, 0], 0.05 * disc[:, 0]], 1))
+    boundary = union(tank, body)
+    params = paper_params(1)
+    start = _rest(grid, 1)
+    target = NumericalFluid(grid).step(start, boundary, params)
+    assert teacher_loss(target, target, boundary, params, grid).abs().max() == 0
+    assert teacher_loss(start, target, boundary, params, grid).min() > 0
+    u = grid.dx / params.h  # a = U* y is a uniform x-velocity of one cell per step
+    y = torch.arange(grid.H + 1, dtype=torch.float32)[:, None] * grid.dx
+    shifted = FluidState(target.a + u * y.expand(grid.H + 1, grid.W + 1)[None, None], target.p)
+    nx, ny = (grid.H * (grid.W + 1)), ((grid.H + 1) * grid.W)
+    assert torch.allclose(teacher_loss(shifted, target, boundary, params, grid), torch.tensor([nx / (nx + ny)]),
+                          rtol=1e-4)

@@ -22,6 +22,18 @@ velocity changes per step, independent of rho, and Wandel's tested balance beta 
 keeps its meaning. (Dividing R by 400 but keeping v in m/s would weight L_p about 160x more than
 this at rho = 50, 2.5 mm, 0.01 s.)
 
+Teacher term (optional, ``teacher > 0`` in training). With (v*, p*) the numerical solver's step
+from the same state and boundary (``fishsim.fluid.numerical``):
+
+    L_t = sum_f ((v_f - v*_f) / U*)^2 / N + sum_f w_f ((grad (p - p*))_f dx / P*)^2 / N
+
+the velocity error in cells per step on every face plus the pressure-gradient error on the fluid
+faces, both in the units of L_p (a velocity error dv in one step is a residual dv / h, i.e.
+dv / U* in units of R*). The physics loss alone admits wrong solutions: in the soft-mask band
+the fluid and boundary terms conflict, and the network's rollouts reach a lower L than the
+solver's own steps while swimming 4-8x less far. L_t anchors the network to the solver's
+discrete dynamics on the network's own rollout states (solver-in-the-loop one-step targets).
+
 Advection scheme. The residual's (vbar . grad) vbar uses Koren's limited third-order upwind
 interpolation (``grid.advection``, the numerical solver's scheme), not Wandel's central one.
 Central differences cannot see a 2-cell (checkerboard) mode and at the paper's viscosity
@@ -40,7 +52,7 @@ import torch
 from torch import Tensor
 
 from fishsim.fluid.base import Boundary, FluidParams, FluidState, Grid
-from fishsim.fluid.grid import curl, vector_to_faces
+from fishsim.fluid.grid import curl, gradient, vector_to_faces
 from fishsim.fluid.hydronet.scales import scales_of
 from fishsim.fluid.residual import boundary_face_masks, fluid_face_masks, momentum_residual
 
@@ -60,12 +72,14 @@ class LossConfig:
 
 @dataclass(frozen=True)
 class LossTerms:
-    """Per-sample terms [B] (dimensionless) and the scalar training objective mean(log(L + eps))."""
+    """Per-sample terms [B] (dimensionless) and the scalar training objective mean(log(L + eps));
+    ``teacher``: L_t [B] when trained against the solver (then included in ``total``)."""
 
     momentum: Tensor
     boundary: Tensor
     total: Tensor
     objective: Tensor
+    teacher: Tensor | None = None
 
 
 def masked_mean(q: tuple[Tensor, Tensor], w: tuple[Tensor, Tensor]) -> Tensor:
@@ -101,3 +115,14 @@ def hydronet_loss(old: FluidState, new: FluidState, boundary: Boundary, params: 
     lb = boundary_loss(new, boundary, params, grid)
     total = cfg.beta * lp + cfg.gamma * lb
     return LossTerms(lp, lb, total, torch.log(total + cfg.eps).mean())
+
+
+def teacher_loss(new: FluidState, target: FluidState, boundary: Boundary, params: FluidParams,
+                 grid: Grid) -> Tensor:
+    """L_t [B]: squared velocity error on all faces and pressure-gradient error on the fluid
+    faces of ``new`` against the solver's ``target`` step, in grid units (module docstring)."""
+    s = scales_of(grid, params)
+    dv = tuple(((x - y) / s.velocity) ** 2 for x, y in zip(curl(new.a, grid.dx), curl(target.a, grid.dx)))
+    dg = tuple((g * grid.dx / s.pressure) ** 2 for g in gradient(new.p - target.p, grid.dx))
+    ones = tuple(torch.ones_like(d[:1]) for d in dv)
+    return masked_mean(dv, ones) + masked_mean(dg, fluid_face_masks(boundary.mask))

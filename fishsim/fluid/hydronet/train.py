@@ -3,6 +3,9 @@
 One iteration (Wandel et al. 2021): ask the pool for a batch (state at t, boundary at t + h),
 step it once with the network, minimise mean_B log(beta L_p + gamma L_b) (``loss.py``) with Adam,
 and tell the pool the new (detached) states, so the network trains on its own rollouts.
+With ``teacher > 0`` the numerical solver steps the same batch too and the objective becomes
+mean_B log(beta L_p + gamma L_b + teacher L_t) (``loss.teacher_loss``); ``teacher = 0`` is the
+paper's physics-only training.
 
 Outputs under ``out_dir``: ``ckpt.pt`` (latest: model, optimiser, pool, RNG, counters; written
 atomically, every ``ckpt_every`` iterations or ``ckpt_minutes``, and on Ctrl-C), ``best.pt`` (the
@@ -36,7 +39,7 @@ from torch import nn
 
 from fishsim.errors import ConfigError, InputFileError, Terminated
 from fishsim.fluid.base import Boundary, FluidParams, FluidState, rest_state
-from fishsim.fluid.hydronet.loss import LossConfig, LossTerms, hydronet_loss
+from fishsim.fluid.hydronet.loss import EPS, LossConfig, LossTerms, hydronet_loss, teacher_loss
 from fishsim.fluid.hydronet.pool import PoolConfig, ScenePool, advance, random_scene, scene_boundaries
 from fishsim.fluid.hydronet.trained_range import stored_range, training_range
 from fishsim.fluid.hydronet.unet import HydroNet, NetConfig
@@ -49,6 +52,7 @@ class TrainConfig:
     net, pool: network and scene-pool settings (``pool.rho``/``pool.mu`` are the fluid ranges).
     iterations: total optimiser steps; batch_size: scenes per step (per rank); lr: Adam step size.
     beta, gamma: loss weights; advection: "koren" | "central" scheme of the loss's residual.
+    teacher: weight of L_t, the numerical solver's one-step target (0: physics only, the paper).
     device: "cpu" | "cuda"; threads: torch CPU threads (0: default).
     bf16: bfloat16 autocast for the U-Net trunk; channels_last: NHWC memory layout;
     compile: torch.compile the trunk (measured slower on CPU); compile_loss: torch.compile the
@@ -67,6 +71,7 @@ class TrainConfig:
     lr: float = 1e-3
     beta: float = 1.0
     gamma: float = 20.0
+    teacher: float = 0.0
     advection: str = "koren"
     net: NetConfig = field(default_factory=lambda: NetConfig(hidden=16))
     pool: PoolConfig = field(default_factory=PoolConfig)
@@ -92,7 +97,8 @@ class TrainConfig:
     def validate(self) -> None:
         """Reject impossible values with one line (ConfigError) before any work starts."""
         _check(self.iterations >= 1 and self.batch_size >= 1, "iterations and batch_size must be >= 1")
-        _check(self.lr > 0 and self.beta > 0 and self.gamma >= 0, "lr and beta must be > 0, gamma >= 0")
+        _check(self.lr > 0 and self.beta > 0 and self.gamma >= 0 and self.teacher >= 0,
+               "lr and beta must be > 0, gamma and teacher >= 0")
         _check(self.advection in ("koren", "central"), f"advection must be koren or central, got {self.advection!r}")
         _check(self.device in ("cpu", "cuda") or self.device.startswith("cuda:"),
                f"device must be cpu or cuda, got {self.device!r}")
@@ -131,6 +137,7 @@ class Run:
     opt: torch.optim.Optimizer
     pool: ScenePool
     loss_fn: object = None
+    teacher: object = None          # the numerical solver giving L_t's targets (None: physics only)
     iteration: int = 0
     best_val: float = math.inf
     last_val: float = math.nan
@@ -162,6 +169,8 @@ def train_step(run: Run, cfg: TrainConfig, net: nn.Module) -> LossTerms:
     new = FluidState(a, p)
     terms = LossTerms(*run.loss_fn(state.a, state.p, a, p, boundary.mask, boundary.velocity, params.rho,
                                    params.mu, params.h))
+    if run.teacher is not None:
+        terms = with_teacher(terms, cfg, run.teacher, state, new, boundary, params)
     run.opt.zero_grad(set_to_none=True)
     terms.objective.backward()
     if cfg.grad_clip > 0:
@@ -169,20 +178,41 @@ def train_step(run: Run, cfg: TrainConfig, net: nn.Module) -> LossTerms:
     run.opt.step()
     run.pool.tell(idx, new)
     run.iteration += 1
-    return LossTerms(*(t.detach() for t in (terms.momentum, terms.boundary, terms.total, terms.objective)))
+    return LossTerms(*(None if t is None else t.detach() for t in
+                       (terms.momentum, terms.boundary, terms.total, terms.objective, terms.teacher)))
+
+
+def with_teacher(terms: LossTerms, cfg: TrainConfig, teacher, state: FluidState, new: FluidState,
+                 boundary: Boundary, params: FluidParams) -> LossTerms:
+    """``terms`` with L_t against the solver's step from ``state`` added to L and the objective."""
+    with torch.no_grad():
+        target = teacher.step(FluidState(state.a.float(), state.p.float()), boundary, params)
+    lt = teacher_loss(FluidState(new.a.float(), new.p.float()), target, boundary, params, cfg.pool.grid)
+    total = terms.total + cfg.teacher * lt
+    return LossTerms(terms.momentum, terms.boundary, total, torch.log(total + EPS).mean(), lt)
+
+
+def make_teacher(cfg: TrainConfig):
+    """The numerical solver at its defaults on the training grid, or None when ``teacher == 0``."""
+    if cfg.teacher == 0:
+        return None
+    from fishsim.fluid.numerical import NumericalFluid
+
+    return NumericalFluid(cfg.pool.grid)
 
 
 @torch.no_grad()
 def validate(model: HydroNet, cfg: TrainConfig, seed: int = 12345) -> float:
-    """Mean log L over the second half of ``val_steps`` eval-mode steps of ``val_scenes`` fixed
-    scenes started from rest (same scenes and motions every call)."""
+    """Mean log L (with L_t when training against the solver) over the second half of
+    ``val_steps`` eval-mode steps of ``val_scenes`` fixed scenes started from rest (same scenes
+    and motions every call)."""
     rng = np.random.default_rng(seed)
     scenes = [random_scene(rng, cfg.pool) for _ in range(cfg.val_scenes)]
     grid, dev = cfg.pool.grid, next(model.parameters()).device
     params = FluidParams(torch.tensor([s.rho for s in scenes], device=dev, dtype=torch.float32),
                          torch.tensor([s.mu for s in scenes], device=dev, dtype=torch.float32), cfg.pool.h)
     state = rest_state(grid, len(scenes), dev)
-    was_training, losses = model.training, []
+    was_training, losses, teacher = model.training, [], make_teacher(cfg)
     model.eval()
     for k in range(cfg.val_steps):
         scenes = [advance(s, cfg.pool, rng) for s in scenes]
@@ -192,7 +222,10 @@ def validate(model: HydroNet, cfg: TrainConfig, seed: int = 12345) -> float:
                                     params.mu, grid.dx, params.h))
         if k >= cfg.val_steps // 2:
             loss_cfg = LossConfig(cfg.beta, cfg.gamma, scheme=cfg.advection)
-            losses.append(hydronet_loss(state, new, boundary, params, grid, loss_cfg).objective.item())
+            terms = hydronet_loss(state, new, boundary, params, grid, loss_cfg)
+            if teacher is not None:
+                terms = with_teacher(terms, cfg, teacher, state, new, boundary, params)
+            losses.append(terms.objective.item())
         state = new
     model.train(was_training)
     return float(np.mean(losses))
@@ -303,7 +336,7 @@ def load_hydronet(path: str | Path, device="cpu") -> HydroNet:
 class Logger:
     """CSV + TensorBoard (rank 0 only) and a rich progress bar (plain lines when not a terminal)."""
 
-    COLUMNS = ("iteration", "seconds", "loss", "L_p", "L_b", "val", "it_per_s", "samples_per_s")
+    COLUMNS = ("iteration", "seconds", "loss", "L_p", "L_b", "val", "it_per_s", "samples_per_s", "L_t")
 
     def __init__(self, out: Path, cfg: TrainConfig, start: int):
         from rich.console import Console
@@ -339,13 +372,15 @@ class Logger:
         dt = time.perf_counter() - self.t0
         rate = (run.iteration - self.i0) / max(dt, 1e-9)
         row = [run.iteration, round(run.elapsed, 1), terms.objective.item(), terms.momentum.mean().item(),
-               terms.boundary.mean().item(), run.last_val, rate, rate * self.cfg.batch_size]
+               terms.boundary.mean().item(), run.last_val, rate, rate * self.cfg.batch_size,
+               math.nan if terms.teacher is None else terms.teacher.mean().item()]
         self.csv.writerow(row)
         self.csv_file.flush()
         for name, value in zip(self.COLUMNS[2:], row[2:]):
             if math.isfinite(value) and self.tb is not None:
                 self.tb.add_scalar(f"train/{name}", value, run.iteration)
-        status = f"loss {row[2]:.3f}  L_p {row[3]:.2e}  L_b {row[4]:.2e}  val {row[5]:.3f}  {rate:.2f} it/s"
+        teach = "" if terms.teacher is None else f"  L_t {row[8]:.2e}"
+        status = f"loss {row[2]:.3f}  L_p {row[3]:.2e}  L_b {row[4]:.2e}{teach}  val {row[5]:.3f}  {rate:.2f} it/s"
         if self.bar is not None:
             self.bar.update(self.task, completed=run.iteration, status=status)
         elif run.iteration % (10 * self.cfg.log_every) == 0:
@@ -413,7 +448,7 @@ def build(cfg: TrainConfig, rank: int, world: int, device: torch.device) -> tupl
         net = nn.parallel.DistributedDataParallel(model, device_ids=[device.index] if device.type == "cuda" else None)
     if cfg.compile:
         net = torch.compile(net)
-    return Run(model, opt, pool, make_loss_fn(cfg)), net
+    return Run(model, opt, pool, make_loss_fn(cfg), make_teacher(cfg)), net
 
 
 def _due(run: Run, cfg: TrainConfig, last_save: float, world: int) -> bool:
