@@ -226,7 +226,8 @@ class SimulateConfig:
     flush_every: HDF5 write period (frames). ParaView opens the run through the XDMF sidecar
     written beside the trajectory (fishsim.io.xdmf).
     device: cpu | cuda.  overwrite: replace an existing output (else refused: a finished run is never lost).
-    check_memory: refuse a run whose estimated memory exceeds what is available (fishsim/resources.py).
+    check_resources: refuse a run whose estimated memory exceeds what is available, or, inside a
+        SLURM job, whose estimated time exceeds what is left of it (fishsim.resources).
     """
 
     fish: FishConfig = field(default_factory=FishConfig)
@@ -245,7 +246,7 @@ class SimulateConfig:
     output: str = "trajectory.h5"
     out_dir: str | None = None
     overwrite: bool = False
-    check_memory: bool = True
+    check_resources: bool = True
 
     def validate(self) -> None:
         for part in (self.fish, self.controller, self.batch, self.fluid):

@@ -1,5 +1,6 @@
-"""Memory checked before anything is allocated: a run that cannot fit stops with one line
-instead of growing into an out-of-memory kill.
+"""Memory and time checked before anything is allocated: a run that cannot fit stops with one
+line instead of growing into an out-of-memory kill, and a run that cannot finish inside its SLURM
+job stops before it starts. ``check_resources=false`` overrides both.
 
 The estimate of an episode (bytes), with B fish, C = (H r) (W r) fluid cells on the internal grid
 (r the refinement), N mesh nodes (estimated from the edge length before meshing: the default
@@ -13,16 +14,31 @@ The estimate of an episode (bytes), with B fish, C = (H r) (W r) fluid cells on 
 
 Measured for scale: the default HydroNet episode peaks at 0.88 GB (estimate 0.62 GB without
 gradients); a 500-frame HydroNet gradient episode at 0.98 GB (estimate 1.5 GB).
+
+The time of an episode (seconds), calibrated on this project's 2-core CPU reference (``make
+bench``: 300 default frames at B = 1 take 19 / 89 s forward / backward with the numerical fluid
+and 18 / 25 s with HydroNet; the solid alone ~5 ms a frame):
+
+    per fish and frame  t = 5 ms (N / 1775)^1.5 + c_fluid C r^3     c_numerical = 2.0 us, c_hydronet = 1.8 us
+    episode             T frames B fish t, times g for a gradient run (g = 5.6 numerical, 2.4 HydroNet, 1.5 vacuum)
+
+(r^3: r^2 the cells of the refined grid, r the sub-steps.)  The estimate is printed before a run on
+the CPU; inside a SLURM job (``SLURM_JOB_END_TIME``) a run estimated to outlast the job is refused.
 """
 
 from __future__ import annotations
 
 import math
+import os
+import time
 from pathlib import Path
 
 from fishsim.errors import ConfigError
 
 NODES_DEFAULT, EDGE_DEFAULT, LENGTH_DEFAULT = 1775, 2.0e-3, 0.2
+SOLID_FRAME_S = 5e-3                                              # default fish, one frame [s]
+FLUID_CELL_FRAME_S = {"numerical": 2.0e-6, "hydronet": 1.8e-6, "none": 0.0}
+GRADIENT_FACTOR = {"numerical": 5.6, "hydronet": 2.4, "none": 1.5}  # (forward + backward) / forward
 
 
 def estimated_nodes(length: float, edge_length: float) -> int:
@@ -52,14 +68,59 @@ def available_bytes() -> float | None:
     return None
 
 
+def episode_seconds(cfg, batch: int, frames: int, gradient: bool = False) -> float:
+    """The module docstring's time estimate [s] of ``frames`` frames of ``batch`` fish."""
+    f = cfg.fluid
+    r = f.refinement if f.model == "numerical" else 1
+    nodes = estimated_nodes(cfg.fish.length, cfg.fish.edge_length)
+    per_frame = SOLID_FRAME_S * (nodes / NODES_DEFAULT) ** 1.5
+    if f.model != "none":
+        per_frame += FLUID_CELL_FRAME_S[f.model] * f.H * f.W * r**3
+    return frames * batch * per_frame * (GRADIENT_FACTOR[f.model] if gradient else 1.0)
+
+
+def job_seconds_left() -> float | None:
+    """Seconds until the SLURM job this runs in ends (``SLURM_JOB_END_TIME``), None outside one."""
+    end = os.environ.get("SLURM_JOB_END_TIME", "")
+    return float(end) - time.time() if end.strip().isdigit() else None
+
+
+def describe_seconds(seconds: float) -> str:
+    """A duration for people: '40 s', '12 min', '3.5 h', '2.1 days'."""
+    for unit, size in (("days", 86400.0), ("h", 3600.0), ("min", 60.0)):
+        if seconds >= 2 * size:
+            return f"{seconds / size:.2g} {unit}"
+    return f"{seconds:.0f} s"
+
+
+def check_time(cfg, batch: int, frames: int, gradient: bool = False) -> float:
+    """The estimated run time [s]; ConfigError (one line) when it exceeds what is left of the
+    SLURM job this runs in, unless ``cfg.check_resources`` is false."""
+    need, left = episode_seconds(cfg, batch, frames, gradient), job_seconds_left()
+    if getattr(cfg, "check_resources", True) and left is not None and need > left:
+        raise ConfigError(f"this run needs about {describe_seconds(need)} (estimate) and its SLURM job ends in "
+                          f"{describe_seconds(max(left, 0.0))}; ask for a longer job (hydra.launcher.timeout_min), "
+                          "run fewer frames or fish, or pass check_resources=false")
+    return need
+
+
 def check_memory(cfg, batch: int, gradient_frames: int = 0, segment: int = 25) -> None:
     """ConfigError (one line) when the estimate exceeds 90 % of the available memory, unless
-    ``cfg.check_memory`` is false."""
-    if not getattr(cfg, "check_memory", True):
+    ``cfg.check_resources`` is false."""
+    if not getattr(cfg, "check_resources", True):
         return
     need, have = episode_bytes(cfg, batch, gradient_frames, segment), available_bytes()
     if have is not None and need > 0.9 * have:
         raise ConfigError(f"this run needs about {need / 1e9:.3g} GB of memory and {have / 1e9:.3g} GB are available "
                           f"(grid {cfg.fluid.H} x {cfg.fluid.W}, refinement {cfg.fluid.refinement}, "
                           f"~{estimated_nodes(cfg.fish.length, cfg.fish.edge_length)} mesh nodes, {batch} fish); "
-                          "use a smaller grid, a coarser fish.edge_length or fewer fish, or check_memory=false")
+                          "use a smaller grid, a coarser fish.edge_length or fewer fish, or check_resources=false")
+
+
+
+def announce_time(seconds: float, what: str, device: str = "cpu") -> None:
+    """One line on stderr with a CPU run's estimated time, for runs long enough to wonder (>= 30 s)."""
+    if device == "cpu" and seconds >= 30:
+        from rich.console import Console
+
+        Console(stderr=True).print(f"[dim]{what}: about {describe_seconds(seconds)} on a 2-core CPU (estimate)[/]")

@@ -39,6 +39,7 @@ from fishsim.io.outdir import make_out_dir
 from fishsim.optimize.methods import make_method
 from fishsim.optimize.problem import OBJECTIVES, PARAMETERS, Problem, Space
 from fishsim.render.plots import plot_optimisation_history
+from fishsim.resources import announce_time, check_time
 
 
 def run(cfg: OptimizeConfig) -> dict:
@@ -94,6 +95,12 @@ def optimise(problem: Problem, cfg: OptimizeConfig, name: str, folder: Path, con
         method.load(saved["method"])
         rows = saved["rows"]
     cost = cfg.frames * (getattr(method, "popsize", 0) or 2)
+    left = o.iterations - len(rows)
+    if o.budget is not None:
+        left = min(left, max(0, (o.budget - (rows[-1]["frames"] if rows else 0)) // cost))
+    fish = getattr(method, "popsize", 0) or 1
+    seconds = check_time(cfg, fish, cfg.frames * left, gradient=method.uses_gradient)
+    announce_time(seconds, f"{name}, {left} iterations", cfg.device)
     columns = (TextColumn(f"optimize {name}"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[status]}"),
                TimeElapsedColumn())
     with Progress(*columns, console=console, transient=True) as bar:

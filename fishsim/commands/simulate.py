@@ -23,7 +23,7 @@ from fishsim.fluid.hydronet.trained_range import check_fluid
 from fishsim.io.outdir import make_out_dir, output_file
 from fishsim.io.trajectory import TrajectoryWriter, trajectory_series
 from fishsim.io.xdmf import write_xdmf
-from fishsim.resources import check_memory
+from fishsim.resources import announce_time, check_memory, check_time
 from fishsim.rollout import METRICS, Swimmer, SwimParams, rollout
 from fishsim.solid import SolidModel
 from fishsim.solid.controller import WaveController, calibrated_amplitude
@@ -127,7 +127,9 @@ def run(cfg: SimulateConfig) -> dict:
     if path.exists() and not cfg.overwrite:
         raise ConfigError(f"{path} already exists (an earlier run's result); pass overwrite=true to replace it "
                           "or choose another out_dir / output")
+    seconds = check_time(cfg, cfg.batch.size, cfg.frames)
     episode = build_episode(cfg)
+    announce_time(seconds, f"{cfg.frames} frames of {cfg.batch.size} fish", cfg.device)
     sw = episode.swimmer
     writer = open_writer(cfg, episode, path)
     state = sw.initial_state(episode.params, episode.origin)

@@ -1,6 +1,7 @@
 """Output folders: a finished result is never overwritten by accident, default folders are
 unique, and a folder another run is writing to is refused."""
 
+import dataclasses
 import subprocess
 import sys
 import time
@@ -70,5 +71,34 @@ def test_unusable_out_dir_is_one_line(tmp_path, make_bad, words):
 def test_a_run_too_large_for_memory_is_refused_up_front(tmp_path, override):
     t0 = time.perf_counter()
     result = runner.invoke(app, ["simulate", "fluid=numerical", *override, f"out_dir={tmp_path}"])
-    assert result.exit_code == 2 and "GB of memory" in result.output and "check_memory=false" in result.output
+    assert result.exit_code == 2 and "GB of memory" in result.output and "check_resources=false" in result.output
     assert time.perf_counter() - t0 < 10 and not (tmp_path / "trajectory.h5").exists()
+
+
+def test_a_run_longer_than_its_slurm_job_is_refused_up_front(tmp_path, monkeypatch):
+    """Inside a SLURM job the estimated run time is checked against the job's end: a 300-frame
+    paper-scale run in a job with one second left is refused in one line, nothing written;
+    check_resources=false lets a (tiny) run go ahead."""
+    monkeypatch.setenv("SLURM_JOB_END_TIME", str(int(time.time()) + 1))
+    result = runner.invoke(app, ["simulate", "fluid=numerical", f"out_dir={tmp_path / 'a'}"])
+    assert result.exit_code == 2 and "SLURM job ends in" in result.output, result.output
+    assert "check_resources=false" in result.output and not (tmp_path / "a" / "trajectory.h5").exists()
+    result = runner.invoke(app, ["simulate", *TINY, "check_resources=false", f"out_dir={tmp_path / 'b'}"])
+    assert result.exit_code == 0 and (tmp_path / "b" / "trajectory.h5").exists(), result.output
+
+
+def test_the_time_estimate_scales_with_what_the_run_does():
+    """The estimate grows linearly in frames and fish, with the refined grid as r^3 (cells and
+    sub-steps), and a gradient run costs more than a forward one; the default numerical
+    episode is in the calibration's range (300 frames ~ 20 s on the 2-core CPU)."""
+    from fishsim.config import SimulateConfig
+    from fishsim.resources import episode_seconds
+
+    cfg = SimulateConfig()
+    one = episode_seconds(cfg, 1, 300)
+    assert 10 < one < 40
+    assert episode_seconds(cfg, 4, 600) == pytest.approx(8 * one)
+    refined = dataclasses.replace(cfg, fluid=dataclasses.replace(cfg.fluid, refinement=2))
+    fluid_share = one - episode_seconds(dataclasses.replace(cfg, fluid=dataclasses.replace(cfg.fluid, model="none")), 1, 300)
+    assert episode_seconds(refined, 1, 300) - one == pytest.approx(7 * fluid_share)
+    assert episode_seconds(cfg, 1, 300, gradient=True) > 4 * one
