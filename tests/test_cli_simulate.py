@@ -76,7 +76,7 @@ def _tiny_hydronet(path):
     import torch
 
     from fishsim.fluid.hydronet import HydroNet, NetConfig
-    from fishsim.fluid.hydronet.train import atomic_save
+    from fishsim.io.atomic import atomic_save
 
     torch.manual_seed(0)
     net = HydroNet(NetConfig(hidden=4, depth=2))

@@ -21,7 +21,6 @@ import dataclasses
 import io
 import json
 import math
-import os
 import time
 from pathlib import Path
 
@@ -34,7 +33,7 @@ from rich.table import Table
 
 from fishsim.config import OptimizeConfig, SimulateConfig, to_yaml
 from fishsim.errors import ConfigError, FishsimError, SimulationBlowUp
-from fishsim.fluid.hydronet.train import atomic_save
+from fishsim.io.atomic import atomic_path, atomic_save, atomic_text
 from fishsim.io.outdir import make_out_dir
 from fishsim.optimize.methods import make_method
 from fishsim.optimize.problem import OBJECTIVES, PARAMETERS, Problem, Space
@@ -62,7 +61,7 @@ def run(cfg: OptimizeConfig) -> dict:
              "parameters": {n: [r["x"][i] for r in rows] for i, n in enumerate(space.names)}}
          for m, rows in histories.items() if rows},
         out_dir / "optimize", objective_label=f"{cfg.objective.name} J [{unit}]", units=PARAMETERS)
-    _atomic_text(out_dir / "summary.json", json.dumps(summary, indent=2))
+    atomic_text(out_dir / "summary.json", json.dumps(summary, indent=2))
     _print(summary, space, cfg)
     Console().print(f"outputs: {out_dir}/ (per method: history.h5, history.csv, best.yaml; plot: {plot[0].name})")
     return summary
@@ -168,8 +167,7 @@ def _reasons(failures: dict) -> str:
 
 
 def _save(folder: Path, rows: list[dict], space: Space, cfg: OptimizeConfig, name: str) -> None:
-    tmp = folder / "history.h5.tmp"
-    with h5py.File(tmp, "w") as f:
+    with atomic_path(folder / "history.h5") as tmp, h5py.File(tmp, "w") as f:
         for key in ("iteration", "J", "best_J", "frames", "seconds", "failed"):
             f[key] = np.array([r[key] for r in rows])
         for key in ("x", "grad", "mean_x", "best_x"):
@@ -181,7 +179,6 @@ def _save(folder: Path, rows: list[dict], space: Space, cfg: OptimizeConfig, nam
                         "units": [PARAMETERS[n] for n in space.names], "objective": cfg.objective.name,
                         "objective_unit": OBJECTIVES[cfg.objective.name], "frames_per_episode": cfg.frames,
                         "config": to_yaml(cfg)})
-    os.replace(tmp, folder / "history.h5")
     buf = io.StringIO()
     w = csv.writer(buf)
     w.writerow(["iteration", "frames", "seconds", "J", "best_J", "failed",
@@ -189,7 +186,7 @@ def _save(folder: Path, rows: list[dict], space: Space, cfg: OptimizeConfig, nam
     for r in rows:
         w.writerow([r["iteration"], r["frames"], f"{r['seconds']:.3f}", repr(r["J"]), repr(r["best_J"]), r["failed"],
                     *map(repr, r["x"] + r["grad"] + r["mean_x"])])
-    _atomic_text(folder / "history.csv", buf.getvalue())
+    atomic_text(folder / "history.csv", buf.getvalue())
 
 
 def _write_best(cfg: OptimizeConfig, space: Space, rows: list[dict], path: Path) -> None:
@@ -208,13 +205,7 @@ def _write_best(cfg: OptimizeConfig, space: Space, rows: list[dict], path: Path)
     sim.out_dir = None
     header = (f"# best of fishsim optimize ({rows[-1]['method']}): {cfg.objective.name} J = {rows[-1]['best_J']:.6g} "
               f"{OBJECTIVES[cfg.objective.name]}\n# run it: fishsim simulate --config {path}\n")
-    _atomic_text(path, header + to_yaml(sim))
-
-
-def _atomic_text(path: Path, text: str) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+    atomic_text(path, header + to_yaml(sim))
 
 
 def _summary(rows: list[dict], space: Space, x0: list[float]) -> dict:

@@ -43,6 +43,7 @@ from fishsim.fluid.hydronet.loss import EPS, LossConfig, LossTerms, hydronet_los
 from fishsim.fluid.hydronet.pool import PoolConfig, ScenePool, advance, random_scene, scene_boundaries
 from fishsim.fluid.hydronet.trained_range import stored_range, training_range
 from fishsim.fluid.hydronet.unet import HydroNet, NetConfig
+from fishsim.io.atomic import atomic_save, atomic_text
 
 
 @dataclass(frozen=True)
@@ -234,13 +235,6 @@ def validate(model: HydroNet, cfg: TrainConfig, seed: int = 12345) -> float:
 # ------------------------------------------------------------------------ checkpoints
 
 
-def atomic_save(obj, path: Path) -> None:
-    """torch.save to ``path`` via a temporary file and os.replace (never a half-written file)."""
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
-
-
 def save_checkpoint(run: Run, cfg: TrainConfig, out: Path, rank: int) -> None:
     """Rank 0: model, optimiser, counters, pool, RNG in ckpt.pt; other ranks: their pool, RNG and
     model copy (identical parameters under DDP) in ckpt_rank{r}.pt."""
@@ -404,9 +398,7 @@ def trim_log(path: Path, start: int) -> None:
     keep = lines[:1] + [line for line in lines[1:] if _row_iteration(line) is not None
                         and _row_iteration(line) <= start]
     if len(keep) < len(lines):
-        tmp = path.with_name(path.name + ".tmp")
-        tmp.write_text("".join(keep))
-        os.replace(tmp, path)
+        atomic_text(path, "".join(keep))
 
 
 def _row_iteration(line: str) -> int | None:
