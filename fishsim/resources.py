@@ -15,11 +15,12 @@ The estimate of an episode (bytes), with B fish, C = (H r) (W r) fluid cells on 
 Measured for scale: the default HydroNet episode peaks at 0.88 GB (estimate 0.62 GB without
 gradients); a 500-frame HydroNet gradient episode at 0.98 GB (estimate 1.5 GB).
 
-The time of an episode (seconds), calibrated on this project's 2-core CPU reference (``make
-bench``: 300 default frames at B = 1 take 19 / 89 s forward / backward with the numerical fluid
-and 18 / 25 s with HydroNet; the solid alone ~5 ms a frame):
+The time of an episode (seconds), calibrated on this project's 2-core CPU with nothing else
+running (default fish, 60 frames: numerical fluid 84 ms a frame, of which the fluid 66 ms, the
+solid and the coupling 14 ms; HydroNet 44 ms a frame, the network 30 ms; gradient factors from
+``make bench``, 300 frames forward / backward: 19 / 89 s numerical, 18 / 25 s HydroNet):
 
-    per fish and frame  t = 5 ms (N / 1775)^1.5 + c_fluid C r^3     c_numerical = 2.0 us, c_hydronet = 1.8 us
+    per fish and frame  t = 14 ms (N / 1775)^1.5 + c_fluid C r^3    c_numerical = 2.2 us, c_hydronet = 1.0 us
     episode             T frames B fish t, times g for a gradient run (g = 5.6 numerical, 2.4 HydroNet, 1.5 vacuum)
 
 (r^3: r^2 the cells of the refined grid, r the sub-steps.)  The estimate is printed before a run on
@@ -36,8 +37,8 @@ from pathlib import Path
 from fishsim.errors import ConfigError
 
 NODES_DEFAULT, EDGE_DEFAULT, LENGTH_DEFAULT = 1775, 2.0e-3, 0.2
-SOLID_FRAME_S = 5e-3                                              # default fish, one frame [s]
-FLUID_CELL_FRAME_S = {"numerical": 2.0e-6, "hydronet": 1.8e-6, "none": 0.0}
+SOLID_FRAME_S = 14e-3                                   # solid + coupling, default fish, one frame [s]
+FLUID_CELL_FRAME_S = {"numerical": 2.2e-6, "hydronet": 1.0e-6, "none": 0.0}
 GRADIENT_FACTOR = {"numerical": 5.6, "hydronet": 2.4, "none": 1.5}  # (forward + backward) / forward
 
 
