@@ -16,8 +16,8 @@ import torch
 from fishsim.fluid.base import Boundary, FluidParams, FluidState, Grid
 from fishsim.fluid.grid import closed_tank
 from fishsim.fluid.hydronet import train as T
+from fishsim.fluid.hydronet.config import NETWORK
 from fishsim.fluid.hydronet.unet import HydroNet, HydroNetFluid, NetConfig
-from fishsim.fluid.pressure import NETWORK
 
 GRID = Grid(100, 300, 2.5e-3)
 

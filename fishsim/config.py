@@ -18,14 +18,12 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from fishsim.commands.validate import ValidateConfig
-from fishsim.coupling.layer import CouplingConfig
+from fishsim.coupling.config import CouplingConfig
 from fishsim.errors import ConfigError
-from fishsim.fluid.hydronet.train import TrainConfig
-from fishsim.fluid.pressure import PRESSURES
-from fishsim.mesh.triangulate import GRADED_ACROSS
-from fishsim.optimize.problem import ObjectiveConfig, ParamSpec
+from fishsim.fluid.hydronet.config import PRESSURES
+from fishsim.optimize.config import ObjectiveConfig, ParamSpec
 from fishsim.render.config import RenderConfig
-from fishsim.solid.model import PDOptions, SolidMaterial
+from fishsim.solid.config import PDOptions, SolidMaterial
 
 
 def _require(cond: bool, msg: str) -> None:
@@ -78,6 +76,8 @@ class FishConfig:
         """``elements_across`` the mesher uses: as set, or by default GRADED_ACROSS (6) for the
         muscle layer and 2 (the paper's uniform mesh, on which PAPER_C is calibrated) for
         ``muscles=paper``."""
+        from fishsim.mesh.triangulate import GRADED_ACROSS
+
         if self.elements_across is not None:
             return float(self.elements_across)
         return 2.0 if self.muscles == "paper" else GRADED_ACROSS
@@ -339,8 +339,20 @@ class OptimizeConfig(SimulateConfig):
                      f"({cheapest} fish-frames at frames={self.frames}); raise it or shorten the episode")
 
 
+#: Each command's structured config, but train-hydronet's, which ``root`` imports when asked for.
 ROOTS: dict[str, type] = {"mesh": MeshCommandConfig, "simulate": SimulateConfig, "render": RenderConfig,
-                         "train-hydronet": TrainConfig, "validate": ValidateConfig, "optimize": OptimizeConfig}
+                         "validate": ValidateConfig, "optimize": OptimizeConfig}
+
+
+def root(command: str) -> type:
+    """The structured config of ``command``. train-hydronet's, TrainConfig, is imported here, when
+    asked for: its module (fishsim/fluid/hydronet/train.py) imports torch, which the other
+    commands' help does not need."""
+    if command == "train-hydronet":
+        from fishsim.fluid.hydronet.train import TrainConfig
+
+        return TrainConfig
+    return ROOTS[command]
 
 
 def config_dir() -> str:
@@ -419,7 +431,7 @@ def _merge_file(raw: Any, path: str, dotted: list[str]) -> Any:
 
 def to_dataclass(command: str, raw: Any) -> Any:
     """Merge a composed config into the command's schema, build the dataclasses, validate."""
-    schema = OmegaConf.structured(ROOTS[command])
+    schema = OmegaConf.structured(root(command))
     _writable(schema)
     try:
         merged = OmegaConf.merge(schema, raw)

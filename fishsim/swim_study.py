@@ -10,51 +10,18 @@ and the rest of its batch carries on.
 
 from __future__ import annotations
 
-import itertools
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 
-from fishsim.errors import ConfigError
+from fishsim.swim_study_config import FLUIDS, ConvergenceStudyConfig, SwimStudyConfig
 
-# The fluids the study knows, as `fishsim simulate` overrides.
-FLUIDS = {
-    "numerical_r2": ["fluid=numerical", "fluid.refinement=2"],
-    "numerical": ["fluid=numerical"],
-    "hydronet": ["fluid=hydronet"],
-    "hydronet_network": ["fluid=hydronet", "fluid.pressure=network"],
-}
 # The paper's Table 1 (300 frames, their hardware) and Fig. 4 (mean mismatch, argmax).
 PAPER = {"hydronet_forward_s_per_frame": 213.0 / 300, "comsol_s_per_frame": (5 * 3600 + 16 * 60 + 39) / 300,
          "mean_mismatch_mm": 15.0, "mean_mismatch_cells": 6.0, "argmax_hz": 5.0}
-
-
-@dataclass
-class SwimStudyConfig:
-    """suite=swim. frequencies (Hz); frames per episode; fluids: names of FLUIDS; reference: the
-    one the others are compared with; overrides: more `fishsim simulate` overrides for every run
-    (e.g. a smaller tank)."""
-
-    frequencies: list[float] = field(default_factory=lambda: [3.0, 4.0, 5.0, 6.0, 7.0])
-    frames: int = 120
-    fluids: list[str] = field(default_factory=lambda: ["numerical_r2", "numerical", "hydronet", "hydronet_network"])
-    reference: str = "numerical_r2"
-    overrides: list[str] = field(default_factory=list)
-
-    def validate(self) -> None:
-        if len(self.frequencies) < 2 or not all(f > 0 for f in self.frequencies):
-            raise ConfigError(f"swim.frequencies needs at least 2 positive values (got {list(self.frequencies)})")
-        unknown = [f for f in self.fluids if f not in FLUIDS]
-        if unknown or not self.fluids:
-            raise ConfigError(f"swim.fluids: unknown {unknown} (choose from {', '.join(FLUIDS)})")
-        if self.reference not in self.fluids:
-            raise ConfigError(f"swim.reference '{self.reference}' must be one of swim.fluids {list(self.fluids)}")
-        if self.frames < 1:
-            raise ConfigError(f"swim.frames must be >= 1 (got {self.frames})")
 
 
 def spearman(a, b) -> float:
@@ -127,55 +94,6 @@ def frequency_study(cfg: SwimStudyConfig, device: str = "cpu",
 # ------------------------------------------------------------------------------------------------
 # Convergence of the study in the numerical knobs (suite=convergence)
 # ------------------------------------------------------------------------------------------------
-
-
-@dataclass
-class Knob:
-    """One numerical setting of the study: the `fishsim simulate` key, its values from coarse to
-    fine (``finer``: "up" when a larger value is finer, "down" when smaller is, e.g. a kernel
-    width), the shipped default (its error is reported), and an optional episode length of its own
-    (a shorter episode for an expensive refinement)."""
-
-    key: str
-    values: list[float]
-    default: float
-    finer: str = "up"
-    frames: int | None = None
-
-    def check(self, name: str) -> None:
-        v = self.values
-        if len(v) < 2 or self.finer not in ("up", "down"):
-            raise ConfigError(f"convergence.knobs.{name}: give >= 2 values and finer: up | down")
-        sign = 1 if self.finer == "up" else -1
-        ordered = all(sign * (b - a) > 0 for a, b in itertools.pairwise(v))
-        if not ordered:
-            raise ConfigError(f"convergence.knobs.{name}.values must go from coarse to fine "
-                              f"({'increasing' if self.finer == 'up' else 'decreasing'}; got {list(v)})")
-
-
-def _knobs() -> dict[str, Knob]:
-    return {"substeps": Knob("fluid.substeps", [4, 8, 16], 8),
-            "penalization": Knob("fluid.penalization_iterations", [1, 2, 4], 2),
-            "kernel": Knob("coupling.sigma_prime", [2.5e-5, 1.25e-5, 6.25e-6], 6.25e-6, finer="down"),
-            "grid": Knob("fluid.refinement", [1, 2], 1),
-            "grid_short": Knob("fluid.refinement", [1, 2, 4], 1, frames=30)}
-
-
-@dataclass
-class ConvergenceStudyConfig:
-    """suite=convergence: the frequency study (head displacement, mean thrust) against each knob,
-    the others at their defaults. overrides: for every run (the fluid: numerical by default)."""
-
-    frequencies: list[float] = field(default_factory=lambda: [3.0, 5.0, 7.0])
-    frames: int = 120
-    knobs: dict[str, Knob] = field(default_factory=_knobs)
-    overrides: list[str] = field(default_factory=lambda: ["fluid=numerical"])
-
-    def validate(self) -> None:
-        if not self.frequencies or not all(f > 0 for f in self.frequencies) or self.frames < 1:
-            raise ConfigError("convergence.frequencies must be positive and convergence.frames >= 1")
-        for name, knob in self.knobs.items():
-            knob.check(name)
 
 
 def observed_order(values, d) -> dict:

@@ -10,7 +10,8 @@ from typer.testing import CliRunner
 from fishsim.cli import app
 from fishsim.commands.validate import run
 from fishsim.config import load_config
-from fishsim.swim_study import Knob, observed_order
+from fishsim.swim_study import observed_order
+from fishsim.swim_study_config import Knob
 
 runner = CliRunner()
 SMALL = ["fluid=numerical", "fluid.H=32", "fluid.W=96", "fish.length=0.06", "fish.edge_length=4e-3",

@@ -35,8 +35,9 @@ from fishsim.config import OptimizeConfig, SimulateConfig, to_yaml
 from fishsim.errors import ConfigError, FishsimError, SimulationBlowUp
 from fishsim.io.atomic import atomic_path, atomic_save, atomic_text
 from fishsim.io.outdir import make_out_dir
+from fishsim.optimize.config import OBJECTIVES, PARAMETERS
 from fishsim.optimize.methods import make_method
-from fishsim.optimize.problem import OBJECTIVES, PARAMETERS, Problem, Space
+from fishsim.optimize.problem import Problem, Space
 from fishsim.render.plots import plot_optimisation_history
 from fishsim.resources import announce_time, check_time
 

@@ -34,10 +34,9 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from fishsim.errors import ConfigError
-from fishsim.fluid.hydronet.evaluate import EvalConfig, evaluate, summarise
-from fishsim.fluid.pressure import PRESSURES
+from fishsim.fluid.hydronet.config import PRESSURES, EvalConfig
 from fishsim.io.outdir import make_out_dir
-from fishsim.swim_study import PAPER, ConvergenceStudyConfig, SwimStudyConfig
+from fishsim.swim_study_config import ConvergenceStudyConfig, SwimStudyConfig
 
 SUITES = ("hydronet", "solid", "swim", "convergence")
 STUDY_FLUIDS = ("none", "numerical", "hydronet")
@@ -157,7 +156,7 @@ def run_convergence(cfg: ValidateConfig) -> dict:
 def run_swim(cfg: ValidateConfig) -> dict:
     """suite=swim: the frequency study (module docstring)."""
     from fishsim.render.plots import plot_validation
-    from fishsim.swim_study import frequency_study
+    from fishsim.swim_study import PAPER, frequency_study
 
     out_dir = make_out_dir("validate", cfg.out_dir)
     s = cfg.swim
@@ -247,6 +246,7 @@ def run_hydronet(cfg: ValidateConfig) -> dict:
     from fishsim.fluid.base import Grid
     from fishsim.fluid.factory import SHIPPED_HYDRONET
     from fishsim.fluid.hydronet import HydroNetFluid, load_hydronet
+    from fishsim.fluid.hydronet.evaluate import evaluate, summarise
     from fishsim.fluid.hydronet.trained_range import check_fluid
     from fishsim.fluid.numerical import NumericalFluid
     from fishsim.render.plots import plot_fluid_comparison

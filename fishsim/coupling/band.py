@@ -23,10 +23,10 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from fishsim.coupling.config import NODE, SEGMENT
 from fishsim.coupling.geometry import next_nodes
 from fishsim.fluid.base import Grid
 
-SEGMENT, NODE = "segment", "node"
 _CHUNK_ELEMENTS = 1 << 22  # cells x segments x batch per chunk of the no-grad pass (16 MB fp32)
 
 

@@ -34,7 +34,8 @@ import math
 import torch
 from torch import Tensor
 
-from fishsim.coupling.ibm import KERNEL_RADIUS, NONE, kernel_cells, sample_weights
+from fishsim.coupling.config import NONE
+from fishsim.coupling.ibm import KERNEL_RADIUS, kernel_cells, sample_weights
 from fishsim.fluid.base import Grid
 
 #: Variance of the spreading kernel in cell units squared (standard deviation 1.5 cells).

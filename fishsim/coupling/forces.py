@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from torch import Tensor
 
-PER_NODE, AVERAGE = "per_node", "average"
+from fishsim.coupling.config import AVERAGE, PER_NODE
 
 
 def burn_in_scale(step: int, n_burn_in: int) -> float:

@@ -56,12 +56,10 @@ import math
 import torch
 from torch import Tensor
 
+from fishsim.coupling.config import BODY, CHORD, FLUID, LINEAR, MEAN, NONE, PAPER
 from fishsim.coupling.geometry import area_vectors, surface_geometry
 from fishsim.fluid.base import Grid
 
-FLUID, BODY, NONE = "fluid", "body", "none"
-MEAN, LINEAR = "mean", "linear"
-CHORD, PAPER = "chord", "paper"
 KERNEL_RADIUS = 4.0  # in standard deviations sqrt(sigma')
 
 

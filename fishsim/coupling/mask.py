@@ -46,19 +46,11 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from fishsim.coupling.band import (
-    NODE,
-    SEGMENT,
-    SurfaceBand,
-    band_margin,
-    gather_nodes,
-    scatter_band,
-    surface_band,
-)
+from fishsim.coupling.band import SurfaceBand, band_margin, gather_nodes, scatter_band, surface_band
+from fishsim.coupling.config import ARITHMETIC, HARMONIC, NODE, SEGMENT
 from fishsim.coupling.geometry import segment_closest_point
 from fishsim.fluid.base import Grid
 
-HARMONIC, ARITHMETIC = "harmonic", "arithmetic"
 XI, SIGMA, TAU = 5e-7, 5e-7, 5e-7
 
 

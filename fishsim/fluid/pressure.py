@@ -56,9 +56,6 @@ from fishsim.fluid.grid import Faces, divergence, gradient
 from fishsim.fluid.residual import fluid_face_masks, momentum_residual
 from fishsim.solid.banded import BandedCholesky, BandLayout
 
-RECOVERED, NETWORK = "recovered", "network"
-PRESSURES = (RECOVERED, NETWORK)
-
 
 @dataclass(frozen=True)
 class RecoveryConfig:

@@ -7,19 +7,12 @@
 `controller.muscle_contraction` turns the paper's travelling-wave controller into `contraction`.
 """
 
-from fishsim.solid.fem import FemQuantities, fem_quantities
-from fishsim.solid.model import PDOptions, SolidMaterial, SolidModel
-from fishsim.solid.solve import ForwardInfo
-from fishsim.solid.step import pd_step, predicted_start, rest_state
+from fishsim.lazy import exports
 
-__all__ = [
-           "FemQuantities",
-           "ForwardInfo",
-           "PDOptions",
-           "SolidMaterial",
-           "SolidModel",
-           "fem_quantities",
-           "pd_step",
-           "predicted_start",
-           "rest_state",
-]
+__getattr__, __all__ = exports(__name__, {
+    "config": ("PDOptions", "SolidMaterial"),
+    "fem": ("FemQuantities", "fem_quantities"),
+    "model": ("SolidModel",),
+    "solve": ("ForwardInfo",),
+    "step": ("pd_step", "predicted_start", "rest_state"),
+})

@@ -42,7 +42,8 @@ import torch
 
 from fishsim.mesh.fish_mesh import ACTUATOR_NONE, FishMesh
 from fishsim.mesh.triangulate import check_mesh, surface_polyline, triangulate_outline
-from fishsim.solid.model import PDOptions, SolidMaterial, SolidModel
+from fishsim.solid.config import PDOptions, SolidMaterial
+from fishsim.solid.model import SolidModel
 from fishsim.solid.step import pd_step, rest_state
 
 BETA_1 = 1.8751040687119611          # first root of cos(b) cosh(b) = -1

@@ -83,7 +83,7 @@ def beam_study(across: Sequence[int] = BEAM_ACROSS, volume_term: bool = False) -
     """Cantilever tip deflection and first bending frequency against Euler-Bernoulli (relative
     errors static_err, frequency_err) at each number of elements across the thickness."""
     from fishsim.solid.beam import Cantilever
-    from fishsim.solid.model import SolidMaterial
+    from fishsim.solid.config import SolidMaterial
 
     beam = Cantilever(material=SolidMaterial(volume_term=volume_term))
     load = 3 * beam.bending_stiffness * 1e-3 / beam.length**3          # 1 mm tip deflection

@@ -10,7 +10,8 @@ from typer.testing import CliRunner
 
 from fishsim.cli import app
 from fishsim.fluid.base import Grid
-from fishsim.fluid.hydronet.evaluate import EvalConfig, Scenes, evaluate, summarise
+from fishsim.fluid.hydronet.config import EvalConfig
+from fishsim.fluid.hydronet.evaluate import Scenes, evaluate, summarise
 from fishsim.fluid.numerical import NumericalFluid
 
 SMALL = EvalConfig(speeds=[0.2], frequencies=[5.0], warmup=3, steps=3, H=40, W=120, dx=5e-3, wall_y=2, wall_x=3)

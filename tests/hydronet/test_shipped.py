@@ -9,7 +9,8 @@ import torch
 from fishsim.fluid.base import Grid
 from fishsim.fluid.factory import SHIPPED_HYDRONET
 from fishsim.fluid.hydronet import HydroNet, HydroNetFluid, PoolConfig, ScenePool, load_hydronet
-from fishsim.fluid.hydronet.evaluate import EvalConfig, evaluate
+from fishsim.fluid.hydronet.config import EvalConfig
+from fishsim.fluid.hydronet.evaluate import evaluate
 from fishsim.fluid.hydronet.train import export_model
 from fishsim.fluid.numerical import NumericalFluid
 

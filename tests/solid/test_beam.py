@@ -7,7 +7,7 @@ across its thickness. Measured (1 mm tip deflection): static error -24.1 / -7.5 
 import pytest
 
 from fishsim.solid.beam import Cantilever, plane_modulus
-from fishsim.solid.model import SolidMaterial
+from fishsim.solid.config import SolidMaterial
 
 
 def _beam(volume_term=False):

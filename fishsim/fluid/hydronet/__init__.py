@@ -5,23 +5,14 @@ loss.py   unsupervised Navier-Stokes + boundary loss (uses ``fishsim.fluid.resid
 pool.py   randomised training scenes (obstacles, inflows, swimming fish) fed with the net's output
 train.py  ``run(TrainConfig)``: training loop, checkpoints, logs, DDP; ``load_hydronet``
 scales.py grid units U* = dx/h, A* = dx^2/h, P* = rho U*^2 shared by the net and the loss
+config.py settings imported without torch (the CLI's help): pressure choices, ``EvalConfig``
 """
 
-from fishsim.fluid.hydronet.loss import LossConfig, LossTerms, hydronet_loss
-from fishsim.fluid.hydronet.pool import PoolConfig, ScenePool
-from fishsim.fluid.hydronet.train import TrainConfig, load_hydronet, run
-from fishsim.fluid.hydronet.unet import HydroNet, HydroNetFluid, NetConfig
+from fishsim.lazy import exports
 
-__all__ = [
-    "HydroNet",
-    "HydroNetFluid",
-    "LossConfig",
-    "LossTerms",
-    "NetConfig",
-    "PoolConfig",
-    "ScenePool",
-    "TrainConfig",
-    "hydronet_loss",
-    "load_hydronet",
-    "run",
-]
+__getattr__, __all__ = exports(__name__, {
+    "loss": ("LossConfig", "LossTerms", "hydronet_loss"),
+    "pool": ("PoolConfig", "ScenePool"),
+    "train": ("TrainConfig", "load_hydronet", "run"),
+    "unet": ("HydroNet", "HydroNetFluid", "NetConfig"),
+})

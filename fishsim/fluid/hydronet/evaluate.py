@@ -23,7 +23,7 @@ Relative errors: e_v = |v_net - v_num| / |v_num| over faces weighted by the flui
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -33,29 +33,10 @@ from fishsim.coupling.ibm import ibm_force
 from fishsim.coupling.mask import SIGMA
 from fishsim.fluid.base import Boundary, FluidModel, FluidParams, FluidState, Grid
 from fishsim.fluid.grid import closed_tank, curl, divergence, union, vorticity
+from fishsim.fluid.hydronet.config import EvalConfig
 from fishsim.fluid.hydronet.loss import momentum_loss
 from fishsim.fluid.hydronet.pool import Fish, Motion, fish_boundaries, fish_surface, mask_from_distance
 from fishsim.fluid.residual import fluid_face_masks
-
-
-@dataclass(frozen=True)
-class EvalConfig:
-    """Held-out scenes and protocol (SI units; see the module docstring)."""
-
-    speeds: list[float] = field(default_factory=lambda: [0.1, 0.2, 0.3])
-    frequencies: list[float] = field(default_factory=lambda: [3.0, 5.0, 7.0])
-    radius: float = 0.01
-    fish_amp: float = 0.06
-    warmup: int = 50
-    steps: int = 100
-    rho: float = 50.0
-    mu: float = 1.25e-4
-    h: float = 0.01
-    H: int = 100
-    W: int = 300
-    dx: float = 2.5e-3
-    wall_y: int = 3
-    wall_x: int = 5
 
 
 class Scenes:

@@ -42,8 +42,9 @@ from torch.nn.utils.fusion import fuse_conv_bn_eval
 
 from fishsim.fluid.base import Boundary, FluidParams, FluidState, Grid, rest_state
 from fishsim.fluid.grid import curl
+from fishsim.fluid.hydronet.config import PRESSURES, RECOVERED
 from fishsim.fluid.hydronet.scales import scales_of
-from fishsim.fluid.pressure import PRESSURES, RECOVERED, RecoveryConfig, recover_pressure
+from fishsim.fluid.pressure import RecoveryConfig, recover_pressure
 
 A_IN = 32.0
 RHO_MID, RHO_HALF = 30.0, 20.0

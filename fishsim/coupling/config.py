@@ -1,0 +1,88 @@
+"""The coupling layer's settings (``CouplingConfig``) and the names of its options: plain values,
+no torch, so the CLI's config (``fishsim.config``) imports them for a command's help without the
+solvers. The options are explained where they act: band.py and mask.py (distance, mean), ibm.py
+(ibm_weight, ibm_fit, ibm_area), forces.py (force_mode), exchange.py (force).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from fishsim.errors import ConfigError
+
+SEGMENT, NODE = "segment", "node"                     # distance (band.py, mask.py)
+HARMONIC, ARITHMETIC = "harmonic", "arithmetic"       # mean (mask.py)
+FLUID, BODY, NONE = "fluid", "body", "none"           # ibm_weight (ibm.py)
+MEAN, LINEAR = "mean", "linear"                       # ibm_fit (ibm.py)
+CHORD, PAPER = "chord", "paper"                       # ibm_area (ibm.py)
+PER_NODE, AVERAGE = "per_node", "average"             # force_mode (forces.py)
+
+_CHOICES = {
+    "distance": (SEGMENT, NODE),
+    "mean": (HARMONIC, ARITHMETIC),
+    "ibm_weight": (FLUID, BODY, NONE),
+    "ibm_fit": (LINEAR, MEAN),
+    "ibm_area": (CHORD, PAPER),
+    "force_mode": (PER_NODE, AVERAGE),
+    "force": ("pressure", "exchange"),
+}
+
+
+@dataclass(frozen=True)
+class CouplingConfig:
+    """Coupling parameters (SI units; the reasons for each default are in mask.py / ibm.py).
+
+    xi: soft-min temperature of the mask distance, m^2 (paper 5e-7).
+    sigma: mask softness, m^2 (paper values 5e-9, 5e-7, 5e-5): b goes 0.05 -> 0.95 over one
+        2.5 mm cell at 5e-7.
+    tau: soft-min temperature of the boundary velocity, m^2 (= xi: nearest surface point).
+    sigma_prime: IBM Gaussian variance, m^2 (dx^2 = 6.25e-6: one-cell standard deviation).
+    distance: "segment" (exact distance to the polyline, no scallops) | "node" (paper).
+    mean: soft-min of the squared distances, "harmonic" (0 on the surface) | "arithmetic" (paper).
+    ibm_weight: cells sampled for the pressure, "fluid" (1 - b) | "body" (b, paper) | "none".
+    ibm_fit: "linear" (plane fit evaluated at the node) | "mean" (paper's weighted mean).
+    ibm_area: "chord" (area vectors summing to 0) | "paper" (l_k n_k).
+    force: "pressure" (the IBM-sampled pressure, the paper's; any fluid) | "exchange" (the
+        momentum the numerical fluid's penalization exchanges with the body, viscous stress
+        included; fishsim.coupling.exchange).
+    sigma_spread: variance of the kernel spreading the exchanged force onto the surface nodes,
+        m^2 (default (1.5 dx)^2 = 1.40625e-5; exchange.py).
+    force_mode: "per_node" (free swimming) | "average" (paper's optimisation mode).
+    fix_lateral: drop the y force ("x-axis fixed", paper Sec. 4.4).
+    n_burn_in: forces are scaled by min(1, t / n_burn_in) (paper Sec. 3.4); our default 20
+        steps = 0.2 s, the controller's activation ramp t_a.
+    added_mass_ratio: the added-mass stabilisation's M^ / M (fishsim.coupling.added_mass);
+        0 switches it off (plain explicit coupling, unstable for this light fish at the
+        calibrated stroke).  Stable for (M_a - M) / 2 <= M^ <= M + M_a in every mode.
+    k_nearest: surface elements kept per cell; on a bent 250-node fish K = 12 reproduces the
+        all-segment mask and v_d to 1e-15 (K = 8: 5e-10, K = 4: 0.1 m/s in v_d).
+    """
+
+    xi: float = 5e-7
+    sigma: float = 5e-7
+    tau: float = 5e-7
+    sigma_prime: float = 6.25e-6
+    distance: str = SEGMENT
+    mean: str = HARMONIC
+    ibm_weight: str = FLUID
+    ibm_fit: str = LINEAR
+    ibm_area: str = CHORD
+    force: str = "pressure"
+    sigma_spread: float = 1.40625e-5
+    force_mode: str = PER_NODE
+    fix_lateral: bool = False
+    n_burn_in: int = 20
+    added_mass_ratio: float = 5.0
+    k_nearest: int = 12
+
+    def __post_init__(self):
+        for name in ("xi", "sigma", "tau", "sigma_prime", "sigma_spread"):
+            if not getattr(self, name) > 0:
+                raise ConfigError(f"coupling.{name} must be > 0 (m^2), got {getattr(self, name)}")
+        for name, allowed in _CHOICES.items():
+            if getattr(self, name) not in allowed:
+                raise ConfigError(f"coupling.{name} must be one of {allowed}, got {getattr(self, name)!r}")
+        if not self.added_mass_ratio >= 0:
+            raise ConfigError(f"coupling.added_mass_ratio must be >= 0, got {self.added_mass_ratio}")
+        if self.n_burn_in < 0 or self.k_nearest < 1:
+            raise ConfigError("coupling.n_burn_in must be >= 0 and coupling.k_nearest >= 1")
