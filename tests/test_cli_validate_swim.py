@@ -44,3 +44,11 @@ def test_validate_swim_small(tmp_path):
 def test_validate_swim_bad_fluid_is_exit_2(tmp_path):
     result = runner.invoke(app, ["validate", "suite=swim", "swim.fluids=[comsol]", f"out_dir={tmp_path}"])
     assert result.exit_code == 2 and "unknown ['comsol']" in result.output
+
+
+def test_validate_swim_judges_the_given_model_file(tmp_path):
+    """model_file= reaches the study's HydroNet runs: a missing file is refused (it used to be
+    ignored, and the shipped model judged instead)."""
+    result = runner.invoke(app, ["validate", "suite=swim", "swim.fluids=[hydronet]", "swim.reference=hydronet",
+                                 "swim.frames=2", f"model_file={tmp_path / 'missing.pt'}", f"out_dir={tmp_path / 'o'}"])
+    assert result.exit_code == 2 and "missing.pt" in result.output, result.output

@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import json
 import re
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 from rich.console import Console
 from rich.markup import escape
@@ -153,13 +153,20 @@ def run_convergence(cfg: ValidateConfig) -> dict:
     return metrics
 
 
+def hydronet_overrides(cfg: ValidateConfig) -> list[str]:
+    """`fishsim simulate` overrides that make a study's HydroNet runs use the model and precision
+    being judged (``model_file``, ``bf16``); the numerical runs ignore them."""
+    out = [f"fluid.bf16={str(cfg.bf16).lower()}"]
+    return out + ([f"fluid.model_file={cfg.model_file}"] if cfg.model_file else [])
+
+
 def run_swim(cfg: ValidateConfig) -> dict:
     """suite=swim: the frequency study (module docstring)."""
     from fishsim.render.plots import plot_validation
     from fishsim.swim_study import PAPER, frequency_study
 
     out_dir = make_out_dir("validate", cfg.out_dir)
-    s = cfg.swim
+    s = replace(cfg.swim, overrides=[*cfg.swim.overrides, *hydronet_overrides(cfg)])
     columns = (TextColumn("validate swim: {task.fields[fluid]}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
     with Progress(*columns, console=Console(stderr=True), transient=True) as bar:
         task = bar.add_task("fluids", total=len(s.fluids), fluid="")
@@ -201,7 +208,7 @@ def run_solid(cfg: ValidateConfig) -> dict:
 
     out_dir = make_out_dir("validate", cfg.out_dir)
     s = cfg.solid
-    overrides = [] if cfg.device == "cpu" else [f"device={cfg.device}"]
+    overrides = ([] if cfg.device == "cpu" else [f"device={cfg.device}"]) + hydronet_overrides(cfg)
     columns = (TextColumn("validate solid"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
     with Progress(*columns, console=Console(stderr=True), transient=True) as bar:
         task = bar.add_task("runs", total=len(s.edges) * len(s.muscles))
