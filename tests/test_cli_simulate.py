@@ -135,6 +135,133 @@ def test_simulate_writes_an_xdmf_that_vtk_reads_as_the_trajectory(tmp_path):
                 np.testing.assert_allclose([x0, x1, y0, y1], [dx, 2 * dx, 0, dx], atol=1e-12)
 
 
+def _meshio_series(path):
+    """Everything meshio's XDMF time-series reader gives for ``path``: (points, cells, steps)."""
+    import meshio
+
+    with meshio.xdmf.TimeSeriesReader(path) as reader:
+        points, cells = reader.read_points_cells()
+        return points, cells, [reader.read_data(k) for k in range(reader.num_steps)]
+
+
+def test_simulate_writes_an_xdmf_per_fish_that_meshio_reads_as_the_trajectory(tmp_path, monkeypatch):
+    """trajectory_fish<b>.xdmf (fishsim/io/xdmf.py) is one fish's time series that meshio reads:
+    the mesh (frame 0's positions, the triangles) and, per frame, the time, the positions,
+    velocities and forces of the file and the actuators; VTK reads it moving. The views it needs
+    are virtual datasets: the file grows by their metadata only, and writing the sidecars again
+    changes nothing."""
+    import h5py
+    import vtk
+    from vtk.util.numpy_support import vtk_to_numpy
+
+    from fishsim.commands import simulate
+    from fishsim.io.xdmf import write_xdmf
+
+    sizes = []
+
+    def measured(path):                               # the trajectory's size before and after
+        sizes.append(path.stat().st_size)
+        out = write_xdmf(path)
+        sizes.append(path.stat().st_size)
+        return out
+
+    monkeypatch.setattr(simulate, "write_xdmf", measured)
+    args = ["simulate", "fluid=none", "fish.edge_length=5e-3", "frames=3", "batch.frequency=[3,5]",
+            f"out_dir={tmp_path}"]
+    assert runner.invoke(app, args).exit_code == 0
+    path = tmp_path / "trajectory.h5"
+    with h5py.File(path, "r") as f:
+        for b in range(2):
+            points, cells, steps = _meshio_series(tmp_path / f"trajectory_fish{b}.xdmf")
+            np.testing.assert_array_equal(points, f["solid/q"][0, b])
+            assert [c.type for c in cells] == ["triangle"]
+            np.testing.assert_array_equal(cells[0].data, f["mesh/triangles"][()])
+            assert len(steps) == 3
+            for t, (time_, point_data, cell_data) in enumerate(steps):
+                assert time_ == f["metrics/time"][t]
+                for name, series in (("position", "q"), ("velocity", "qdot"), ("force", "f_ext")):
+                    np.testing.assert_array_equal(point_data[name], f[f"solid/{series}"][t, b])
+                np.testing.assert_array_equal(cell_data["actuator"][0], f["mesh/actuator"][()])
+        views, groups = [], []
+        f["xdmf"].visititems(lambda n, o: (views if isinstance(o, h5py.Dataset) else groups).append(o))
+        assert len(views) == 3 * 2 * 3                # q, qdot, f_ext; 2 fish; 3 frames
+        assert all(v.is_virtual and v.id.get_storage_size() == 0 for v in views)
+        assert {s.file_name for v in views for s in v.virtual_sources()} == {"."}   # this file, whatever its name
+        moved = f["solid/q"][2, 1]
+    assert sizes[1] - sizes[0] <= 1024 * (len(views) + len(groups) + 1)   # metadata: ~0.5 kB a view, ~1 kB a group
+    xml = (tmp_path / "trajectory_fish1.xdmf").read_text()
+    write_xdmf(path)
+    assert path.stat().st_size == sizes[1] and (tmp_path / "trajectory_fish1.xdmf").read_text() == xml
+    assert "xdmf/solid/q/0/000000" not in read_trajectory(path).data
+    reader = vtk.vtkXdmfReader()                      # VTK reads a fish's own file too, moving
+    reader.SetFileName(str(tmp_path / "trajectory_fish1.xdmf"))
+    reader.UpdateInformation()
+    reader.UpdateTimeStep(0.03)
+    np.testing.assert_array_equal(vtk_to_numpy(reader.GetOutputDataObject(0).GetPoints().GetData())[:, :2], moved)
+
+
+def test_meshio_reads_the_fish_and_the_fluid_of_a_run_with_a_fluid(tmp_path):
+    """With a fluid, trajectory_fluid<b>.xdmf is fish b's fluid as meshio reads it: the grid's
+    cells as quadrilaterals and, per stored fluid frame, its time and the file's fields."""
+    import h5py
+
+    args = ["simulate", *NUMERICAL, "frames=3", "fluid_stride=2", f"out_dir={tmp_path}"]
+    assert runner.invoke(app, args).exit_code == 0
+    with h5py.File(tmp_path / "trajectory.h5", "r") as f:
+        _, _, steps = _meshio_series(tmp_path / "trajectory_fish0.xdmf")
+        assert len(steps) == 3
+        np.testing.assert_array_equal(steps[2][1]["force"], f["solid/f_ext"][2, 0])
+        points, cells, steps = _meshio_series(tmp_path / "trajectory_fluid0.xdmf")
+        dx = f.attrs["grid_dx"]
+        assert [c.type for c in cells] == ["quad"] and len(cells[0].data) == 40 * 120
+        np.testing.assert_allclose(points[cells[0].data[121]], [[dx, dx], [2 * dx, dx], [2 * dx, 2 * dx],
+                                                                [dx, 2 * dx]], atol=1e-12)   # cell (1, 1)
+        assert len(steps) == 1 and steps[0][0] == f["metrics/time"][f["fluid/frame"][0]]
+        for name in ("p", "vx", "vy", "mask"):
+            np.testing.assert_array_equal(steps[0][2][name][0], f[f"fluid/{name}"][0, 0].ravel())
+        assert np.abs(steps[0][2]["p"][0]).max() > 0
+
+
+def test_xdmf_of_a_growing_trajectory_has_views_of_its_flushed_frames_only(tmp_path):
+    """The sidecars of a file still being written name only its flushed frames; written again
+    after more frames, they have those too (the views already there are kept), and the writer
+    appends to and closes the file as before."""
+    from fishsim.io.trajectory import TrajectoryWriter, trajectory_series
+    from fishsim.io.xdmf import write_xdmf
+
+    triangles = np.array([[0, 1, 2], [1, 3, 2]])
+    static = {"mesh/points": np.arange(8.0).reshape(4, 2), "mesh/triangles": triangles,
+              "mesh/actuator": np.array([1, 2], np.int8)}
+    writer = TrajectoryWriter(tmp_path / "t.h5", trajectory_series(4, 1, 1, ["head_x"]), static, "", h=0.01,
+                              flush_every=2)
+
+    def frame(t):
+        writer.append({"solid/q": np.full((1, 4, 2), t + 0.5), "solid/qdot": np.full((1, 4, 2), -t),
+                       "solid/f_ext": np.zeros((1, 4, 2)), "controller/activation": np.zeros((1, 1)),
+                       "metrics/head_x": np.zeros(1), "metrics/time": 0.01 * (t + 1)})
+        writer.end_frame()
+
+    for t in range(3):                                 # frames 0, 1 flushed; 2 in memory
+        frame(t)
+    write_xdmf(writer.partial)
+    assert len(_meshio_series(tmp_path / "t.h5_fish0.xdmf")[2]) == 2
+    for t in range(3, 5):
+        frame(t)                                       # frames 2, 3 flushed
+    write_xdmf(writer.partial)
+    points, _, steps = _meshio_series(tmp_path / "t.h5_fish0.xdmf")
+    assert len(steps) == 4
+    np.testing.assert_array_equal(points, np.full((4, 2), 0.5))
+    for t, (time_, point_data, _) in enumerate(steps):
+        assert time_ == pytest.approx(0.01 * (t + 1))
+        np.testing.assert_array_equal(point_data["position"], np.full((4, 2), t + 0.5))
+        np.testing.assert_array_equal(point_data["velocity"], np.full((4, 2), -t))
+    writer.close(complete=True)
+    tr = read_trajectory(tmp_path / "t.h5")
+    assert tr.complete and tr.n_frames == 5 and not any(k.startswith("xdmf") for k in tr.data)
+    write_xdmf(tmp_path / "t.h5")
+    assert len(_meshio_series(tmp_path / "t_fish0.xdmf")[2]) == 5
+
+
 def test_render_a_real_simulation(tmp_path):
     """`fishsim render` on `fishsim simulate` output: an MP4 with one frame per frame, and the
     fish drawn along its surface polyline (pixels under the outline nodes) where the trajectory

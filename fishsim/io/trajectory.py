@@ -12,6 +12,9 @@ Layout (every time series has the frame axis first and a batch axis B second)::
     /metrics/time                      [T]            s
     /metrics/<name>                    [T, B]         e.g. head_x, thrust_x
     /config                            the resolved config as a YAML string
+    /fluid/grid, /xdmf                 added by fishsim.io.xdmf for its sidecars: the fluid grid as
+                                       quadrilaterals, and per-frame views (virtual datasets, no
+                                       data) that ``read_trajectory`` skips
     attributes: fishsim_version, h, units, complete, n_frames (final), message
 
 The file is written as ``<name>.part`` and renamed to its name when the run ends (complete or
@@ -189,7 +192,11 @@ def read_trajectory(path: str | Path, load_fluid: bool = True, lazy: bool = Fals
             if isinstance(obj, h5py.Dataset) and name != "config" and wanted:
                 data[name] = obj if lazy else obj[()]
 
-        f.visititems(visit)
+        for top, obj in f.items():                     # /xdmf: the XDMF sidecars' views of the series
+            if isinstance(obj, h5py.Group) and top != "xdmf":
+                obj.visititems(lambda name, o, top=top: visit(f"{top}/{name}", o))
+            else:
+                visit(top, obj)
         attrs = dict(f.attrs)
         config_yaml = f["config"][()].decode() if isinstance(f["config"][()], bytes) else str(f["config"][()])
     except BaseException:
