@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import os
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Self
@@ -37,8 +38,10 @@ import h5py
 import numpy as np
 
 from fishsim import __version__
-from fishsim.errors import InputFileError
+from fishsim.errors import FishsimError, InputFileError
 from fishsim.io import conventions
+
+CLOSE_WAIT = 120.0  # s a run's end waits for a program reading its trajectory
 
 UNITS = "SI: m, s, kg, Pa; 2D forces per unit depth (N/m); densities per unit area"
 
@@ -85,10 +88,14 @@ class TrajectoryWriter:
         if self._frames % self.flush_every == 0:
             self.flush()
 
-    def flush(self, attrs: dict | None = None) -> None:
+    def flush(self, attrs: dict | None = None, wait: float = 2.0) -> bool:
         """Append the frames held in memory to the file (opened and closed again) and record
-        n_frames and any ``attrs``."""
-        with h5py.File(self.partial, "r+") as f:
+        n_frames and any ``attrs``. While another program reads the file (HDF5's lock), retry for
+        ``wait`` seconds, then keep the frames in memory for the next flush (returns False)."""
+        f = self._open(wait)
+        if f is None:
+            return False
+        with f:
             for name, rows in self.pending.items():
                 if rows:
                     ds = f[name]
@@ -99,13 +106,36 @@ class TrajectoryWriter:
             f.attrs["n_frames"] = self._frames
             f.attrs.update({conventions.snake(k): v for k, v in (attrs or {}).items()})
             conventions.grow(f)
+        return True
 
     def close(self, complete: bool, message: str = "", attrs: dict | None = None) -> None:
         """Write what is left and record whether the run finished (``complete``), why not, and
-        any extra file attributes (grid size, summary numbers); then rename to the final name."""
-        self.flush({**(attrs or {}), "complete": bool(complete),
-                    "message": message or ("complete" if complete else "incomplete")})
+        any extra file attributes (grid size, summary numbers); then rename to the final name.
+        A program reading the file is waited for, up to ``CLOSE_WAIT`` seconds."""
+        attrs = {**(attrs or {}), "complete": bool(complete),
+                 "message": message or ("complete" if complete else "incomplete")}
+        if not self.flush(attrs, wait=0.0):
+            warnings.warn(f"{self.partial} is open in another program; waiting up to {CLOSE_WAIT:.0f} s for it "
+                          "to close it", stacklevel=2)
+            if not self.flush(attrs, wait=CLOSE_WAIT):
+                raise FishsimError(f"{self.partial} stayed open in another program for {CLOSE_WAIT:.0f} s: it holds "
+                                   "the frames flushed before, the last ones were not written; close that program "
+                                   "before a run ends")
         os.replace(self.partial, self.path)
+
+    def _open(self, wait: float) -> h5py.File | None:
+        """The file opened for appending, or None while another program still holds HDF5's
+        lock on it after ``wait`` seconds."""
+        deadline = time.monotonic() + wait
+        while True:
+            try:
+                return h5py.File(self.partial, "r+")
+            except (OSError, BlockingIOError) as err:
+                if "lock" not in str(err) and not isinstance(err, BlockingIOError):
+                    raise
+                if time.monotonic() >= deadline:
+                    return None
+                time.sleep(0.05)
 
 
 def partial_path(path: Path) -> Path:

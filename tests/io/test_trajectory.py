@@ -124,3 +124,25 @@ def test_lazy_read_slices_the_open_file_like_the_eager_read(tmp_path):
         assert isinstance(lazy["solid/q"], h5py.Dataset) and lazy.n_frames == eager.n_frames == 3
         np.testing.assert_array_equal(lazy["solid/q"][2, 0], eager["solid/q"][2, 0])
     assert lazy.file is None
+
+
+def test_a_reader_holding_the_file_delays_the_writer_without_losing_frames(tmp_path):
+    """Another program reading the .part (HDF5's lock, e.g. ParaView or a lazy read) made the
+    next flush fail and the run die. Now a flush keeps its frames in memory until the file is
+    free, and the run's end waits for the reader, so every frame is written."""
+    w = _writer(tmp_path / "t.h5", flush_every=100)
+    for t in range(3):
+        _frame(w, t)
+    assert w.flush()
+    hold = "import h5py, sys, time; f = h5py.File(sys.argv[1], 'r'); print('open', flush=True); time.sleep(1.5)"
+    reader = subprocess.Popen([sys.executable, "-c", hold, str(w.partial)], stdout=subprocess.PIPE, text=True)
+    assert reader.stdout.readline().strip() == "open"
+    for t in range(3, 6):
+        _frame(w, t)
+    assert not w.flush(wait=0.1) and len(w.pending["solid/q"]) == 3      # kept for later
+    with pytest.warns(UserWarning, match="open in another program"):
+        w.close(complete=True)                                          # waits for the reader
+    reader.wait(timeout=30)
+    tr = read_trajectory(tmp_path / "t.h5")
+    assert tr.complete and tr.n_frames == 6
+    np.testing.assert_array_equal(tr["solid/q"][:, 0, 0, 0], np.arange(6.0))
