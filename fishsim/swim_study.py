@@ -36,7 +36,8 @@ def spearman(a, b) -> float:
 
 def run_fluid(name: str, cfg: SwimStudyConfig, device: str = "cpu") -> dict:
     """One batched episode of every frequency in fluid ``name`` (``episode``)."""
-    return episode([*FLUIDS[name], *cfg.overrides], cfg.frequencies, cfg.frames, device)
+    model = cfg.hydronet_overrides if "fluid=hydronet" in FLUIDS[name] else []
+    return episode([*FLUIDS[name], *cfg.overrides, *model], cfg.frequencies, cfg.frames, device)
 
 
 def episode(overrides: list[str], frequencies, frames: int, device: str = "cpu") -> dict:

@@ -23,13 +23,15 @@ FLUIDS = {
 class SwimStudyConfig:
     """suite=swim. frequencies (Hz); frames per episode; fluids: names of FLUIDS; reference: the
     one the others are compared with; overrides: more `fishsim simulate` overrides for every run
-    (e.g. a smaller tank)."""
+    (e.g. a smaller tank); hydronet_overrides: more for the HydroNet runs only (``fishsim
+    validate`` puts its model_file and bf16 there)."""
 
     frequencies: list[float] = field(default_factory=lambda: [3.0, 4.0, 5.0, 6.0, 7.0])
     frames: int = 120
     fluids: list[str] = field(default_factory=lambda: ["numerical_r2", "numerical", "hydronet", "hydronet_network"])
     reference: str = "numerical_r2"
     overrides: list[str] = field(default_factory=list)
+    hydronet_overrides: list[str] = field(default_factory=list)
 
     def validate(self) -> None:
         if len(self.frequencies) < 2 or not all(f > 0 for f in self.frequencies):

@@ -166,7 +166,7 @@ def run_swim(cfg: ValidateConfig) -> dict:
     from fishsim.swim_study import PAPER, frequency_study
 
     out_dir = make_out_dir("validate", cfg.out_dir)
-    s = replace(cfg.swim, overrides=[*cfg.swim.overrides, *hydronet_overrides(cfg)])
+    s = replace(cfg.swim, hydronet_overrides=[*cfg.swim.hydronet_overrides, *hydronet_overrides(cfg)])
     columns = (TextColumn("validate swim: {task.fields[fluid]}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
     with Progress(*columns, console=Console(stderr=True), transient=True) as bar:
         task = bar.add_task("fluids", total=len(s.fluids), fluid="")
@@ -208,7 +208,8 @@ def run_solid(cfg: ValidateConfig) -> dict:
 
     out_dir = make_out_dir("validate", cfg.out_dir)
     s = cfg.solid
-    overrides = ([] if cfg.device == "cpu" else [f"device={cfg.device}"]) + hydronet_overrides(cfg)
+    overrides = ([] if cfg.device == "cpu" else [f"device={cfg.device}"]) + (
+        hydronet_overrides(cfg) if s.fluid == "hydronet" else [])
     columns = (TextColumn("validate solid"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
     with Progress(*columns, console=Console(stderr=True), transient=True) as bar:
         task = bar.add_task("runs", total=len(s.edges) * len(s.muscles))
