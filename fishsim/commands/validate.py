@@ -254,7 +254,7 @@ def run_hydronet(cfg: ValidateConfig) -> dict:
     from fishsim.fluid.base import Grid
     from fishsim.fluid.factory import SHIPPED_HYDRONET
     from fishsim.fluid.hydronet import HydroNetFluid, load_hydronet
-    from fishsim.fluid.hydronet.evaluate import evaluate, summarise
+    from fishsim.fluid.hydronet.evaluate import energy_checks, evaluate, summarise
     from fishsim.fluid.hydronet.trained_range import check_fluid
     from fishsim.fluid.numerical import NumericalFluid
     from fishsim.render.plots import plot_fluid_comparison
@@ -270,8 +270,10 @@ def run_hydronet(cfg: ValidateConfig) -> dict:
         task = bar.add_task("steps", total=None)
         result = evaluate(net, NumericalFluid(grid), s, device,
                           progress=lambda done, total: bar.update(task, completed=done, total=total))
+        bar.update(task, description="validate hydronet: still fish, kinetic energy")
+        checks = energy_checks(net, NumericalFluid(grid), s, device)
     summary = {"model_file": str(path), "scenes": asdict(s), "metrics": result.metrics,
-               "summary": summarise(result.metrics)}
+               "summary": {**summarise(result.metrics), **checks}}
     (out_dir / "metrics.json").write_text(json.dumps(summary, indent=2))
     pictures = plot_fluid_comparison(result.final, out_dir / "comparison")
     _print(result.metrics, summary["summary"])

@@ -11,12 +11,14 @@ from typer.testing import CliRunner
 from fishsim.cli import app
 from fishsim.fluid.base import Grid
 from fishsim.fluid.hydronet.config import EvalConfig
-from fishsim.fluid.hydronet.evaluate import Scenes, evaluate, summarise
+from fishsim.fluid.hydronet.evaluate import Scenes, energy_checks, evaluate, kinetic_energy, summarise
 from fishsim.fluid.numerical import NumericalFluid
 
-SMALL = EvalConfig(speeds=[0.2], frequencies=[5.0], warmup=3, steps=3, H=40, W=120, dx=5e-3, wall_y=2, wall_x=3)
+SMALL = EvalConfig(speeds=[0.2], frequencies=[5.0], warmup=3, steps=3, H=40, W=120, dx=5e-3, wall_y=2, wall_x=3,
+                   still_steps=3, energy_steps=4)
 SMALL_ARGS = ["scenes.speeds=[0.2]", "scenes.frequencies=[5]", "scenes.warmup=3", "scenes.steps=3", "scenes.H=40",
-              "scenes.W=120", "scenes.dx=5e-3", "scenes.wall_y=2", "scenes.wall_x=3"]
+              "scenes.W=120", "scenes.dx=5e-3", "scenes.wall_y=2", "scenes.wall_x=3", "scenes.still_steps=3",
+              "scenes.energy_steps=4"]
 
 
 def test_reference_against_itself_has_zero_error_and_equal_forces():
@@ -72,3 +74,20 @@ def test_impossible_scene_grids_are_one_line(tmp_path):
                         (["scenes.radius=1"], "does not fit")):
         result = CliRunner().invoke(app, ["validate", *args, f"out_dir={tmp_path}"])
         assert result.exit_code == 2 and words in result.output, result.output
+
+
+def test_energy_checks_are_exact_for_the_reference_itself():
+    """The numerical solver judged against itself: a still fish leaves the water at rest (max |v|
+    = 0 exactly) and the swimming fish's kinetic energy ratio is 1; E of a uniform stream U over
+    a fluid of area A is rho U^2 A / 2."""
+    grid = Grid(SMALL.H, SMALL.W, SMALL.dx)
+    checks = energy_checks(NumericalFluid(grid), NumericalFluid(grid), SMALL)
+    assert checks["still_fish_max_speed_3"] == 0.0
+    assert checks["kinetic_energy_ref_4"] > 0 and checks["kinetic_energy_ratio"] == pytest.approx(1.0, rel=1e-6)
+    from fishsim.fluid.base import FluidState
+
+    U, y = 0.1, torch.arange(grid.H + 1, dtype=torch.float32)[:, None] * grid.dx
+    stream = FluidState((U * y).expand(grid.H + 1, grid.W + 1)[None, None], torch.zeros(1, 1, grid.H, grid.W))
+    fluid = torch.zeros(1, 1, grid.H, grid.W)
+    e = kinetic_energy(stream, fluid, 50.0, grid.dx)            # interior x-faces: H (W - 1) (box walls: 0)
+    assert e.item() == pytest.approx(0.5 * 50.0 * U**2 * grid.H * (grid.W - 1) * grid.dx**2, rel=1e-5)

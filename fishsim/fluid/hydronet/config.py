@@ -29,3 +29,6 @@ class EvalConfig:
     dx: float = 2.5e-3
     wall_y: int = 3
     wall_x: int = 5
+    still_steps: int = 300
+    energy_steps: int = 150
+    energy_frequency: float = 5.0

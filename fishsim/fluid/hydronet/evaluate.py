@@ -16,6 +16,13 @@ common state S_0
   IMEX residual L_p of each model's own steps (grid units, ``loss.momentum_loss``), max |div v|,
   and the IBM pressure force on the body (coupling defaults) every step: mean drag/thrust.
 
+Two checks of the network's own dynamics over longer rollouts from rest (``energy_checks``):
+
+* still fish: a fish of zero amplitude at the tank centre in still water for ``still_steps``
+  steps of the network: max |v| at the end (m/s; the exact answer is 0);
+* kinetic energy: the prescribed fish at ``energy_frequency`` Hz, ``energy_steps`` steps from rest
+  with each model: E = rho / 2 sum_f (1 - b_f) v_f^2 dx^2 (J/m) and the ratio E_net / E_ref.
+
 Relative errors: e_v = |v_net - v_num| / |v_num| over faces weighted by the fluid face mask
 (1 - b); e_p likewise over cells weighted by 1 - b, both pressures made mean free over the fluid.
 """
@@ -167,6 +174,39 @@ def evaluate(net: FluidModel, reference: FluidModel, cfg: EvalConfig = EvalConfi
         final[name] = {"p": st.p[:, 0].cpu().numpy(),
                        "vorticity": vorticity(curl(st.a, grid.dx), grid.dx)[:, 0].cpu().numpy()}
     return Evaluation(out, final)
+
+
+def kinetic_energy(state: FluidState, mask: Tensor, rho: float, dx: float) -> Tensor:
+    """E = rho / 2 sum_f (1 - b_f) v_f^2 dx^2 over the fluid faces, [B] in J/m (per unit depth)."""
+    v = curl(state.a, dx)
+    return 0.5 * rho * dx**2 * sum((w * c**2).flatten(1).sum(1) for c, w in zip(v, fluid_face_masks(mask)))
+
+
+@torch.no_grad()
+def energy_checks(net: FluidModel, reference: FluidModel, cfg: EvalConfig = EvalConfig(), device=None) -> dict:
+    """The still-fish and kinetic-energy checks of the module docstring, as a dict of numbers."""
+    grid = Grid(cfg.H, cfg.W, cfg.dx)
+    tank = closed_tank(grid, cfg.wall_y, cfg.wall_x, 1, device)
+    centre = Motion((cfg.W * cfg.dx / 2, cfg.H * cfg.dx / 2), (0.0, 0.0), (0.0, 0.0), (0.0, 0.0), (0.0, 0.0),
+                    0.0, 0.0, 0.0, 0.0, 0.0, 0.0, (0.1, 0.03))
+    params = FluidParams(torch.full((1,), cfg.rho, device=device), torch.full((1,), cfg.mu, device=device), cfg.h)
+
+    def rollout(model: FluidModel, fish: Fish, steps: int) -> tuple[FluidState, Boundary]:
+        state = model.initial_state(1, device=device)
+        for k in range(1, steps + 1):
+            bd = union(tank, fish_boundaries([fish], [k * cfg.h], [SIGMA], grid, device)[0])
+            state = model.step(state, bd, params)
+        return state, bd
+
+    still, bd = rollout(net, Fish(0.2, 0.0, 1.0, 2 * math.pi / 0.2, 0.0, 0.2, centre), cfg.still_steps)
+    speed = max(c.abs().max().item() for c in curl(still.a, grid.dx))
+    swimmer = Fish(0.2, cfg.fish_amp * 0.2, cfg.energy_frequency, 2 * math.pi / 0.2, 0.0, 0.2, centre)
+    energy = {}
+    for name, model in (("net", net), ("ref", reference)):
+        state, bd = rollout(model, swimmer, cfg.energy_steps)
+        energy[name] = kinetic_energy(state, bd.mask, cfg.rho, grid.dx).item()
+    return {f"still_fish_max_speed_{cfg.still_steps}": speed, f"kinetic_energy_net_{cfg.energy_steps}": energy["net"],
+            f"kinetic_energy_ref_{cfg.energy_steps}": energy["ref"], "kinetic_energy_ratio": energy["net"] / energy["ref"]}
 
 
 def summarise(results: dict) -> dict:
