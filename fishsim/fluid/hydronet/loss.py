@@ -25,10 +25,10 @@ this at rho = 50, 2.5 mm, 0.01 s.)
 Teacher term (optional, ``teacher > 0`` in training). With (v*, p*) the numerical solver's step
 from the same state and boundary (``fishsim.fluid.numerical``):
 
-    L_t = sum_f ((v_f - v*_f) / U*)^2 / N + sum_f w_f ((grad (p - p*))_f dx / P*)^2 / N
+    L_t = sum_f ((v_f - v*_f) / U*)^2 / N + sum_f ((grad (p - p*))_f dx / P*)^2 / N
 
-the velocity error in cells per step on every face plus the pressure-gradient error on the fluid
-faces, both in the units of L_p (a velocity error dv in one step is a residual dv / h, i.e.
+the velocity error in cells per step plus the pressure-gradient error, on every face (the
+coupling reads the pressure across the body's band, inside it too), both in the units of L_p (a velocity error dv in one step is a residual dv / h, i.e.
 dv / U* in units of R*). The physics loss alone admits wrong solutions: in the soft-mask band
 the fluid and boundary terms conflict, and the network's rollouts reach a lower L than the
 solver's own steps while swimming 4-8x less far. L_t anchors the network to the solver's
@@ -117,12 +117,12 @@ def hydronet_loss(old: FluidState, new: FluidState, boundary: Boundary, params: 
     return LossTerms(lp, lb, total, torch.log(total + cfg.eps).mean())
 
 
-def teacher_loss(new: FluidState, target: FluidState, boundary: Boundary, params: FluidParams,
+def teacher_loss(new: FluidState, target: FluidState, params: FluidParams,
                  grid: Grid) -> Tensor:
-    """L_t [B]: squared velocity error on all faces and pressure-gradient error on the fluid
-    faces of ``new`` against the solver's ``target`` step, in grid units (module docstring)."""
+    """L_t [B]: squared velocity and pressure-gradient errors on all faces of ``new`` against the
+    solver's ``target`` step, in grid units (module docstring)."""
     s = scales_of(grid, params)
     dv = tuple(((x - y) / s.velocity) ** 2 for x, y in zip(curl(new.a, grid.dx), curl(target.a, grid.dx)))
     dg = tuple((g * grid.dx / s.pressure) ** 2 for g in gradient(new.p - target.p, grid.dx))
     ones = tuple(torch.ones_like(d[:1]) for d in dv)
-    return masked_mean(dv, ones) + masked_mean(dg, fluid_face_masks(boundary.mask))
+    return masked_mean(dv, ones) + masked_mean(dg, ones)

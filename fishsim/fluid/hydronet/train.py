@@ -188,7 +188,7 @@ def with_teacher(terms: LossTerms, cfg: TrainConfig, teacher, state: FluidState,
     """``terms`` with L_t against the solver's step from ``state`` added to L and the objective."""
     with torch.no_grad():
         target = teacher.step(FluidState(state.a.float(), state.p.float()), boundary, params)
-    lt = teacher_loss(FluidState(new.a.float(), new.p.float()), target, boundary, params, cfg.pool.grid)
+    lt = teacher_loss(FluidState(new.a.float(), new.p.float()), target, params, cfg.pool.grid)
     total = terms.total + cfg.teacher * lt
     return LossTerms(terms.momentum, terms.boundary, total, torch.log(total + EPS).mean(), lt)
 
