@@ -16,8 +16,8 @@ import torch
 from fishsim.fluid.base import Boundary, FluidParams, FluidState, Grid
 from fishsim.fluid.grid import closed_tank
 from fishsim.fluid.hydronet import train as T
-from fishsim.fluid.hydronet.config import NETWORK
-from fishsim.fluid.hydronet.unet import HydroNet, HydroNetFluid, NetConfig
+from fishsim.fluid.hydronet.config import NETWORK, NetConfig, TrainConfig
+from fishsim.fluid.hydronet.unet import HydroNet, HydroNetFluid
 
 GRID = Grid(100, 300, 2.5e-3)
 
@@ -79,7 +79,7 @@ def training(iterations: int = 20) -> dict:
     """Iterations/s and samples/s of the default TrainConfig (its crop, batch, net, bf16, compiled
     Koren loss; the one-off compilation is excluded)."""
     with tempfile.TemporaryDirectory() as tmp:
-        cfg = replace(T.TrainConfig(), out_dir=tmp, iterations=iterations, progress=False,
+        cfg = replace(TrainConfig(), out_dir=tmp, iterations=iterations, progress=False,
                       val_every=10**9, ckpt_every=10**9, ckpt_minutes=1e9)
         run, net = T.build(cfg, 0, 1, torch.device("cpu"))
         for _ in range(2):  # compiles the loss (forward and backward)

@@ -46,15 +46,15 @@ def describe(defaults, prefix: str = "") -> str:
 
 class _ConfigHelp(TyperCommand):
     """A command whose epilog, the list of its config keys, is built only when its help is shown:
-    building it imports the config dataclasses and OmegaConf (and torch for train-hydronet's),
-    which ``fishsim --help`` and ``fishsim --version`` do not need."""
+    building it imports the config dataclasses and OmegaConf, which ``fishsim --help`` and
+    ``fishsim --version`` do not need."""
 
     @property
     def epilog(self) -> str | None:
         if self._epilog is None and self.name is not None:
-            from fishsim.config import root
+            from fishsim.config import ROOTS
 
-            self._epilog = "Config (group.key=default):\n\n" + describe(root(self.name)())
+            self._epilog = "Config (group.key=default):\n\n" + describe(ROOTS[self.name]())
         return self._epilog
 
     @epilog.setter

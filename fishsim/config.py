@@ -20,7 +20,7 @@ from omegaconf.errors import OmegaConfBaseException
 from fishsim.commands.validate import ValidateConfig
 from fishsim.coupling.config import CouplingConfig
 from fishsim.errors import ConfigError
-from fishsim.fluid.hydronet.config import PRESSURES
+from fishsim.fluid.hydronet.config import PRESSURES, TrainConfig
 from fishsim.optimize.config import ObjectiveConfig, ParamSpec
 from fishsim.render.config import RenderConfig
 from fishsim.solid.config import PDOptions, SolidMaterial
@@ -339,20 +339,8 @@ class OptimizeConfig(SimulateConfig):
                      f"({cheapest} fish-frames at frames={self.frames}); raise it or shorten the episode")
 
 
-#: Each command's structured config, but train-hydronet's, which ``root`` imports when asked for.
 ROOTS: dict[str, type] = {"mesh": MeshCommandConfig, "simulate": SimulateConfig, "render": RenderConfig,
-                         "validate": ValidateConfig, "optimize": OptimizeConfig}
-
-
-def root(command: str) -> type:
-    """The structured config of ``command``. train-hydronet's, TrainConfig, is imported here, when
-    asked for: its module (fishsim/fluid/hydronet/train.py) imports torch, which the other
-    commands' help does not need."""
-    if command == "train-hydronet":
-        from fishsim.fluid.hydronet.train import TrainConfig
-
-        return TrainConfig
-    return ROOTS[command]
+                         "train-hydronet": TrainConfig, "validate": ValidateConfig, "optimize": OptimizeConfig}
 
 
 def config_dir() -> str:
@@ -431,7 +419,7 @@ def _merge_file(raw: Any, path: str, dotted: list[str]) -> Any:
 
 def to_dataclass(command: str, raw: Any) -> Any:
     """Merge a composed config into the command's schema, build the dataclasses, validate."""
-    schema = OmegaConf.structured(root(command))
+    schema = OmegaConf.structured(ROOTS[command])
     _writable(schema)
     try:
         merged = OmegaConf.merge(schema, raw)

@@ -22,7 +22,7 @@ def test_installed_wheel_finds_its_configs_and_model(tmp_path):
         "import fishsim, fishsim.config as c\n"
         "from fishsim.fluid.factory import SHIPPED_HYDRONET\n"
         f"assert fishsim.__file__.startswith({str(site)!r}), fishsim.__file__\n"
-        "for name in [*c.ROOTS, 'train-hydronet']:\n"
+        "for name in c.ROOTS:\n"
         "    c.load_config(name, ['path=run.h5'] if name == 'render' else [])\n"
         "assert c.load_config('simulate', ['fluid=numerical']).fluid.model == 'numerical'\n"
         "assert SHIPPED_HYDRONET.is_file(), SHIPPED_HYDRONET\n"

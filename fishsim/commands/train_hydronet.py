@@ -5,7 +5,7 @@ from __future__ import annotations
 from rich.console import Console
 
 from fishsim.errors import Terminated
-from fishsim.fluid.hydronet.train import TrainConfig
+from fishsim.fluid.hydronet.config import TrainConfig
 from fishsim.fluid.hydronet.train import run as train
 
 

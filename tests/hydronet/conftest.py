@@ -4,8 +4,7 @@ import pytest
 import torch
 
 from fishsim.fluid.base import FluidParams, Grid
-from fishsim.fluid.hydronet.pool import PoolConfig
-from fishsim.fluid.hydronet.unet import NetConfig
+from fishsim.fluid.hydronet.config import NetConfig, PoolConfig
 
 
 @pytest.fixture

@@ -47,7 +47,8 @@ def test_trained_model_beats_an_untrained_one_on_the_physics_loss(shipped):
     """Fixed held-out pool scenes rolled out from rest by each network (40 steps): the mean
     log physics loss of the second half. Measured with the shipped model: trained -7.5,
     untrained -2.6 (a 130x smaller residual)."""
-    from fishsim.fluid.hydronet.train import TrainConfig, validate
+    from fishsim.fluid.hydronet.config import TrainConfig
+    from fishsim.fluid.hydronet.train import validate
 
     cfg = TrainConfig(bf16=False, val_scenes=4, val_steps=40)
     torch.manual_seed(0)

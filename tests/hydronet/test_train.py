@@ -10,6 +10,7 @@ import torch
 
 from fishsim.fluid.base import FluidState
 from fishsim.fluid.hydronet import train as T
+from fishsim.fluid.hydronet.config import TrainConfig
 from fishsim.fluid.hydronet.loss import hydronet_loss
 from fishsim.fluid.hydronet.pool import ScenePool
 from fishsim.fluid.hydronet.unet import HydroNet, HydroNetFluid
@@ -17,9 +18,9 @@ from fishsim.fluid.hydronet.unet import HydroNet, HydroNetFluid
 
 @pytest.fixture
 def cfg(tmp_path, tiny_net, tiny_pool):
-    return T.TrainConfig(out_dir=str(tmp_path / "run"), iterations=6, batch_size=3, net=tiny_net, pool=tiny_pool,
-                         bf16=False, channels_last=False, compile_loss=False, log_every=1, ckpt_every=3, ckpt_minutes=1e6,
-                         val_every=3, val_scenes=2, val_steps=4, progress=False, seed=3)
+    return TrainConfig(out_dir=str(tmp_path / "run"), iterations=6, batch_size=3, net=tiny_net, pool=tiny_pool,
+                       bf16=False, channels_last=False, compile_loss=False, log_every=1, ckpt_every=3, ckpt_minutes=1e6,
+                       val_every=3, val_scenes=2, val_steps=4, progress=False, seed=3)
 
 
 def _weights(path):
@@ -187,7 +188,7 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def _ddp_worker(rank: int, world: int, port: int, cfg: T.TrainConfig) -> None:
+def _ddp_worker(rank: int, world: int, port: int, cfg: TrainConfig) -> None:
     os.environ.update(MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port), RANK=str(rank), WORLD_SIZE=str(world),
                       LOCAL_RANK=str(rank))
     torch.set_num_threads(1)

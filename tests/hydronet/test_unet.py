@@ -5,10 +5,10 @@ import torch
 
 from fishsim.fluid.base import Boundary, FluidModel, FluidParams, FluidState
 from fishsim.fluid.grid import closed_tank
+from fishsim.fluid.hydronet.config import NetConfig
 from fishsim.fluid.hydronet.unet import (
     HydroNet,
     HydroNetFluid,
-    NetConfig,
     UNet,
     inference_copy,
     network_inputs,

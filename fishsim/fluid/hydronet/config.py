@@ -1,11 +1,19 @@
 """HydroNet settings that the CLI's config (``fishsim.config``) needs without torch, for the
 commands' help: the pressures a ``HydroNetFluid`` can give (unet.py; "recovered" is computed by
-fishsim/fluid/pressure.py) and ``EvalConfig``, the held-out evaluation's (evaluate.py).
+fishsim/fluid/pressure.py), ``EvalConfig``, the held-out evaluation's (evaluate.py), and
+``TrainConfig``, train-hydronet's (train.py), with its network's ``NetConfig`` (unet.py) and its
+scene pool's ``PoolConfig`` (pool.py).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+from fishsim.errors import ConfigError
+
+if TYPE_CHECKING:
+    from fishsim.fluid.base import Grid
 
 RECOVERED, NETWORK = "recovered", "network"
 PRESSURES = (RECOVERED, NETWORK)
@@ -32,3 +40,147 @@ class EvalConfig:
     still_steps: int = 300
     energy_steps: int = 150
     energy_frequency: float = 5.0
+
+
+@dataclass(frozen=True)
+class NetConfig:
+    """U-Net hyper-parameters. hidden: channels of the first level (Wandel: 20); depth: number of
+    down/up levels (Wandel: 4); bound_a, bound_p: A, P in grid units; condition: (rho, nu*) inputs."""
+
+    hidden: int = 20
+    depth: int = 4
+    bound_a: float = 400.0
+    bound_p: float = 64.0
+    condition: bool = False
+
+    @property
+    def in_channels(self) -> int:
+        return 15 if self.condition else 13
+
+
+@dataclass(frozen=True)
+class PoolConfig:
+    """Scene distribution and pool mechanics (SI units; ranges are (low, high)).
+
+    size: scenes in the pool; H, W, dx, h: training grid (a crop: the net is fully convolutional).
+    episode_steps: average steps a scene lives before its round-robin reset.
+    rho (uniform), mu (log-uniform): fluid ranges; equal ends = one fluid.
+    max_speed: bound on body, surface and inflow speeds (m/s).
+    wall: range of wall thickness in cells; p_inflow: probability of an inflow/outflow channel.
+    p_fish: probability of a swimming fish; max_obstacles: rigid obstacles per scene.
+    sigma: log-uniform range of the mask softness (m^2); p_sigma_coupling: probability of the
+        coupling's default 5e-7 instead.
+    fish_length, fish_freq (Hz), fish_amp (tail amplitude / L), fish_wavelength (/ L): fish ranges.
+    obstacle_cells: range of obstacle half-sizes in cells; tau_motion: OU correlation time (s) of
+        the target velocities.
+    """
+
+    size: int = 256
+    H: int = 64
+    W: int = 128
+    dx: float = 2.5e-3
+    h: float = 0.01
+    episode_steps: int = 500
+    rho: tuple[float, float] = (50.0, 50.0)
+    mu: tuple[float, float] = (1.25e-4, 1.25e-4)
+    max_speed: float = 0.5
+    wall: tuple[int, int] = (2, 5)
+    p_inflow: float = 0.3
+    p_fish: float = 0.4
+    max_obstacles: int = 2
+    sigma: tuple[float, float] = (5e-9, 5e-5)
+    p_sigma_coupling: float = 0.5
+    fish_length: tuple[float, float] = (0.1, 0.2)
+    fish_freq: tuple[float, float] = (1.0, 8.0)
+    fish_amp: tuple[float, float] = (0.03, 0.1)
+    fish_wavelength: tuple[float, float] = (0.7, 1.5)
+    obstacle_cells: tuple[float, float] = (3.0, 14.0)
+    tau_motion: float = 1.0
+
+    @property
+    def grid(self) -> Grid:
+        from fishsim.fluid.base import Grid
+
+        return Grid(self.H, self.W, self.dx)
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Everything a training run needs (plain values; mirrors the Hydra config).
+
+    net, pool: network and scene-pool settings (``pool.rho``/``pool.mu`` are the fluid ranges).
+    iterations: total optimiser steps; batch_size: scenes per step (per rank); lr: Adam step size.
+    beta, gamma: loss weights; advection: "koren" | "central" scheme of the loss's residual.
+    teacher: weight of L_t, the numerical solver's one-step target (0: physics only, the paper).
+    device: "cpu" | "cuda"; threads: torch CPU threads (0: default).
+    bf16: bfloat16 autocast for the U-Net trunk; channels_last: NHWC memory layout;
+    compile: torch.compile the trunk (measured slower on CPU); compile_loss: torch.compile the
+    loss (~80 s once; then the Koren residual's forward + backward runs 10x faster). log_every, ckpt_every (iterations), ckpt_minutes,
+    val_every, val_scenes, val_steps: bookkeeping. grad_clip: max gradient norm (0: off).
+    out_dir: the run's folder; null: a new outputs/train-hydronet/<time> (``fishsim.io.outdir``).
+    resume: continue from ``out_dir/ckpt.pt`` exactly (its lr replaced by ``lr``); needs out_dir.
+    overwrite: start a new run in an out_dir that holds one (else refused: a run is never lost).
+    init_from: start a new run from the weights of this best.pt / ckpt.pt (fresh optimiser and
+    pool: fine-tuning on another crop size or fluid range); ignored when resuming.
+    """
+
+    out_dir: str | None = None
+    iterations: int = 200_000
+    batch_size: int = 16
+    lr: float = 1e-3
+    beta: float = 1.0
+    gamma: float = 20.0
+    teacher: float = 0.0
+    advection: str = "koren"
+    net: NetConfig = field(default_factory=lambda: NetConfig(hidden=16))
+    pool: PoolConfig = field(default_factory=PoolConfig)
+    device: str = "cpu"
+    threads: int = 0
+    bf16: bool = True
+    channels_last: bool = True
+    compile: bool = False
+    compile_loss: bool = True
+    seed: int = 0
+    log_every: int = 10
+    ckpt_every: int = 2000
+    ckpt_minutes: float = 5.0
+    val_every: int = 500
+    val_scenes: int = 8
+    val_steps: int = 40
+    grad_clip: float = 0.0
+    resume: bool = False
+    overwrite: bool = False
+    init_from: str = ""
+    progress: bool = True
+
+    def validate(self) -> None:
+        """Reject impossible values with one line (ConfigError) before any work starts."""
+        _check(self.iterations >= 1 and self.batch_size >= 1, "iterations and batch_size must be >= 1")
+        _check(self.lr > 0 and self.beta > 0 and self.gamma >= 0 and self.teacher >= 0,
+               "lr and beta must be > 0, gamma and teacher >= 0")
+        _check(self.advection in ("koren", "central"), f"advection must be koren or central, got {self.advection!r}")
+        _check(self.device in ("cpu", "cuda") or self.device.startswith("cuda:"),
+               f"device must be cpu or cuda, got {self.device!r}")
+        _check(self.net.hidden >= 1 and self.net.depth >= 1, "net.hidden and net.depth must be >= 1")
+        p = self.pool
+        _check(p.size >= self.batch_size, f"pool.size ({p.size}) must be >= batch_size ({self.batch_size})")
+        _check(p.H >= 16 and p.W >= 16, f"pool.H x pool.W must be at least 16 x 16 (got {p.H} x {p.W})")
+        _check(p.dx > 0 and p.h > 0 and p.max_speed > 0, "pool.dx, pool.h and pool.max_speed must be > 0")
+        for name in ("rho", "mu", "sigma", "fish_length", "fish_freq", "fish_wavelength",
+                     "obstacle_cells", "wall"):
+            lo, hi = getattr(p, name)
+            _check(0 < lo <= hi, f"pool.{name} must be a range 0 < low <= high, got [{lo}, {hi}]")
+        lo, hi = p.fish_amp  # 0: a fish that holds still (its body is still a boundary to learn)
+        _check(0 <= lo <= hi, f"pool.fish_amp must be a range 0 <= low <= high, got [{lo}, {hi}]")
+        _check(self.net.condition or (p.rho[0] == p.rho[1] and p.mu[0] == p.mu[1]),
+               "a fluid range (pool.rho / pool.mu low < high) needs net.condition=true")
+        _check(not self.resume or bool(self.out_dir), RESUME_NEEDS_OUT_DIR)
+
+
+RESUME_NEEDS_OUT_DIR = ("resume=true needs out_dir=<the folder of the run to continue> (without it every run "
+                        "starts in a new outputs/train-hydronet/<time> folder)")
+
+
+def _check(ok: bool, message: str) -> None:
+    if not ok:
+        raise ConfigError(message)

@@ -37,52 +37,9 @@ from torch import Tensor
 from fishsim.coupling import band_margin, boundary_velocity, soft_mask, surface_band
 from fishsim.fluid.base import Boundary, FluidParams, FluidState, Grid
 from fishsim.fluid.grid import channel, union
+from fishsim.fluid.hydronet.config import PoolConfig
 
 SIGMA_COUPLING = 5e-7  # m^2, the coupling's default mask softness
-
-
-@dataclass(frozen=True)
-class PoolConfig:
-    """Scene distribution and pool mechanics (SI units; ranges are (low, high)).
-
-    size: scenes in the pool; H, W, dx, h: training grid (a crop: the net is fully convolutional).
-    episode_steps: average steps a scene lives before its round-robin reset.
-    rho (uniform), mu (log-uniform): fluid ranges; equal ends = one fluid.
-    max_speed: bound on body, surface and inflow speeds (m/s).
-    wall: range of wall thickness in cells; p_inflow: probability of an inflow/outflow channel.
-    p_fish: probability of a swimming fish; max_obstacles: rigid obstacles per scene.
-    sigma: log-uniform range of the mask softness (m^2); p_sigma_coupling: probability of the
-        coupling's default 5e-7 instead.
-    fish_length, fish_freq (Hz), fish_amp (tail amplitude / L), fish_wavelength (/ L): fish ranges.
-    obstacle_cells: range of obstacle half-sizes in cells; tau_motion: OU correlation time (s) of
-        the target velocities.
-    """
-
-    size: int = 256
-    H: int = 64
-    W: int = 128
-    dx: float = 2.5e-3
-    h: float = 0.01
-    episode_steps: int = 500
-    rho: tuple[float, float] = (50.0, 50.0)
-    mu: tuple[float, float] = (1.25e-4, 1.25e-4)
-    max_speed: float = 0.5
-    wall: tuple[int, int] = (2, 5)
-    p_inflow: float = 0.3
-    p_fish: float = 0.4
-    max_obstacles: int = 2
-    sigma: tuple[float, float] = (5e-9, 5e-5)
-    p_sigma_coupling: float = 0.5
-    fish_length: tuple[float, float] = (0.1, 0.2)
-    fish_freq: tuple[float, float] = (1.0, 8.0)
-    fish_amp: tuple[float, float] = (0.03, 0.1)
-    fish_wavelength: tuple[float, float] = (0.7, 1.5)
-    obstacle_cells: tuple[float, float] = (3.0, 14.0)
-    tau_motion: float = 1.0
-
-    @property
-    def grid(self) -> Grid:
-        return Grid(self.H, self.W, self.dx)
 
 
 # ------------------------------------------------------------------------------------ scenes

@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import copy
 import math
-from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
@@ -42,29 +41,13 @@ from torch.nn.utils.fusion import fuse_conv_bn_eval
 
 from fishsim.fluid.base import Boundary, FluidParams, FluidState, Grid, rest_state
 from fishsim.fluid.grid import curl
-from fishsim.fluid.hydronet.config import PRESSURES, RECOVERED
+from fishsim.fluid.hydronet.config import PRESSURES, RECOVERED, NetConfig
 from fishsim.fluid.hydronet.scales import scales_of
 from fishsim.fluid.pressure import RecoveryConfig, recover_pressure
 
 A_IN = 32.0
 RHO_MID, RHO_HALF = 30.0, 20.0
 LOG_NU_MID, LOG_NU_HALF = math.log(0.025), 1.85
-
-
-@dataclass(frozen=True)
-class NetConfig:
-    """U-Net hyper-parameters. hidden: channels of the first level (Wandel: 20); depth: number of
-    down/up levels (Wandel: 4); bound_a, bound_p: A, P in grid units; condition: (rho, nu*) inputs."""
-
-    hidden: int = 20
-    depth: int = 4
-    bound_a: float = 400.0
-    bound_p: float = 64.0
-    condition: bool = False
-
-    @property
-    def in_channels(self) -> int:
-        return 15 if self.condition else 13
 
 
 class DoubleConv(nn.Sequential):
