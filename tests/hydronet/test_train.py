@@ -273,3 +273,19 @@ def test_teacher_training_moves_the_network_towards_the_solver(cfg):
         terms = T.train_step(run, c, net)
     assert terms.teacher is not None and torch.all(terms.total >= c.teacher * terms.teacher)
     assert error() < 0.5 * before
+
+
+def test_an_unrolled_step_advances_its_scenes_and_follows_the_solvers_rollout(cfg):
+    """unroll=3: each iteration steps its scenes 3 h forward (the pool's scene clocks) and its
+    teacher targets are the solver's own 3-step rollout from the start state; unroll=1 is the
+    one-step training."""
+    torch.manual_seed(0)
+    c = replace(cfg, batch_size=2, teacher=1.0, unroll=3)
+    run, net = T.build(c, 0, 1, torch.device("cpu"))
+    before = [s.t for s in run.pool.scenes]
+    terms = T.train_step(run, c, net)
+    moved = [round((s.t - t0) / c.pool.h) for s, t0 in zip(run.pool.scenes, before)]
+    assert sorted(moved)[-2:] == [3, 3] and sorted(moved)[:-2] == [0] * (len(moved) - 2)
+    assert terms.teacher.shape == (2,) and torch.isfinite(terms.objective)
+    with pytest.raises(Exception, match="unroll must be >= 1"):
+        replace(cfg, unroll=0).validate()

@@ -112,6 +112,8 @@ class TrainConfig:
     iterations: total optimiser steps; batch_size: scenes per step (per rank); lr: Adam step size.
     beta, gamma: loss weights; advection: "koren" | "central" scheme of the loss's residual.
     teacher: weight of L_t, the numerical solver's one-step target (0: physics only, the paper).
+    unroll: network steps per iteration, back-propagated through together (1: Wandel's one step);
+        with a teacher, step j is compared with the solver's own j-step rollout.
     device: "cpu" | "cuda"; threads: torch CPU threads (0: default).
     bf16: bfloat16 autocast for the U-Net trunk; channels_last: NHWC memory layout;
     compile: torch.compile the trunk (measured slower on CPU); compile_loss: torch.compile the
@@ -131,6 +133,7 @@ class TrainConfig:
     beta: float = 1.0
     gamma: float = 20.0
     teacher: float = 0.0
+    unroll: int = 1
     advection: str = "koren"
     net: NetConfig = field(default_factory=lambda: NetConfig(hidden=16))
     pool: PoolConfig = field(default_factory=PoolConfig)
@@ -158,6 +161,7 @@ class TrainConfig:
         _check(self.iterations >= 1 and self.batch_size >= 1, "iterations and batch_size must be >= 1")
         _check(self.lr > 0 and self.beta > 0 and self.gamma >= 0 and self.teacher >= 0,
                "lr and beta must be > 0, gamma and teacher >= 0")
+        _check(self.unroll >= 1, f"unroll must be >= 1 network steps per iteration, got {self.unroll}")
         _check(self.advection in ("koren", "central"), f"advection must be koren or central, got {self.advection!r}")
         _check(self.device in ("cpu", "cuda") or self.device.startswith("cuda:"),
                f"device must be cpu or cuda, got {self.device!r}")

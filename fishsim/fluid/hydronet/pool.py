@@ -395,6 +395,13 @@ class ScenePool:
             self.scenes[i] = advance(self.scenes[i], self.cfg, self.rng)
         return self._batch(idx)
 
+    def advance(self, idx: Tensor) -> Boundary:
+        """Advance the scenes ``idx`` (from ``ask``) by another h; their boundary at that time
+        (for a training step unrolled over several steps)."""
+        for i in idx.tolist():
+            self.scenes[i] = advance(self.scenes[i], self.cfg, self.rng)
+        return self._batch(np.asarray(idx.tolist()))[2]
+
     def _batch(self, idx: np.ndarray) -> tuple[Tensor, FluidState, Boundary, FluidParams]:
         scenes = [self.scenes[i] for i in idx]
         boundary = scene_boundaries(scenes, self.grid, self.device)

@@ -79,32 +79,42 @@ def make_loss_fn(cfg: TrainConfig):
 
 
 def train_step(run: Run, cfg: TrainConfig, net: nn.Module) -> LossTerms:
-    """ask -> step -> loss -> Adam -> tell; returns the detached loss terms of the batch."""
+    """ask -> ``unroll`` steps -> loss -> Adam -> tell; returns the detached loss terms of the
+    batch (means over the unrolled steps). With a teacher, step j's target is the solver's own
+    j-step rollout from the same start, so the objective also sees the drift of the network's
+    rollout; the gradient flows through all ``unroll`` network steps."""
     idx, state, boundary, params = run.pool.ask(cfg.batch_size)
-    with torch.autocast(run.pool.device.type, dtype=torch.bfloat16, enabled=cfg.bf16):
-        a, p = net(state.a, state.p, boundary.mask, boundary.velocity, params.rho, params.mu,
-                   run.pool.grid.dx, params.h)
-    new = FluidState(a, p)
-    terms = LossTerms(*run.loss_fn(state.a, state.p, a, p, boundary.mask, boundary.velocity, params.rho,
-                                   params.mu, params.h))
-    if run.teacher is not None:
-        terms = with_teacher(terms, cfg, run.teacher, state, new, boundary, params)
+    new, target, steps = state, state, []
+    for j in range(cfg.unroll):
+        if j:
+            boundary = run.pool.advance(idx)
+        old = new
+        with torch.autocast(run.pool.device.type, dtype=torch.bfloat16, enabled=cfg.bf16):
+            new = FluidState(*net(old.a, old.p, boundary.mask, boundary.velocity, params.rho, params.mu,
+                                  run.pool.grid.dx, params.h))
+        terms = LossTerms(*run.loss_fn(old.a, old.p, new.a, new.p, boundary.mask, boundary.velocity, params.rho,
+                                       params.mu, params.h))
+        if run.teacher is not None:
+            with torch.no_grad():
+                target = run.teacher.step(FluidState(target.a.float(), target.p.float()), boundary, params)
+            terms = with_teacher(terms, cfg, target, new, params)
+        steps.append(terms)
+    objective = torch.stack([t.objective for t in steps]).mean()
     run.opt.zero_grad(set_to_none=True)
-    terms.objective.backward()
+    objective.backward()
     if cfg.grad_clip > 0:
         nn.utils.clip_grad_norm_(net.parameters(), cfg.grad_clip)
     run.opt.step()
     run.pool.tell(idx, new)
     run.iteration += 1
-    return LossTerms(*(None if t is None else t.detach() for t in
-                       (terms.momentum, terms.boundary, terms.total, terms.objective, terms.teacher)))
+    mean = lambda name: None if getattr(steps[0], name) is None else \
+        torch.stack([getattr(t, name).detach() for t in steps]).mean(0)
+    return LossTerms(mean("momentum"), mean("boundary"), mean("total"), objective.detach(), mean("teacher"))
 
 
-def with_teacher(terms: LossTerms, cfg: TrainConfig, teacher, state: FluidState, new: FluidState,
-                 boundary: Boundary, params: FluidParams) -> LossTerms:
-    """``terms`` with L_t against the solver's step from ``state`` added to L and the objective."""
-    with torch.no_grad():
-        target = teacher.step(FluidState(state.a.float(), state.p.float()), boundary, params)
+def with_teacher(terms: LossTerms, cfg: TrainConfig, target: FluidState, new: FluidState,
+                 params: FluidParams) -> LossTerms:
+    """``terms`` with L_t of ``new`` against the solver's ``target`` added to L and the objective."""
     lt = teacher_loss(FluidState(new.a.float(), new.p.float()), target, params, cfg.pool.grid)
     total = terms.total + cfg.teacher * lt
     return LossTerms(terms.momentum, terms.boundary, total, torch.log(total + EPS).mean(), lt)
@@ -142,7 +152,8 @@ def validate(model: HydroNet, cfg: TrainConfig, seed: int = 12345) -> float:
             loss_cfg = LossConfig(cfg.beta, cfg.gamma, scheme=cfg.advection)
             terms = hydronet_loss(state, new, boundary, params, grid, loss_cfg)
             if teacher is not None:
-                terms = with_teacher(terms, cfg, teacher, state, new, boundary, params)
+                target = teacher.step(FluidState(state.a.float(), state.p.float()), boundary, params)
+                terms = with_teacher(terms, cfg, target, new, params)
             losses.append(terms.objective.item())
         state = new
     model.train(was_training)
