@@ -58,3 +58,17 @@ def test_the_shipped_slurm_launcher_config_composes():
                       return_hydra_config=True)
     assert cfg.hydra.launcher._target_.endswith("SlurmLauncher")
     assert cfg.hydra.launcher.cpus_per_task == 2 and cfg.hydra.launcher.partition == "gpu"
+
+
+def test_a_sweep_through_submitit_runs_each_job_as_a_submitit_job(tmp_path, monkeypatch):
+    """Hydra's submitit launcher, the one behind hydra/launcher=slurm, with its local executor:
+    each job runs in its own submitit-managed process and lands in the sweep's table (a SLURM
+    cluster swaps only the executor)."""
+    pytest.importorskip("hydra_plugins.hydra_submitit_launcher")
+    monkeypatch.chdir(tmp_path)
+    result = runner.invoke(app, ["mesh", "-m", "fish.min_angle=25,30", *TINY, "hydra/launcher=submitit_local",
+                                 "hydra.sweep.dir=sweep"])
+    assert result.exit_code == 0, result.output
+    rows = _rows(tmp_path / "sweep")
+    assert [r["status"] for r in rows] == ["complete", "complete"]
+    assert any((tmp_path / "sweep" / ".submitit").rglob("*_result.pkl"))      # submitit ran them
