@@ -34,6 +34,7 @@ from fishsim.coupling.added_mass import stabilising_force
 from fishsim.errors import ConfigError, SimulationBlowUp
 from fishsim.fluid.base import Boundary, FluidModel, FluidParams, FluidState, RefinedState
 from fishsim.fluid.grid import union
+from fishsim.mesh.triangulate import element_areas
 from fishsim.solid import SolidModel, pd_step, predicted_start
 from fishsim.solid.controller import WaveController
 
@@ -313,9 +314,7 @@ def require_no_inversion(q: Tensor, triangles: Tensor) -> None:
     """Raise SimulationBlowUp when an element of the deformed fish q [B, N, 2] is inverted (its
     signed area <= 0; triangles [T, 3] ccw in the rest shape): the solid has folded over itself,
     which no elastic swimmer does."""
-    p = q.detach()[:, triangles.to(q.device)]                              # [B, T, 3, 2]
-    e1, e2 = p[:, :, 1] - p[:, :, 0], p[:, :, 2] - p[:, :, 0]
-    area = e1[..., 0] * e2[..., 1] - e1[..., 1] * e2[..., 0]
+    area = element_areas(q.detach(), triangles.to(q.device))              # [B, T]
     if bool((area <= 0).any()):
         b, k = divmod(int(torch.argmin(area.reshape(-1))), area.shape[1])
         raise SimulationBlowUp(f"element {k} of fish {b} is inverted (the body folded over itself): the "

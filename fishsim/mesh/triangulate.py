@@ -136,12 +136,12 @@ def sample_outline(w_out: Profile, length: float, edge_length: float,
 # ---------------------------------------------------------------- triangles and surface
 
 
-def element_areas(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """Signed areas A [T] (m^2) of triangles [T, 3] over points [N, 2]; A > 0 when ccw:
-    A = ((x1 - x0) x (x2 - x0)) / 2."""
-    a, b, c = (points[triangles[:, k]] for k in range(3))
+def element_areas(points, triangles):
+    """Signed areas A [..., T] (m^2) of triangles [T, 3] over points [..., N, 2] (numpy arrays or
+    torch tensors, optionally batched); A > 0 when ccw: A = ((x1 - x0) x (x2 - x0)) / 2."""
+    a, b, c = (points[..., triangles[:, k], :] for k in range(3))
     e1, e2 = b - a, c - a
-    return 0.5 * (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+    return 0.5 * (e1[..., 0] * e2[..., 1] - e1[..., 1] * e2[..., 0])
 
 
 def element_angles(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
