@@ -518,12 +518,11 @@ def park(state: SwimState, params: SwimParams, alive: Tensor, rest: SwimState) -
     stay at rest and pass no gradient); the others untouched."""
     if bool(alive.all()):
         return state, params
-    fluid = state.fluid
-    if fluid is not None:
-        fine = getattr(fluid, "fine_a", None)
-        a, p = _select(alive, fluid.a, rest.fluid.a), _select(alive, fluid.p, rest.fluid.p)
-        fluid = (FluidState(a=a, p=p) if fine is None else            # a parked fish's fine flow: at rest
-                 RefinedState(a=a, p=p, fine_a=_select(alive, fine, torch.zeros_like(fine))))
+    def at_rest(name: str, x: Tensor) -> Tensor:                # a parked fish's fluid (fine flow too): at rest
+        r = getattr(rest.fluid, name, None)
+        return _select(alive, x, torch.zeros_like(x) if r is None else r)
+
+    fluid = None if state.fluid is None else state.fluid.map(at_rest)
     qdot_prev = _select(alive, state.qdot_prev, rest.qdot_prev if rest.qdot_prev is not None else torch.zeros_like(rest.q))
     parked = SwimState(_select(alive, state.q, rest.q), _select(alive, state.qdot, rest.qdot), fluid, qdot_prev)
     C = params.controller.C
@@ -534,11 +533,7 @@ def park(state: SwimState, params: SwimParams, alive: Tensor, rest: SwimState) -
 def _sample(state: SwimState, params: SwimParams, b: int) -> tuple[SwimState, SwimParams]:
     """Sample b of a batch as a batch of one."""
     one = lambda x: None if x is None else x[b:b + 1]
-    fluid = state.fluid
-    if fluid is not None:
-        fine = getattr(fluid, "fine_a", None)
-        fluid = (FluidState(a=one(fluid.a), p=one(fluid.p)) if fine is None else
-                 RefinedState(a=one(fluid.a), p=one(fluid.p), fine_a=one(fine)))
+    fluid = None if state.fluid is None else state.fluid.map(lambda _, x: one(x))
     c = params.controller
     controller = dataclasses.replace(c, C=one(c.C), omega=one(c.omega), gamma=one(c.gamma))
     fp = None if params.fluid is None else dataclasses.replace(params.fluid, rho=one(params.fluid.rho),

@@ -23,8 +23,10 @@ Grid and array conventions (docs/physics.md section 4; all lengths in metres, ti
 
 from __future__ import annotations
 
+import dataclasses
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
+from typing import Protocol, Self, runtime_checkable
 
 import torch
 from torch import Tensor
@@ -61,6 +63,12 @@ class FluidState:
 
     a: Tensor
     p: Tensor
+
+    def map(self, fn: Callable[[str, Tensor], Tensor]) -> Self:
+        """The same kind of state with ``fn(name, tensor)`` applied to each of its tensors (a, p
+        and a refined state's fine_a): per-sample selection, slicing, device moves."""
+        return dataclasses.replace(self, **{f.name: fn(f.name, getattr(self, f.name))
+                                            for f in dataclasses.fields(self) if getattr(self, f.name) is not None})
 
 
 @dataclass(frozen=True)
