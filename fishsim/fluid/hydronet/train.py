@@ -236,20 +236,19 @@ def load_hydronet(path: str | Path, device="cpu") -> HydroNet:
     """A trained HydroNet (eval mode) from best.pt or ckpt.pt, with its ``training_range`` (None if
     unknown; ``trained_range.check_fluid``); wrap it in ``HydroNetFluid``.
 
-    Raises InputFileError (one line, how to fix) for a missing, unreadable or foreign file."""
-
+    Raises InputFileError (one line, how to fix) for a missing, unreadable or foreign file, and
+    ConfigError naming the first tensor that does not fit the file's own network config."""
     path = Path(path)
     hint = "train one with `fishsim train-hydronet` or pass fluid.model_file=PATH to a best.pt"
-    if not path.is_file():
-        raise InputFileError(f"HydroNet model file {path} not found; {hint}")
+    sd = _load_file(path, "model", hint)
     try:
-        sd = torch.load(path, map_location=device, weights_only=False)
-        model = HydroNet(NetConfig(**sd["net"])).to(device)
-        model.load_state_dict(sd["model"])
-    except Exception as err:  # noqa: BLE001 - any failure here means the file is not a HydroNet
-        raise InputFileError(f"{path} is not a readable HydroNet model ({type(err).__name__}); {hint}") from None
+        model = HydroNet(NetConfig(**sd["net"]))
+    except (KeyError, TypeError) as err:
+        raise InputFileError(f"{path} is not a readable HydroNet model (no valid network config: "
+                             f"{type(err).__name__}); {hint}") from None
+    load_weights(model, sd, path)
     model.training_range = stored_range(sd, path)     # checked against a run's fluid: trained_range.py
-    return model.eval()
+    return model.to(device).eval()
 
 
 # ------------------------------------------------------------------------------ logging
@@ -416,16 +415,18 @@ def _restore(run: Run, cfg: TrainConfig, out: Path, rank: int, device: torch.dev
         load_weights(run.model, _load_file(Path(cfg.init_from), "model (init_from)"), Path(cfg.init_from))
 
 
-def _load_file(path: Path, what: str) -> dict:
-    """torch.load of a fishsim checkpoint or model, InputFileError (one line) if it is not one."""
-    if not path.exists():
-        raise InputFileError(f"{what} file {path} not found")
+def _load_file(path: Path, what: str, hint: str = "") -> dict:
+    """torch.load of a fishsim checkpoint or model (on the CPU), InputFileError (one line, ending
+    in ``hint``) if it is missing or not one."""
+    end = f"; {hint}" if hint else ""
+    if not path.is_file():
+        raise InputFileError(f"HydroNet {what} file {path} not found{end}")
     try:
         data = torch.load(path, map_location="cpu", weights_only=False)
     except Exception as err:  # noqa: BLE001 - any failure here means the file is not ours
-        raise InputFileError(f"{path} is not a readable HydroNet {what} ({type(err).__name__}: {err})") from None
+        raise InputFileError(f"{path} is not a readable HydroNet {what} ({type(err).__name__}){end}") from None
     if not isinstance(data, dict) or "model" not in data:
-        raise InputFileError(f"{path} is not a HydroNet {what} (no 'model' weights in it)")
+        raise InputFileError(f"{path} is not a readable HydroNet {what} (no 'model' weights in it){end}")
     return data
 
 
