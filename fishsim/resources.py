@@ -118,7 +118,6 @@ def check_memory(cfg, batch: int, gradient_frames: int = 0, segment: int = 25) -
                           "use a smaller grid, a coarser fish.edge_length or fewer fish, or check_resources=false")
 
 
-
 def announce_time(seconds: float, what: str, device: str = "cpu") -> None:
     """One line on stderr with a CPU run's estimated time, for runs long enough to wonder (>= 30 s)."""
     if device == "cpu" and seconds >= 30:

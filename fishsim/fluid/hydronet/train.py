@@ -4,8 +4,9 @@ One iteration (Wandel et al. 2021): ask the pool for a batch (state at t, bounda
 step it once with the network, minimise mean_B log(beta L_p + gamma L_b) (``loss.py``) with Adam,
 and tell the pool the new (detached) states, so the network trains on its own rollouts.
 With ``teacher > 0`` the numerical solver steps the same batch too and the objective becomes
-mean_B log(beta L_p + gamma L_b + teacher L_t) (``loss.teacher_loss``); ``teacher = 0`` is the
-paper's physics-only training.
+mean_B log(beta L_p + gamma L_b + teacher L_t) (``loss.teacher_loss``); with ``unroll = k`` an
+iteration takes k network steps, back-propagated together, step j against the solver's own
+j-step rollout (``train_step``). ``teacher = 0, unroll = 1`` is the paper's physics-only training.
 
 Outputs under ``out_dir``: ``ckpt.pt`` (latest: model, optimiser, pool, RNG, counters; written
 atomically, every ``ckpt_every`` iterations or ``ckpt_minutes``, and on Ctrl-C), ``best.pt`` (the
