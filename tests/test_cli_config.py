@@ -83,7 +83,7 @@ def test_shipped_yaml_defaults_equal_the_code_defaults():
     assert load_config("simulate") == SimulateConfig()
     assert load_config("mesh") == MeshCommandConfig()
     assert train_config(load_config("train-hydronet")) == TrainConfig()
-    from fishsim.commands.validate import ValidateConfig
+    from fishsim.config import ValidateConfig
 
     assert load_config("validate") == ValidateConfig()
 

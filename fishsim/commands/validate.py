@@ -26,85 +26,15 @@ from __future__ import annotations
 
 import json
 import re
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, replace
 
 from rich.console import Console
 from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 from rich.table import Table
 
-from fishsim.errors import ConfigError
-from fishsim.fluid.hydronet.config import PRESSURES, EvalConfig
+from fishsim.config import SolidStudyConfig, ValidateConfig
 from fishsim.io.outdir import make_out_dir
-from fishsim.swim_study_config import ConvergenceStudyConfig, SwimStudyConfig
-
-SUITES = ("hydronet", "solid", "swim", "convergence")
-STUDY_FLUIDS = ("none", "numerical", "hydronet")
-
-
-@dataclass
-class SolidStudyConfig:
-    """suite=solid (``fishsim.solid.convergence``). edges: fish edge lengths (m), each a
-    `fishsim simulate` run per muscle model (deviations from the finest). muscles: layer and/or
-    paper. fluid: none (vacuum) | numerical | hydronet. frames: episode length at h = 0.01 s
-    (stroke over the second half). beam_across: the cantilever's elements across its thickness
-    (empty: no beam check)."""
-
-    edges: list[float] = field(default_factory=lambda: [3.0e-3, 2.0e-3, 1.4e-3, 1.0e-3])
-    muscles: list[str] = field(default_factory=lambda: ["layer", "paper"])
-    fluid: str = "none"
-    frames: int = 120
-    beam_across: list[int] = field(default_factory=lambda: [2, 4, 8, 16])
-
-    def validate(self) -> None:
-        if len(self.edges) < 2 or not all(0 < e < 0.02 for e in self.edges):
-            raise ConfigError(f"solid.edges needs at least 2 edge lengths in (0, 0.02) m (got {list(self.edges)})")
-        if not self.muscles or not set(self.muscles) <= {"layer", "paper"}:
-            raise ConfigError(f"solid.muscles must list layer and/or paper (got {list(self.muscles)})")
-        if self.fluid not in STUDY_FLUIDS:
-            raise ConfigError(f"solid.fluid must be one of {STUDY_FLUIDS} (got '{self.fluid}')")
-        if self.frames < 4:
-            raise ConfigError(f"solid.frames must be >= 4 (the stroke is measured over the second half; got {self.frames})")
-        if not all(n >= 1 for n in self.beam_across):
-            raise ConfigError(f"solid.beam_across must be >= 1 element across (got {list(self.beam_across)})")
-
-
-@dataclass
-class ValidateConfig:
-    """suite: hydronet | solid | swim | convergence. model_file: the HydroNet to judge (null: shipped).
-    bf16: run it in bfloat16. pressure: recovered | network (``fishsim.fluid.pressure``).
-    device: cpu | cuda. scenes: the held-out scenes and protocol (hydronet).
-    solid: the mesh study and beam check (solid). swim: the frequency study (swim)."""
-
-    suite: str = "hydronet"
-    model_file: str | None = None
-    bf16: bool = False
-    pressure: str = "recovered"
-    device: str = "cpu"
-    scenes: EvalConfig = field(default_factory=EvalConfig)
-    solid: SolidStudyConfig = field(default_factory=SolidStudyConfig)
-    swim: SwimStudyConfig = field(default_factory=SwimStudyConfig)
-    convergence: ConvergenceStudyConfig = field(default_factory=ConvergenceStudyConfig)
-    out_dir: str | None = None
-
-    def validate(self) -> None:
-        self.solid.validate()
-        self.swim.validate()
-        self.convergence.validate()
-        if self.suite not in SUITES:
-            raise ConfigError(f"suite must be one of {SUITES} (got '{self.suite}')")
-        if self.pressure not in PRESSURES:
-            raise ConfigError(f"pressure must be recovered or network (got '{self.pressure}')")
-        s = self.scenes
-        if not (s.H >= 32 and s.W >= 32 and s.dx > 0 and s.rho > 0 and s.mu > 0):
-            raise ConfigError(f"scenes need a grid of at least 32 x 32 cells (HydroNet's U-Net pools it 4 times) and "
-                              f"dx, rho, mu > 0 (got {s.H} x {s.W}, dx {s.dx}, rho {s.rho}, mu {s.mu})")
-        if not s.radius < min(s.H, s.W) * s.dx / 4:
-            raise ConfigError(f"scenes.radius = {s.radius} m does not fit the {s.H} x {s.W} grid of {s.dx} m cells")
-        if not (s.warmup >= 0 and s.steps >= 1 and s.radius > 0 and s.fish_amp > 0 and s.h > 0):
-            raise ConfigError("scenes.warmup >= 0, scenes.steps >= 1 and radius, fish_amp, h > 0 are required")
-        if not (s.speeds or s.frequencies):
-            raise ConfigError("give at least one of scenes.speeds or scenes.frequencies")
 
 
 def run(cfg: ValidateConfig) -> dict:

@@ -142,7 +142,7 @@ def render_comparison(runs: list[RenderData], labels: list[str], cfg: RenderConf
 
 
 def _write_vtk(run: RenderData, cfg: RenderConfig, out_dir: Path) -> dict:
-    from fishsim.io.vtk_io import write_vtk_series
+    from fishsim.render.vtk_io import write_vtk_series
 
     files = write_vtk_series(run, out_dir / "vtk", frame_indices(run.n_frames, cfg, shared_fluid_frames([run])),
                              actuator=run.actuator)
