@@ -198,7 +198,7 @@ def energy_checks(net: FluidModel, reference: FluidModel, cfg: EvalConfig = Eval
             state = model.step(state, bd, params)
         return state, bd
 
-    still, bd = rollout(net, Fish(0.2, 0.0, 1.0, 2 * math.pi / 0.2, 0.0, 0.2, centre), cfg.still_steps)
+    still, _ = rollout(net, Fish(0.2, 0.0, 1.0, 2 * math.pi / 0.2, 0.0, 0.2, centre), cfg.still_steps)
     speed = max(c.abs().max().item() for c in curl(still.a, grid.dx))
     swimmer = Fish(0.2, cfg.fish_amp * 0.2, cfg.energy_frequency, 2 * math.pi / 0.2, 0.0, 0.2, centre)
     energy = {}

@@ -398,9 +398,10 @@ class ScenePool:
     def advance(self, idx: Tensor) -> Boundary:
         """Advance the scenes ``idx`` (from ``ask``) by another h; their boundary at that time
         (for a training step unrolled over several steps)."""
-        for i in idx.tolist():
+        ids = idx.tolist()
+        for i in ids:
             self.scenes[i] = advance(self.scenes[i], self.cfg, self.rng)
-        return self._batch(np.asarray(idx.tolist()))[2]
+        return scene_boundaries([self.scenes[i] for i in ids], self.grid, self.device)
 
     def _batch(self, idx: np.ndarray) -> tuple[Tensor, FluidState, Boundary, FluidParams]:
         scenes = [self.scenes[i] for i in idx]
