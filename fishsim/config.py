@@ -178,6 +178,8 @@ class FluidConfig:
     pressure_tol: hydronet only, relative residual of the pressure recovery's PCG solve.
     strict_range: hydronet only, refuse a run whose rho, mu, dx or h lies outside the range the
         model was trained for (default: a one-line warning; fishsim/fluid/hydronet/trained_range.py).
+    dtype: precision of the fluid fields and the coupling's fluid side, "float32" (default, fast)
+        or "float64" (for finite-difference checks of gradients; HydroNet's weights are cast too).
     """
 
     model: str = "numerical"
@@ -198,8 +200,10 @@ class FluidConfig:
     pressure: str = "recovered"
     pressure_tol: float = 1e-2
     strict_range: bool = False
+    dtype: str = "float32"
 
     def validate(self) -> None:
+        _require(self.dtype in ("float32", "float64"), f"fluid.dtype must be float32 or float64 (got '{self.dtype}')")
         _require(self.model in ("none", "numerical", "hydronet"),
                  f"fluid.model must be none, numerical or hydronet (got '{self.model}')")
         _positive(**{"fluid.rho": self.rho, "fluid.mu": self.mu, "fluid.dx": self.dx})

@@ -8,8 +8,11 @@ precision.  ``surface_band`` therefore picks, without gradient (the choice is pi
   the batch (each fish has its own origin), clipped to the grid;
 * per window cell, whether it is inside the body (even-odd crossing rule, all segments, counted
   per row with a sorted list of crossings);
-* per window cell, the K nearest segments (or nodes).  The softmin weights of the others are
-  below exp(-(e_K - e_1)/xi); the default K = 12 matches the all-segment result to 1e-15.
+* per window cell, its K + 1 nearest segments (or nodes): the K nearest and, as the reference of
+  the truncated softmin (``mask.softmin_weights``), the (K + 1)-th.  A segment's weight falls
+  to zero as it becomes the (K + 1)-th, so a change of the K nearest is continuous (a plain
+  softmin over the K nearest jumped by the weight of the segment that left: at the graded
+  mesh's fine tail tip, segments ~0.5 mm long, that weight was a few per cent).
 
 The differentiable quantities are then recomputed from ``qs`` on [B, P, K] only, so the autograd
 memory is O(B P K) instead of O(B H W S).  The all-segment pass runs in chunks of cells.
@@ -39,8 +42,8 @@ class SurfaceBand:
     centres: [B, P, 2] cell-centre coordinates x_ij - origin (x, y) in m, dtype of qs; geometry
         relative to the origin can run in float32 without losing sub-micrometre precision.
     inside: [B, P] bool, cell centre inside the closed polyline.
-    nearest: [B, P, K] long, indices of the K nearest segments (segment k = q^k -> q^{k+1})
-        or nodes, according to ``distance``.
+    nearest: [B, P, K'] long, indices of the K' = min(K + 1, S) nearest segments (segment
+        k = q^k -> q^{k+1}) or nodes, according to ``distance``.
     distance: "segment" or "node".
     """
 
@@ -119,9 +122,9 @@ def _inside(centres: Tensor, qs: Tensor, h: int, w: int) -> Tensor:
 
 
 @torch.no_grad()
-def surface_band(qs: Tensor, grid: Grid, margin: int, k_nearest: int = 12,
+def surface_band(qs: Tensor, grid: Grid, margin: int, k_nearest: int = 24,
                  distance: str = SEGMENT) -> SurfaceBand:
-    """Band cells, inside flags and K nearest segments/nodes of the surface ``qs`` [B, S, 2].
+    """Band cells, inside flags and K + 1 nearest segments/nodes of the surface ``qs`` [B, S, 2].
 
     The selection runs in float32 relative to each fish's centre (|x| < 0.15 m: the squared
     distances are off by < 1e-9 m^2 = xi / 500); it only selects, it is never differentiated.
@@ -136,7 +139,7 @@ def surface_band(qs: Tensor, grid: Grid, margin: int, k_nearest: int = 12,
     chunk = max(1, _CHUNK_ELEMENTS // (B * S))
     nearest = [  # blocks of cells, bounded memory
         _all_squared_distances(x32[:, i:i + chunk], q32, distance)
-        .topk(min(k_nearest, S), dim=-1, largest=False).indices
+        .topk(min(k_nearest + 1, S), dim=-1, largest=False).indices
         for i in range(0, P, chunk)
     ]
     inside = _inside(x32, q32, h, w)

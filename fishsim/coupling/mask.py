@@ -4,7 +4,8 @@
     v_d,ij  = (sum_l softmin_l(e_ij / tau) qdot^l) b_ij
 
 with e_ij,l the squared distance from the cell centre x_ij to surface element l, and
-delta = +1 inside the body, -1 outside.  Both are computed on the band of cells around the body
+delta = +1 inside the body, -1 outside.  The soft-mins run over each cell's K nearest elements,
+tapered to zero at the (K + 1)-th so that they stay continuous (``softmin_weights``).  Both are computed on the band of cells around the body
 (``band.py``); every other cell gets b = 0 and v_d = 0 exactly.
 
 Surface elements (``distance``):
@@ -68,13 +69,33 @@ def element_distances(qs: Tensor, band: SurfaceBand,
     return segment_closest_point(x, a, b)[::-1]
 
 
-def soft_distance(e: Tensor, xi: float, mean: str = HARMONIC) -> Tensor:
-    """Soft-min d of the squared distances e [..., K] with weights softmin(e / xi), [...] m^2.
+def softmin_weights(e: Tensor, temperature: float, truncated: bool) -> Tensor:
+    """Weights w_l [..., K'] of the soft-min over a cell's nearest elements, e [..., K'] m^2.
+
+    All elements (``truncated`` False): w_l = softmax_l(-e_l / T).
+    The K + 1 nearest of more (``truncated``): the softmin tapered to zero at the farthest,
+
+        w_l ~ exp(-e_l / T) - exp(-e_max / T),    e_max = max_l e_l,
+
+    so an element's weight vanishes as it leaves the K nearest and the weights are a continuous
+    function of the positions (band.py).  Both differ from the softmin over all elements by
+    O(exp(-(e_max - e_min) / T)).
+    """
+    if not truncated:
+        return torch.softmax(-e / temperature, dim=-1)
+    shifted = e - e.amin(-1, keepdim=True)
+    w = (torch.exp(-shifted / temperature) - torch.exp(-shifted.amax(-1, keepdim=True) / temperature)).clamp_min(0.0)
+    return w / w.sum(-1, keepdim=True).clamp_min(torch.finfo(w.dtype).tiny)
+
+
+def soft_distance(e: Tensor, xi: float, mean: str = HARMONIC, truncated: bool = False) -> Tensor:
+    """Soft-min d of the squared distances e [..., K] with weights softmin(e / xi), [...] m^2
+    (``truncated``: e holds a cell's K + 1 nearest elements of more, ``softmin_weights``).
 
     harmonic:   d = 1 / sum_l (w_l / e_l)     (0 on the surface)
     arithmetic: d = sum_l w_l e_l             (paper)
     """
-    w = torch.softmax(-e / xi, dim=-1)
+    w = softmin_weights(e, xi, truncated)
     if mean == ARITHMETIC:
         return (w * e).sum(-1)
     if mean == HARMONIC:
@@ -102,7 +123,7 @@ def soft_mask(qs: Tensor, grid: Grid, xi: float = XI, sigma: float = SIGMA,
         band = surface_band(qs, grid, band_margin(sigma, grid.dx), distance=distance)
     dtype = dtype or qs.dtype
     e, _ = element_distances(qs, band, dtype)
-    d = soft_distance(e, xi, mean)
+    d = soft_distance(e, xi, mean, truncated=band.nearest.shape[-1] < qs.shape[1])
     delta = torch.where(band.inside, 1.0, -1.0).to(d.dtype)
     b = torch.sigmoid(delta * d / sigma)
     return scatter_band(b.unsqueeze(1), band, grid)
@@ -137,7 +158,7 @@ def boundary_velocity(qs: Tensor, qdots: Tensor, mask: Tensor, grid: Grid, tau: 
     if band is None:
         band = surface_band(qs, grid, band_margin(SIGMA, grid.dx), distance=distance)
     e, t = element_distances(qs, band, mask.dtype)
-    w = torch.softmax(-e / tau, dim=-1)
+    w = softmin_weights(e, tau, truncated=band.nearest.shape[-1] < qs.shape[1])
     u = (w.unsqueeze(-1) * element_velocities(qdots.to(mask.dtype), band, t)).sum(2)  # [B, P, 2]
     b = mask.flatten(2).gather(2, band.flat.unsqueeze(1))  # [B, 1, P]
     u = u.transpose(1, 2)

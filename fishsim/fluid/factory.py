@@ -34,21 +34,23 @@ def make_fluid(cfg, device=None) -> FluidModel | None:
         from fishsim.fluid.hydronet import HydroNetFluid, load_hydronet
         from fishsim.fluid.pressure import RecoveryConfig
 
-        model = load_hydronet(cfg.model_file or SHIPPED_HYDRONET, device=device or "cpu")
+        model = load_hydronet(cfg.model_file or SHIPPED_HYDRONET, device=device or "cpu").to(getattr(torch, cfg.dtype))
         return HydroNetFluid(model, make_grid(cfg), bf16=cfg.bf16, pressure=cfg.pressure,
                              recovery=RecoveryConfig(tol=cfg.pressure_tol))
     raise ValueError(f"unknown fluid model {cfg.model!r}")
 
 
-def make_tank(cfg, device=None, dtype=torch.float32) -> Boundary:
-    """The tank's walls [1, ., H, W]: closed, or a channel with ``cfg.inflow`` m/s at the ends."""
-    grid = make_grid(cfg)
+def make_tank(cfg, device=None) -> Boundary:
+    """The tank's walls [1, ., H, W] in ``cfg.dtype``: closed, or a channel with ``cfg.inflow``
+    m/s at the ends."""
+    grid, dtype = make_grid(cfg), getattr(torch, cfg.dtype)
     if cfg.inflow != 0.0:
         return channel(grid, cfg.inflow, cfg.wall_y, cfg.wall_x, 1, device, dtype)
     return closed_tank(grid, cfg.wall_y, cfg.wall_x, 1, device, dtype)
 
 
-def fluid_params(cfg, batch: int, h: float, device=None, dtype=torch.float32) -> FluidParams:
-    """rho, mu as [B] tensors and the time step h."""
+def fluid_params(cfg, batch: int, h: float, device=None) -> FluidParams:
+    """rho, mu as [B] tensors (in the fluid's ``cfg.dtype``) and the time step h."""
+    dtype = getattr(torch, cfg.dtype)
     full = lambda v: torch.full((batch,), float(v), device=device, dtype=dtype)
     return FluidParams(rho=full(cfg.rho), mu=full(cfg.mu), h=h)
