@@ -41,6 +41,12 @@ def test_bad_config_is_one_clear_line(override, fragment):
     assert "\n" not in str(err.value)
 
 
+def test_fluid_precision_is_float32_or_float64():
+    assert load_config("simulate", ["fluid.dtype=float64"]).fluid.dtype == "float64"
+    with pytest.raises(ConfigError, match="fluid.dtype must be float32 or float64"):
+        load_config("simulate", ["fluid.dtype=float16"])
+
+
 def test_cli_bad_key_exit_code_2_no_traceback():
     result = runner.invoke(app, ["mesh", "fish.nonsense=1"])
     assert result.exit_code == 2
