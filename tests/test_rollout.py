@@ -308,11 +308,15 @@ def test_an_inverted_element_or_a_runaway_force_stops_the_run():
         require_bounded_force(f, torch.tensor([50.0, 50.0]), 0.2)
 
 
-@pytest.mark.parametrize("fluid", ["numerical", "none"])
+@pytest.mark.parametrize("fluid", ["numerical", "hydronet", "none"])
 def test_gradient_is_deterministic_across_runs_and_thread_counts(fluid):
     """Same inputs, same gradient: bit for bit on repeated runs, and within 1e-10 relative in
-    float64 across torch thread counts (reductions may be split differently)."""
-    cfg, sw, ep = small_swimmer([f"fluid={fluid}"])
+    float64 across torch thread counts (reductions may be split differently). HydroNet runs its
+    own pressure (the recovered pressure's solve stops at a tolerance that thread-dependent
+    round-off can cross one iteration earlier or later); its convolutions' thread-split sums move
+    this 6-frame gradient (2e-6 m s/rad, a small difference of large terms) by ~3e-15 absolute,
+    1.4e-9 relative (measured), hence its 1e-8."""
+    cfg, sw, ep = small_swimmer([f"fluid={fluid}", *(["fluid.pressure=network"] if fluid == "hydronet" else [])])
     threads = torch.get_num_threads()
 
     def grad(n_threads):
@@ -327,7 +331,7 @@ def test_gradient_is_deterministic_across_runs_and_thread_counts(fluid):
     finally:
         torch.set_num_threads(threads)
     assert one == again
-    assert abs(two - one) <= 1e-10 * abs(one)
+    assert abs(two - one) <= (1e-8 if fluid == "hydronet" else 1e-10) * abs(one)
 
 
 def test_a_refined_fluid_keeps_its_fine_flow_across_checkpoint_segments():
