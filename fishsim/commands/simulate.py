@@ -17,7 +17,7 @@ from rich.table import Table
 from fishsim.commands.mesh import build_fish_mesh, build_muscles
 from fishsim.config import SimulateConfig, to_yaml
 from fishsim.errors import ConfigError, FishsimError
-from fishsim.fluid.factory import SHIPPED_HYDRONET, fluid_params, make_fluid, make_tank
+from fishsim.fluid.factory import SHIPPED_HYDRONET, fluid_dtype, fluid_params, make_fluid, make_tank
 from fishsim.fluid.grid import curl, faces_to_centres
 from fishsim.fluid.hydronet.trained_range import check_fluid
 from fishsim.io.outdir import make_out_dir, output_file
@@ -54,7 +54,7 @@ def build_episode(cfg: SimulateConfig) -> Episode:
                        added_mass_ratio=cfg.coupling.added_mass_ratio if fluid is not None else 0.0,
                        muscles=build_muscles(cfg.fish, mesh))
     walls = make_tank(cfg.fluid, device) if fluid is not None else None
-    swimmer = Swimmer(solid, fluid, cfg.coupling, walls, fluid_dtype=getattr(torch, cfg.fluid.dtype), hold_x=cfg.hold_x)
+    swimmer = Swimmer(solid, fluid, cfg.coupling, walls, fluid_dtype=fluid_dtype(cfg.fluid), hold_x=cfg.hold_x)
     params = batch_params(cfg, mesh.length, device)
     peak = params.controller.peak_contraction(solid)
     if bool((peak >= 1).any()):

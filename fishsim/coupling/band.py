@@ -45,6 +45,8 @@ class SurfaceBand:
     nearest: [B, P, K'] long, indices of the K' = min(K + 1, S) nearest segments (segment
         k = q^k -> q^{k+1}) or nodes, according to ``distance``.
     distance: "segment" or "node".
+    truncated: the cells see fewer elements than the surface has (K' < S), so their soft-mins
+        are tapered at the K'-th (``mask.softmin_weights``).
     """
 
     flat: Tensor
@@ -53,6 +55,7 @@ class SurfaceBand:
     inside: Tensor
     nearest: Tensor
     distance: str
+    truncated: bool
 
 
 def band_margin(sigma: float, dx: float, decades: float = 40.0) -> int:
@@ -143,7 +146,7 @@ def surface_band(qs: Tensor, grid: Grid, margin: int, k_nearest: int = 24,
         for i in range(0, P, chunk)
     ]
     inside = _inside(x32, q32, h, w)
-    return SurfaceBand(flat, origin, centres, inside, torch.cat(nearest, 1), distance)
+    return SurfaceBand(flat, origin, centres, inside, torch.cat(nearest, 1), distance, truncated=k_nearest + 1 < S)
 
 
 def scatter_band(values: Tensor, band: SurfaceBand, grid: Grid) -> Tensor:

@@ -5,8 +5,9 @@
 
 with e_ij,l the squared distance from the cell centre x_ij to surface element l, and
 delta = +1 inside the body, -1 outside.  The soft-mins run over each cell's K nearest elements,
-tapered to zero at the (K + 1)-th so that they stay continuous (``softmin_weights``).  Both are computed on the band of cells around the body
-(``band.py``); every other cell gets b = 0 and v_d = 0 exactly.
+tapered to zero at the (K + 1)-th so that they stay continuous (``softmin_weights``).  Both are
+computed on the band of cells around the body (``band.py``); every other cell gets b = 0 and
+v_d = 0 exactly.
 
 Surface elements (``distance``):
 
@@ -88,7 +89,7 @@ def softmin_weights(e: Tensor, temperature: float, truncated: bool) -> Tensor:
     return w / w.sum(-1, keepdim=True).clamp_min(torch.finfo(w.dtype).tiny)
 
 
-def soft_distance(e: Tensor, xi: float, mean: str = HARMONIC, truncated: bool = False) -> Tensor:
+def soft_distance(e: Tensor, xi: float, mean: str, truncated: bool) -> Tensor:
     """Soft-min d of the squared distances e [..., K] with weights softmin(e / xi), [...] m^2
     (``truncated``: e holds a cell's K + 1 nearest elements of more, ``softmin_weights``).
 
@@ -123,7 +124,7 @@ def soft_mask(qs: Tensor, grid: Grid, xi: float = XI, sigma: float = SIGMA,
         band = surface_band(qs, grid, band_margin(sigma, grid.dx), distance=distance)
     dtype = dtype or qs.dtype
     e, _ = element_distances(qs, band, dtype)
-    d = soft_distance(e, xi, mean, truncated=band.nearest.shape[-1] < qs.shape[1])
+    d = soft_distance(e, xi, mean, band.truncated)
     delta = torch.where(band.inside, 1.0, -1.0).to(d.dtype)
     b = torch.sigmoid(delta * d / sigma)
     return scatter_band(b.unsqueeze(1), band, grid)
@@ -158,7 +159,7 @@ def boundary_velocity(qs: Tensor, qdots: Tensor, mask: Tensor, grid: Grid, tau: 
     if band is None:
         band = surface_band(qs, grid, band_margin(SIGMA, grid.dx), distance=distance)
     e, t = element_distances(qs, band, mask.dtype)
-    w = softmin_weights(e, tau, truncated=band.nearest.shape[-1] < qs.shape[1])
+    w = softmin_weights(e, tau, band.truncated)
     u = (w.unsqueeze(-1) * element_velocities(qdots.to(mask.dtype), band, t)).sum(2)  # [B, P, 2]
     b = mask.flatten(2).gather(2, band.flat.unsqueeze(1))  # [B, 1, P]
     u = u.transpose(1, 2)

@@ -18,6 +18,11 @@ def make_grid(cfg) -> Grid:
 SHIPPED_HYDRONET = Path(__file__).resolve().parents[1] / "assets" / "hydronet.pt"
 
 
+def fluid_dtype(cfg) -> torch.dtype:
+    """The torch dtype of a ``FluidConfig``'s ``dtype`` (its fields, boundaries and parameters)."""
+    return getattr(torch, cfg.dtype)
+
+
 def make_fluid(cfg, device=None) -> FluidModel | None:
     """The ``FluidModel`` of a ``FluidConfig`` (None for ``model=none``, the vacuum) on ``device``.
 
@@ -34,7 +39,7 @@ def make_fluid(cfg, device=None) -> FluidModel | None:
         from fishsim.fluid.hydronet import HydroNetFluid, load_hydronet
         from fishsim.fluid.pressure import RecoveryConfig
 
-        model = load_hydronet(cfg.model_file or SHIPPED_HYDRONET, device=device or "cpu").to(getattr(torch, cfg.dtype))
+        model = load_hydronet(cfg.model_file or SHIPPED_HYDRONET, device=device or "cpu").to(fluid_dtype(cfg))
         return HydroNetFluid(model, make_grid(cfg), bf16=cfg.bf16, pressure=cfg.pressure,
                              recovery=RecoveryConfig(tol=cfg.pressure_tol))
     raise ValueError(f"unknown fluid model {cfg.model!r}")
@@ -43,7 +48,7 @@ def make_fluid(cfg, device=None) -> FluidModel | None:
 def make_tank(cfg, device=None) -> Boundary:
     """The tank's walls [1, ., H, W] in ``cfg.dtype``: closed, or a channel with ``cfg.inflow``
     m/s at the ends."""
-    grid, dtype = make_grid(cfg), getattr(torch, cfg.dtype)
+    grid, dtype = make_grid(cfg), fluid_dtype(cfg)
     if cfg.inflow != 0.0:
         return channel(grid, cfg.inflow, cfg.wall_y, cfg.wall_x, 1, device, dtype)
     return closed_tank(grid, cfg.wall_y, cfg.wall_x, 1, device, dtype)
@@ -51,6 +56,5 @@ def make_tank(cfg, device=None) -> Boundary:
 
 def fluid_params(cfg, batch: int, h: float, device=None) -> FluidParams:
     """rho, mu as [B] tensors (in the fluid's ``cfg.dtype``) and the time step h."""
-    dtype = getattr(torch, cfg.dtype)
-    full = lambda v: torch.full((batch,), float(v), device=device, dtype=dtype)
+    full = lambda v: torch.full((batch,), float(v), device=device, dtype=fluid_dtype(cfg))
     return FluidParams(rho=full(cfg.rho), mu=full(cfg.mu), h=h)
