@@ -440,9 +440,10 @@ def rollout(swimmer: Swimmer, state: SwimState, params: SwimParams, n_frames: in
         state with zero muscle contraction, so it stays at rest and its gradients are zero); the
         others carry on. Raises only if every sample has failed.
     truncate: truncated backpropagation through time (0: none). Every ``truncate`` frames the
-        state is detached, so the gradient of a frame's metrics reaches the parameters only
-        through the frames since the last cut (a biased but bounded gradient for long episodes
-        whose full gradient grows with their length; docs/physics.md section 9).
+        state and the gait's phase omega t are detached, so the gradient of a frame's metrics
+        reaches the parameters only through the frames since the last cut (a biased but bounded
+        gradient for long episodes whose full gradient grows with their length; docs/physics.md
+        section 9).
     Raises SimulationBlowUp naming the frame if a state goes non-finite.
     """
     recorded = [start - 1]
@@ -455,9 +456,11 @@ def rollout(swimmer: Swimmer, state: SwimState, params: SwimParams, n_frames: in
     tensors, chunks = _flatten(state), []
     n_state = len(tensors)
 
-    def run_frames(t0: int, count: int, *tensors: Tensor):
+    def run_frames(t0: int, count: int, anchor: float, *tensors: Tensor):
         s, rows = _unflatten(tensors[:n_state]), []
         p = _with_param_tensors(params, tensors[n_state:])
+        if anchor:
+            p = dataclasses.replace(p, controller=dataclasses.replace(p.controller, t_anchor=anchor))
         muscles = swimmer.muscle_weights(p)                     # once per segment, not per frame
         for t in range(t0, t0 + count):
             replay = t <= recorded[0]
@@ -486,19 +489,20 @@ def rollout(swimmer: Swimmer, state: SwimState, params: SwimParams, n_frames: in
         return (*_flatten(s), torch.stack(rows))
 
     keep_solutions = seg < n_frames and any(x.requires_grad for x in (*tensors, *_param_tensors(params)))
-    t = start
+    t, anchor = start, 0.0
     while t < start + n_frames:
         count = min(seg, start + n_frames - t)
         if truncate > 0 and torch.is_grad_enabled():
             done = t - start
             if done and done % truncate == 0:
                 tensors = tuple(x.detach() for x in tensors)
+                anchor = t * swimmer.h                  # the gait's phase is frozen with the state
             count = min(count, truncate - done % truncate)
         inputs = (*tensors, *_param_tensors(params))
         if seg < n_frames:
-            result = CheckpointedFrames.apply(lambda *x, t0=t, n=count: run_frames(t0, n, *x), *inputs)
+            result = CheckpointedFrames.apply(lambda *x, t0=t, n=count, a=anchor: run_frames(t0, n, a, *x), *inputs)
         else:
-            result = run_frames(t, count, *inputs)
+            result = run_frames(t, count, anchor, *inputs)
         tensors, rows = result[:-1], result[-1]
         chunks.append(rows)
         t += count

@@ -55,12 +55,18 @@ def envelope(X: torch.Tensor, length: float) -> torch.Tensor:
 
 
 def wave_signal(X: torch.Tensor, t, C: torch.Tensor, omega: torch.Tensor, gamma: torch.Tensor,
-                length: float, t_a: float) -> torch.Tensor:
+                length: float, t_a: float, t_anchor: float = 0.0) -> torch.Tensor:
     """h(X, t) [B, n] for element positions X [n] (m), time t (s, scalar or [B]), amplitude
-    C [B] (1/m), angular frequency omega [B] (rad/s), wave number gamma [B] (rad/m)."""
+    C [B] (1/m), angular frequency omega [B] (rad/s), wave number gamma [B] (rad/m).
+
+    t_anchor (s): the phase reached at t_anchor is a constant to autograd, so
+    d(omega t)/d(omega) = t - t_anchor (the value is unchanged): truncated backpropagation
+    freezes the gait's phase at each cut together with the rest of the state."""
     t = torch.as_tensor(t, dtype=X.dtype, device=X.device).reshape(-1, 1)
     ramp = 1.0 - torch.exp(-t / t_a)
-    phase = gamma[:, None] * X[None, :] + omega[:, None] * t
+    wt = omega[:, None] * t if not t_anchor else (omega.detach()[:, None] * t_anchor
+                                                   + omega[:, None] * (t - t_anchor))
+    phase = gamma[:, None] * X[None, :] + wt
     return C[:, None] * envelope(X, length)[None, :] * torch.sin(phase) * ramp
 
 
@@ -77,13 +83,15 @@ class WaveController:
     """Controller parameters of a batch, each a [B] tensor (differentiable if it requires grad).
 
     C: amplitude (1/m). omega: angular frequency (rad/s). gamma: wave number (rad/m).
-    t_a: activation ramp time (s, a float shared by the batch).
+    t_a: activation ramp time (s, a float shared by the batch). t_anchor: time (s) whose phase
+    autograd treats as given (wave_signal; set by truncated backpropagation, else 0).
     """
 
     C: torch.Tensor
     omega: torch.Tensor
     gamma: torch.Tensor
     t_a: float = 0.2
+    t_anchor: float = 0.0
 
     @staticmethod
     def default(length: float = 0.2, batch: int = 1, frequency: float = 5.0, C: float = DEFAULT_C,
@@ -104,5 +112,5 @@ class WaveController:
         X = torch.as_tensor(model.fem.centroid_X[model.muscles], dtype=self.C.dtype, device=self.C.device)
         if top_share is None:
             top_share = torch.as_tensor(model.muscle_top_share, dtype=self.C.dtype, device=self.C.device)
-        h = wave_signal(X, t, self.C, self.omega, self.gamma, model.mesh.length, self.t_a)
+        h = wave_signal(X, t, self.C, self.omega, self.gamma, model.mesh.length, self.t_a, self.t_anchor)
         return antagonistic_contraction(h, top_share)

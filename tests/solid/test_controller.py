@@ -3,6 +3,7 @@
 import math
 
 import numpy as np
+import pytest
 import torch
 
 from fishsim.mesh.fish_mesh import ACTUATOR_TOP
@@ -53,3 +54,19 @@ def test_contraction_is_differentiable_in_C_omega_gamma(coarse_mesh):
     assert u.shape == (2, model.n_muscles) and bool((u >= 0).all()) and bool((u < 1).all())
     top = np.asarray(coarse_mesh.actuator)[model.muscles] == ACTUATOR_TOP
     assert bool((u[:, top] > 0).any()) and bool((u[:, ~top] > 0).any())
+
+
+def test_anchored_phase_keeps_the_value_and_differentiates_from_the_anchor():
+    """With t_anchor, h is unchanged and dh/domega = C v(X) cos(gamma X + omega t) ramp (t - t_anchor):
+    the phase reached at t_anchor is a constant."""
+    X = torch.linspace(0, 0.2, 7, dtype=torch.float64)
+    C, gamma = torch.tensor([12.0], dtype=torch.float64), torch.tensor([31.4], dtype=torch.float64)
+    omega = torch.tensor([2 * math.pi * 5], dtype=torch.float64, requires_grad=True)
+    t, t_a, anchor = 0.73, 0.2, 0.5
+    plain = wave_signal(X, t, C, omega, gamma, 0.2, t_a)
+    h = wave_signal(X, t, C, omega, gamma, 0.2, t_a, t_anchor=anchor)
+    torch.testing.assert_close(h, plain, rtol=1e-14, atol=1e-16)
+    (g,) = torch.autograd.grad(h.sum(), omega)
+    phase = gamma * X + omega.detach() * t
+    expected = (C * envelope(X, 0.2) * torch.cos(phase) * (1 - math.exp(-t / t_a)) * (t - anchor)).sum()
+    assert float(g) == pytest.approx(float(expected), rel=1e-12)
