@@ -8,6 +8,7 @@ values that types alone cannot (positivity, ranges) and raise ``ConfigError``.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import re
 from dataclasses import dataclass, field
@@ -280,6 +281,13 @@ class OptimizerConfig:
     sigma: CMA-ES's initial step in normalised units.  popsize: CMA-ES population (null: pycma's 4 + 3 ln P).
     seed: CMA-ES's random seed.  segment: gradient-checkpoint segment (frames).
     truncate: truncated backpropagation through time, the window in frames (0: the full episode).
+    max_batch: the most fish one batched rollout holds (null: a CMA-ES generation is one batch);
+        a larger population is evaluated in chunks of this size.
+    launcher: where the chunks run: ``local`` (here, one after another) or ``submitit`` (one
+        submitit job each, in parallel: a population larger than one machine holds).
+    submitit: the submitit executor's options: ``cluster`` (slurm, local or debug; default
+        slurm where sbatch exists, else local) and any ``update_parameters`` key (timeout_min,
+        cpus_per_task, slurm_partition, mem_gb, ...). Needs the ``sweep`` extra.
     """
 
     methods: list[str] = field(default_factory=lambda: ["adam"])
@@ -292,6 +300,9 @@ class OptimizerConfig:
     seed: int = 0
     segment: int = 25
     truncate: int = 0
+    max_batch: int | None = None
+    launcher: str = "local"
+    submitit: dict[str, Any] = field(default_factory=dict)
 
     def validate(self) -> None:
         from fishsim.optimize.methods import torch_optimizer
@@ -306,6 +317,10 @@ class OptimizerConfig:
         _positive(**{"optimizer.lr": self.lr, "optimizer.sigma": self.sigma})
         _require(self.segment >= 1, f"optimizer.segment must be >= 1 (got {self.segment})")
         _require(self.truncate >= 0, f"optimizer.truncate must be >= 0 frames, 0 for none (got {self.truncate})")
+        _require(self.max_batch is None or self.max_batch >= 1,
+                 f"optimizer.max_batch must be >= 1 fish or null for the whole population (got {self.max_batch})")
+        _require(self.launcher in ("local", "submitit"),
+                 f"optimizer.launcher must be local or submitit (got {self.launcher!r})")
 
 
 @dataclass
@@ -439,6 +454,7 @@ def load_config(command: str, overrides: list[str] | None = None, config_file: s
 
     overrides = [_run_dir_as_out_dir(o) for o in overrides or []]
     _refuse_hydra_runner_keys(overrides)
+    overrides = _into_open_dicts(ROOTS[command], overrides)
     GlobalHydra.instance().clear()
     try:
         with initialize_config_dir(config_dir=config_dir(), version_base="1.3"):
@@ -462,6 +478,32 @@ def _run_dir_as_out_dir(override: str) -> str:
     """Hydra's ``hydra.run.dir=X`` (where a run writes) is fishsim's ``out_dir=X``."""
     key, _, value = override.partition("=")
     return f"out_dir={value}" if key.lstrip("+") == "hydra.run.dir" else override
+
+
+def _dict_fields(cls, prefix: str = "") -> list[str]:
+    """Dotted names of the dict-valued fields (free-form options) of a config dataclass."""
+    import typing
+
+    names = []
+    for name, hint in typing.get_type_hints(cls).items():
+        if typing.get_origin(hint) is dict:
+            names.append(prefix + name)
+        elif dataclasses.is_dataclass(hint):
+            names += _dict_fields(hint, f"{prefix}{name}.")
+    return names
+
+
+def _into_open_dicts(cls, overrides: list[str]) -> list[str]:
+    """``optimizer.options={betas:[0.9,0.99]}`` or ``optimizer.submitit.cluster=local``: a key
+    inside a free-form dict field is new to the composed config, which Hydra refuses as unknown;
+    such overrides are passed as ``++key=value`` (add or replace)."""
+    open_dicts = _dict_fields(cls)
+    def rewrite(o: str) -> str:
+        key = o.split("=", 1)[0]
+        inside = "=" in o and not key.startswith(("+", "~")) and any(
+            key == d or key.startswith(d + ".") for d in open_dicts)
+        return "++" + o if inside else o
+    return [rewrite(o) for o in overrides]
 
 
 def _refuse_hydra_runner_keys(overrides: list[str]) -> None:

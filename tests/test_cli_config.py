@@ -41,6 +41,15 @@ def test_bad_config_is_one_clear_line(override, fragment):
     assert "\n" not in str(err.value)
 
 
+def test_free_form_dicts_take_new_keys_without_a_plus():
+    """Keys inside a dict-valued option (optimizer.options, optimizer.submitit) are new to the
+    composed config; they are accepted as plain overrides, while a misspelt option stays unknown."""
+    o = load_config("optimize", ["optimizer.options={betas:[0.9,0.99]}", "optimizer.submitit.cluster=local"]).optimizer
+    assert o.options == {"betas": [0.9, 0.99]} and o.submitit == {"cluster": "local"}
+    with pytest.raises(ConfigError, match="unknown config key 'optimizer.submitt.cluster'"):
+        load_config("optimize", ["optimizer.submitt.cluster=local"])
+
+
 def test_fluid_precision_is_float32_or_float64():
     assert load_config("simulate", ["fluid.dtype=float64"]).fluid.dtype == "float64"
     with pytest.raises(ConfigError, match="fluid.dtype must be float32 or float64"):

@@ -99,6 +99,7 @@ def optimise(problem: Problem, cfg: OptimizeConfig, name: str, folder: Path, con
     if o.budget is not None:
         left = min(left, max(0, (o.budget - (rows[-1]["frames"] if rows else 0)) // cost))
     fish = getattr(method, "popsize", 0) or 1
+    executor = submitit_executor(o.submitit, folder / "jobs") if o.launcher == "submitit" and not method.uses_gradient else None
     seconds = check_time(cfg, fish, cfg.frames * left, gradient=method.uses_gradient)
     announce_time(seconds, f"{name}, {left} iterations", cfg.device)
     columns = (TextColumn(f"optimize {name}"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[status]}"),
@@ -110,7 +111,8 @@ def optimise(problem: Problem, cfg: OptimizeConfig, name: str, folder: Path, con
                 break
             z = method.ask()
             try:
-                ev = problem.evaluate(z, gradient=method.uses_gradient, isolate=not method.uses_gradient)
+                ev = (problem.evaluate(z, gradient=True, isolate=False) if method.uses_gradient else
+                      problem.evaluate_population(z, o.max_batch, executor))
             except SimulationBlowUp as err:
                 raise FishsimError(f"{name} stopped at iteration {it + 1}: {err}; the history of the "
                                    f"{len(rows)} completed iterations is kept in {folder}") from None
@@ -126,6 +128,23 @@ def optimise(problem: Problem, cfg: OptimizeConfig, name: str, folder: Path, con
                 print(f"[{time.strftime('%H:%M:%S')}] optimize {name}: iteration {it + 1}/{o.iterations}, "
                       f"{rows[-1]['frames']} fish-frames, {_status(rows)}", flush=True)
     return rows
+
+
+def submitit_executor(options: dict, folder: Path):
+    """A submitit executor for a population's chunks, logs in ``folder``: options' ``cluster``
+    (slurm, local, debug; default: slurm where sbatch exists, else local) and the rest passed
+    to update_parameters."""
+    try:
+        import submitit
+    except ImportError:
+        raise ConfigError("optimizer.launcher=submitit needs submitit: .venv/bin/pip install -e '.[sweep]'") from None
+    opts = dict(options)
+    executor = submitit.AutoExecutor(folder=folder, cluster=opts.pop("cluster", None))
+    try:
+        executor.update_parameters(**opts)
+    except (ValueError, TypeError) as err:
+        raise ConfigError(f"optimizer.submitit: {err}") from None
+    return executor
 
 
 def _row(it: int, name: str, space: Space, z: torch.Tensor, ev, method, rows: list[dict]) -> dict:

@@ -114,8 +114,9 @@ class Problem:
         from fishsim.resources import check_memory
 
         check_memory(cfg, 1, gradient_frames=cfg.frames, segment=segment)      # a gradient iteration
-        popsize = getattr(getattr(cfg, "optimizer", None), "popsize", None) or 8
-        check_memory(cfg, popsize)                                              # a CMA-ES population
+        o = getattr(cfg, "optimizer", None)
+        popsize = getattr(o, "popsize", None) or 8
+        check_memory(cfg, min(popsize, getattr(o, "max_batch", None) or popsize))   # a CMA-ES batch
         self.cfg, self.space, self.objective_cfg, self.segment = cfg, space, objective_cfg, segment
         self.truncate = truncate
         self.episode = build_episode(cfg)
@@ -173,9 +174,14 @@ class Problem:
             params = self.params_for(x)
             state = sw.initial_state(params, self.episode.origin)
             start = _start_metrics(sw, state)
-            _, metrics = rollout(sw, state, params, cfg.frames, segment=self.segment if gradient else 0,
-                                 failures=failures, truncate=self.truncate)
-            J = objective(self.objective_cfg.name, metrics, cfg.h, start, self.objective_cfg.window)
+            try:
+                _, metrics = rollout(sw, state, params, cfg.frames, segment=self.segment if gradient else 0,
+                                     failures=failures, truncate=self.truncate)
+                J = objective(self.objective_cfg.name, metrics, cfg.h, start, self.objective_cfg.window)
+            except SimulationBlowUp:
+                if failures is None or len(failures) < z.shape[0]:
+                    raise
+                J = torch.full((z.shape[0],), math.nan, dtype=torch.float64)  # all failed: each is recorded
             grad = None
             if gradient:
                 if not bool(torch.isfinite(J).all()):
@@ -186,6 +192,32 @@ class Problem:
             J[b] = float("nan")
         frames = z.shape[0] * cfg.frames * (2 if gradient and self.segment < cfg.frames else 1)
         return Evaluation(J, grad, failures or {}, frames, time.perf_counter() - t0)
+
+    def evaluate_population(self, z: Tensor, max_batch: int | None = None, executor=None) -> Evaluation:
+        """J [B] of a gradient-free population z [B, P] in chunks of at most ``max_batch`` fish
+        (None: one batch), each ONE batched rollout with failing members isolated: run here one
+        after another, or with ``executor`` (a submitit executor) as one job each, in parallel.
+        The chunks' results are joined in order; ``seconds`` is the wall time of the whole."""
+        t0 = time.perf_counter()
+        chunks = list(z.split(max_batch or z.shape[0]))
+        if executor is None:
+            parts = [self.evaluate(c) for c in chunks]
+        else:
+            jobs = [executor.submit(evaluate_chunk, self.cfg, c, self.segment, self.truncate) for c in chunks]
+            parts = [job.result() for job in jobs]
+        failures, offset = {}, 0
+        for c, part in zip(chunks, parts):
+            failures.update({b + offset: why for b, why in part.failures.items()})
+            offset += c.shape[0]
+        return Evaluation(torch.cat([part.J for part in parts]), None, failures, sum(part.frames for part in parts),
+                          time.perf_counter() - t0)
+
+
+def evaluate_chunk(cfg, z: Tensor, segment: int, truncate: int) -> Evaluation:
+    """One chunk of a population evaluated in a process of its own (a submitit job): the
+    problem rebuilt from the config, then Problem.evaluate(z)."""
+    space = Space(list(cfg.params), list(cfg.params.values()))
+    return Problem(cfg, space, cfg.objective, segment=segment, truncate=truncate).evaluate(z)
 
 
 def _start_metrics(swimmer, state) -> dict[str, Tensor]:

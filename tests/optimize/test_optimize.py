@@ -88,6 +88,42 @@ def test_a_failing_member_does_not_stop_the_others(monkeypatch):
         pb.evaluate(z[1:2], gradient=True, isolate=False)
 
 
+def test_a_population_in_chunks_equals_one_batch(monkeypatch):
+    """optimizer.max_batch: a population evaluated in chunks gives each member its one-batch J,
+    and a member failing in a later chunk is reported under its index in the population."""
+    pb = problem("frames=12", "params.frequency.lower=2", "params.frequency.upper=12")
+    z = torch.tensor([[0.2], [0.5], [0.95]], dtype=torch.float64)
+    together = pb.evaluate(z)
+    chunked = pb.evaluate_population(z, max_batch=2)
+    assert torch.allclose(chunked.J, together.J, rtol=1e-5, atol=0) and chunked.frames == together.frames
+    frame = Swimmer.frame
+
+    def fragile(self, state, params, t, start=None, **kw):
+        c = params.controller
+        if t >= 5 and bool(((c.omega > 2 * np.pi * 10) & (c.C > 0)).any()):
+            raise SimulationBlowUp("non-finite solid positions q")
+        return frame(self, state, params, t, start, **kw)
+
+    monkeypatch.setattr(Swimmer, "frame", fragile)
+    ev = pb.evaluate_population(z, max_batch=2)
+    assert set(ev.failures) == {2} and torch.isnan(ev.J[2]) and torch.allclose(ev.J[:2], together.J[:2], rtol=1e-5)
+
+
+def test_cma_population_runs_as_submitit_jobs(tmp_path):
+    """optimizer.launcher=submitit: each chunk of a CMA-ES generation is a submitit job (here
+    submitit's local executor: processes of their own), with the same results as in-process."""
+    over = [*SMALL, "frames=8", "optimizer.methods=[cma]", "optimizer.popsize=4", "optimizer.iterations=1",
+            "optimizer.max_batch=2", "optimizer.launcher=submitit", "optimizer.submitit={cluster:local,timeout_min:10}",
+            f"out_dir={tmp_path}"]
+    run(load_config("optimize", over))
+    with h5py.File(tmp_path / "cma" / "history.h5") as f:
+        pop_x, pop_J = f["pop_x"][0], f["pop_J"][0]
+    assert len(list((tmp_path / "cma" / "jobs").glob("*_result.pkl"))) == 2      # two jobs ran
+    pb = problem("frames=8")
+    here = pb.evaluate(pb.space.to_z(torch.tensor(pop_x))).J
+    assert np.allclose(pop_J, here.numpy(), rtol=1e-5, atol=0)
+
+
 @pytest.fixture(scope="module")
 def swept():
     """The distance after 40 frames against frequency (5-25 Hz) by a dense batched sweep."""
@@ -171,6 +207,8 @@ def test_a_blow_up_mid_run_stops_with_the_history_kept(monkeypatch, tmp_path):
     (["optimizer.methods=[adamm]"], "unknown optimiser 'adamm'"),
     (["objective.name=drag"], "unknown objective 'drag'"),
     (["params.frequency.log=true", "params.frequency.lower=0"], "log scale needs lower > 0"),
+    (["optimizer.max_batch=0"], "optimizer.max_batch must be >= 1"),
+    (["optimizer.launcher=slurm"], "optimizer.launcher must be local or submitit"),
 ])
 def test_bad_input_is_one_line_and_exit_2(override, words, tmp_path):
     result = runner.invoke(app, ["optimize", *SMALL, *override, f"out_dir={tmp_path}"])
