@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-from fishsim.errors import ConfigError, SimulationBlowUp
+from fishsim.errors import ConfigError, FishsimError, SimulationBlowUp
 from fishsim.optimize.config import ObjectiveConfig, ParamSpec
 
 
@@ -204,13 +204,24 @@ class Problem:
             parts = [self.evaluate(c) for c in chunks]
         else:
             jobs = [executor.submit(evaluate_chunk, self.cfg, c, self.segment, self.truncate) for c in chunks]
-            parts = [job.result() for job in jobs]
+            parts = [_result(job) for job in jobs]
         failures, offset = {}, 0
         for c, part in zip(chunks, parts):
             failures.update({b + offset: why for b, why in part.failures.items()})
             offset += c.shape[0]
         return Evaluation(torch.cat([part.J for part in parts]), None, failures, sum(part.frames for part in parts),
                           time.perf_counter() - t0)
+
+
+def _result(job) -> Evaluation:
+    """A submitted chunk's evaluation; a job that died (killed, out of time or memory) is one line."""
+    from submitit.core.utils import FailedJobError, UncompletedJobError
+
+    try:
+        return job.result()
+    except (FailedJobError, UncompletedJobError) as err:
+        first = (str(err).strip().splitlines() or [type(err).__name__])[0]
+        raise FishsimError(f"population job {job.job_id} failed: {first} (its log: {job.paths.stderr})") from None
 
 
 def evaluate_chunk(cfg, z: Tensor, segment: int, truncate: int) -> Evaluation:
