@@ -227,7 +227,8 @@ class SimulateConfig:
 
     frames: number of frames of h seconds.  origin: (x, y) in m of the fish's material origin
     (the tail tip) in the tank.  hold_x: hold the fish's centroid x fixed (the paper's thrust
-    set-up; the fish undulates and sways in y but cannot travel; ``fishsim.rollout.Swimmer``).  fluid_stride: store the fluid fields every k frames.
+    set-up; the fish undulates and sways in y but cannot travel; ``fishsim.rollout.Swimmer``).
+    hold_y: hold its centroid y fixed too (with hold_x the paper's "centred along the x axis").  fluid_stride: store the fluid fields every k frames.
     flush_every: HDF5 write period (frames). ParaView opens the run through the XDMF sidecar
     written beside the trajectory (fishsim.io.xdmf).
     device: cpu | cuda.  overwrite: replace an existing output (else refused: a finished run is never lost).
@@ -245,6 +246,7 @@ class SimulateConfig:
     h: float = 0.01
     origin: list[float] = field(default_factory=lambda: [0.06, 0.125])
     hold_x: bool = False
+    hold_y: bool = False
     fluid_stride: int = 5
     flush_every: int = 10
     device: str = "cpu"

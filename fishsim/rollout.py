@@ -118,13 +118,15 @@ class Swimmer:
     hold_x: the constraint mode "held on the x axis" (the paper's thrust experiment, Fig. 5):
         after every solid step the fish's mass-weighted mean x displacement and x velocity are
         removed, so its centroid x never moves while it undulates and sways freely in y.
+    hold_y: the same in y: the centroid stays on its start line (with hold_x, the paper's
+        "centred along the x axis": no sideways drift, the body still undulates).
     """
 
     def __init__(self, solid: SolidModel, fluid: FluidModel | None, coupling: CouplingConfig,
                  walls: Boundary | None = None, fluid_dtype: torch.dtype = torch.float32,
-                 hold_x: bool = False):
+                 hold_x: bool = False, hold_y: bool = False):
         self.solid, self.fluid, self.coupling = solid, fluid, coupling
-        self.walls, self.fluid_dtype, self.hold_x = walls, fluid_dtype, hold_x
+        self.walls, self.fluid_dtype, self.hold = walls, fluid_dtype, (hold_x, hold_y)
         self.surface = torch.as_tensor(solid.mesh.surface, dtype=torch.long)
         self.triangles = torch.as_tensor(solid.mesh.triangles, dtype=torch.long)
         if fluid is not None and coupling.force == "exchange" and not hasattr(fluid, "step_with_diagnostics"):
@@ -235,8 +237,8 @@ class Swimmer:
             None if state.qdot_prev is None else predicted_start(state.q, state.qdot, state.qdot_prev, self.h))
         q, qdot = pd_step(self.solid, state.q, state.qdot, contraction, f_ext + self.added_mass_force(state),
                           params.E, start=solid_start, muscle_weight=weight)
-        if self.hold_x:
-            q, qdot = hold_centroid_x(q, qdot, state.q, self.node_mass(q))
+        if any(self.hold):
+            q, qdot = hold_centroid(q, qdot, state.q, self.node_mass(q), self.hold)
         require_finite(solid_positions_q=q, solid_velocities_qdot=qdot)
         require_no_inversion(q, self.triangles)
         if self.fluid is not None:
@@ -246,15 +248,15 @@ class Swimmer:
         return SwimState(q, qdot, fluid, state.qdot), FrameOutput(f_ext, contraction, boundary)
 
 
-def hold_centroid_x(q: Tensor, qdot: Tensor, q_prev: Tensor, mass: Tensor) -> Tensor:
-    """The x-held constraint: shift q [B, N, 2] in x so that its mass-weighted centroid x equals
-    q_prev's, and remove the mass-weighted mean x velocity from qdot (momentum in x is zero).
-    mass [N]. Returns (q, qdot), differentiable."""
-    w = (mass / mass.sum())[None, :]
-    dx = ((q[..., 0] - q_prev[..., 0]) * w).sum(1, keepdim=True)
-    vx = (qdot[..., 0] * w).sum(1, keepdim=True)
-    shift = torch.stack([dx, torch.zeros_like(dx)], -1)
-    vshift = torch.stack([vx, torch.zeros_like(vx)], -1)
+def hold_centroid(q: Tensor, qdot: Tensor, q_prev: Tensor, mass: Tensor, axes: tuple[bool, bool]) -> Tensor:
+    """The held constraint along each axis flagged in ``axes`` (x, y): shift q [B, N, 2] so that
+    its mass-weighted centroid coordinate equals q_prev's, and remove the mass-weighted mean
+    velocity from qdot (the momentum along that axis is zero). mass [N]. Returns (q, qdot),
+    differentiable."""
+    w = (mass / mass.sum())[None, :, None]
+    keep = torch.tensor(axes, dtype=q.dtype, device=q.device)
+    shift = ((q - q_prev) * w).sum(1, keepdim=True) * keep
+    vshift = (qdot * w).sum(1, keepdim=True) * keep
     return q - shift, qdot - vshift
 
 

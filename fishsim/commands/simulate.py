@@ -54,7 +54,8 @@ def build_episode(cfg: SimulateConfig) -> Episode:
                        added_mass_ratio=cfg.coupling.added_mass_ratio if fluid is not None else 0.0,
                        muscles=build_muscles(cfg.fish, mesh))
     walls = make_tank(cfg.fluid, device) if fluid is not None else None
-    swimmer = Swimmer(solid, fluid, cfg.coupling, walls, fluid_dtype=fluid_dtype(cfg.fluid), hold_x=cfg.hold_x)
+    swimmer = Swimmer(solid, fluid, cfg.coupling, walls, fluid_dtype=fluid_dtype(cfg.fluid),
+                      hold_x=cfg.hold_x, hold_y=cfg.hold_y)
     params = batch_params(cfg, mesh.length, device)
     peak = params.controller.peak_contraction(solid)
     if bool((peak >= 1).any()):
