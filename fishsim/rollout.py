@@ -30,7 +30,8 @@ import torch
 from torch import Tensor
 
 from fishsim.coupling import CouplingConfig, exchange_to_solid, fluid_to_solid, solid_to_fluid
-from fishsim.coupling.added_mass import stabilising_force
+from fishsim.coupling.added_mass import stabilise_translation, stabilising_force
+from fishsim.coupling.config import AVERAGE
 from fishsim.errors import ConfigError, SimulationBlowUp
 from fishsim.fluid.base import Boundary, FluidModel, FluidParams, FluidState, RefinedState
 from fishsim.fluid.grid import union
@@ -237,6 +238,10 @@ class Swimmer:
             None if state.qdot_prev is None else predicted_start(state.q, state.qdot, state.qdot_prev, self.h))
         q, qdot = pd_step(self.solid, state.q, state.qdot, contraction, f_ext + self.added_mass_force(state),
                           params.E, start=solid_start, muscle_weight=weight)
+        if self.fluid is not None and self.coupling.force_mode == AVERAGE and state.qdot_prev is not None:
+            free = (not self.hold[0], not self.hold[1])
+            q, qdot = stabilise_translation(q, qdot, state.qdot, state.qdot_prev, self.node_mass(q),
+                                            self.coupling.added_mass_ratio, self.h, free)
         if any(self.hold):
             q, qdot = hold_centroid(q, qdot, state.q, self.node_mass(q), self.hold)
         require_finite(solid_positions_q=q, solid_velocities_qdot=qdot)

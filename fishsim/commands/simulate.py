@@ -51,7 +51,7 @@ def build_episode(cfg: SimulateConfig) -> Episode:
         check_fluid(fluid.model, cfg.fluid.model_file or SHIPPED_HYDRONET, cfg.fluid.rho, cfg.fluid.mu,
                     cfg.fluid.dx, cfg.h, cfg.fluid.strict_range)
     solid = SolidModel(mesh, cfg.solid.material, h=cfg.h, options=cfg.solid.pd,
-                       added_mass_ratio=cfg.coupling.added_mass_ratio if fluid is not None else 0.0,
+                       added_mass_ratio=cfg.coupling.stabilisation_ratio if fluid is not None else 0.0,
                        muscles=build_muscles(cfg.fish, mesh))
     walls = make_tank(cfg.fluid, device) if fluid is not None else None
     swimmer = Swimmer(solid, fluid, cfg.coupling, walls, fluid_dtype=fluid_dtype(cfg.fluid),

@@ -42,9 +42,28 @@ numerical fluid's 120-frame frequency study (3 / 5 / 7 Hz) ratios 2.5 / 3.5 / 5 
 
 from __future__ import annotations
 
+import torch
 from torch import Tensor
 
 
 def stabilising_force(mass: Tensor, qdot: Tensor, qdot_prev: Tensor, h: float) -> Tensor:
     """M^ a_t = m^_i (qdot_t - qdot_{t-1}) / h, [B, N, 2] N per unit depth (mass [N])."""
     return mass[None, :, None] * (qdot - qdot_prev) / h
+
+
+def stabilise_translation(q: Tensor, qdot: Tensor, qdot_t: Tensor, qdot_prev: Tensor, mass: Tensor,
+                          ratio: float, h: float, axes: tuple[bool, bool]) -> tuple[Tensor, Tensor]:
+    """The added-mass stabilisation of the rigid translation along each axis flagged in ``axes``
+    (x, y), applied after a solid step without M^ (module docstring).  The step gave the centroid
+    velocity v' = v_c,t + h F / M; this returns (q, qdot) [B, N, 2] shifted rigidly so that
+
+        v_c,t+1 = v_c,t + ((v' - v_c,t) + ratio h a_c,t) / (1 + ratio),
+
+    q by h times the velocity shift (implicit Euler).  qdot_t, qdot_prev: the velocities of
+    frames t and t-1; mass [N].  Differentiable."""
+    w = (mass / mass.sum())[None, :, None]
+    keep = torch.tensor(axes, dtype=q.dtype, device=q.device)
+    v_new, v_t, v_prev = ((x * w).sum(1, keepdim=True) for x in (qdot, qdot_t, qdot_prev))
+    target = v_t + ((v_new - v_t) + ratio * (v_t - v_prev)) / (1 + ratio)
+    shift = (target - v_new) * keep
+    return q + h * shift, qdot + shift

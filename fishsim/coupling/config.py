@@ -54,6 +54,7 @@ class CouplingConfig:
     added_mass_ratio: the added-mass stabilisation's M^ / M (fishsim.coupling.added_mass);
         0 switches it off (plain explicit coupling, unstable for this light fish at the
         calibrated stroke).  Stable for (M_a - M) / 2 <= M^ <= M + M_a in every mode.
+        Per node with per-node forces; on the translation with averaged ones.
     k_nearest: surface elements kept per cell (their soft-min is tapered to zero at the
         (K + 1)-th, fishsim.coupling.mask.softmin_weights). On the default graded fish (292
         surface segments, 0.35 mm at the tail tip) after 30 frames at 5 Hz, against all segments:
@@ -89,3 +90,10 @@ class CouplingConfig:
             raise ConfigError(f"coupling.added_mass_ratio must be >= 0, got {self.added_mass_ratio}")
         if self.n_burn_in < 0 or self.k_nearest < 1:
             raise ConfigError("coupling.n_burn_in must be >= 0 and coupling.k_nearest >= 1")
+
+    @property
+    def stabilisation_ratio(self) -> float:
+        """M^ / M of the solid's per-node artificial mass in a fluid: ``added_mass_ratio`` with
+        per-node forces, 0 with averaged ones, whose stabilisation acts on the rigid
+        translation alone (fishsim.coupling.added_mass)."""
+        return self.added_mass_ratio if self.force_mode == PER_NODE else 0.0
