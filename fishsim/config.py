@@ -168,7 +168,11 @@ class FluidConfig:
     refinement: numerical solver only, internal grid dx / r and sub-steps h / r.
     substeps: numerical solver only, sub-steps per frame on the r = 1 grid (r times more on the
         refined one); a floor that the CFL safety net raises per fish only for runaway speeds.
-    penalization_iterations: numerical solver only, penalize -> project passes per stage (K).
+    penalization_iterations: numerical solver only, penalize -> project passes per stage (K) of
+        the split scheme.
+    brinkman: numerical solver only, lambda (1/s) of the rate penalisation solved jointly with the
+        projection, which converges in sub-steps (fishsim/fluid/numerical.py); null: the split
+        scheme.
     scheme: numerical solver only, advection interpolation: "koren" (third order, TVD limited by
         min/max: a piecewise-smooth frame map) | "albada" (second order, van Albada limiter and
         upwinding written as smooth functions: smoother gradients; fishsim.fluid.grid.albada).
@@ -195,6 +199,7 @@ class FluidConfig:
     refinement: int = 1
     substeps: int = 8
     penalization_iterations: int = 2
+    brinkman: float | None = None
     scheme: str = "koren"
     model_file: str | None = None
     bf16: bool = False
@@ -216,6 +221,8 @@ class FluidConfig:
         _require(self.scheme in ("koren", "albada"), f"fluid.scheme must be koren or albada (got '{self.scheme}')")
         _require(1 <= self.penalization_iterations <= 16,
                  f"fluid.penalization_iterations must be in [1, 16] (got {self.penalization_iterations})")
+        _require(self.brinkman is None or self.brinkman > 0,
+                 f"fluid.brinkman must be > 0 (1/s) or null (got {self.brinkman})")
         _require(self.pressure in PRESSURES,
                  f"fluid.pressure must be recovered or network (got '{self.pressure}')")
         _require(0 < self.pressure_tol < 1, f"fluid.pressure_tol must be in (0, 1) (got {self.pressure_tol})")

@@ -56,6 +56,12 @@ def test_fluid_precision_is_float32_or_float64():
         load_config("simulate", ["fluid.dtype=float16"])
 
 
+def test_brinkman_is_positive_or_null():
+    assert load_config("simulate", ["fluid.brinkman=1e4"]).fluid.brinkman == 1e4
+    with pytest.raises(ConfigError, match=r"fluid.brinkman must be > 0 \(1/s\) or null"):
+        load_config("simulate", ["fluid.brinkman=-5"])
+
+
 def test_cli_bad_key_exit_code_2_no_traceback():
     result = runner.invoke(app, ["mesh", "fish.nonsense=1"])
     assert result.exit_code == 2

@@ -34,7 +34,8 @@ def make_fluid(cfg, device=None) -> FluidModel | None:
         from fishsim.fluid.numerical import NumericalFluid
 
         return NumericalFluid(make_grid(cfg), refinement=cfg.refinement, substeps=cfg.substeps,
-                              penalization_iterations=cfg.penalization_iterations, scheme=cfg.scheme)
+                              penalization_iterations=cfg.penalization_iterations, scheme=cfg.scheme,
+                              brinkman=cfg.brinkman)
     if cfg.model == "hydronet":
         from fishsim.fluid.hydronet import HydroNetFluid, load_hydronet
         from fishsim.fluid.pressure import RecoveryConfig
