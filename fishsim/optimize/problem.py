@@ -187,6 +187,8 @@ class Problem:
                 if not bool(torch.isfinite(J).all()):
                     raise SimulationBlowUp(f"the objective is {J.tolist()} (not finite)")
                 (grad,) = torch.autograd.grad(J.sum(), z)
+                if not bool(torch.isfinite(grad).all()):
+                    raise SimulationBlowUp(f"the gradient dJ/dz is {grad.tolist()} (not finite) at J = {J.tolist()}")
         J = J.detach().clone()
         for b in (failures or {}):
             J[b] = float("nan")
