@@ -235,7 +235,8 @@ class SimulateConfig:
     frames: number of frames of h seconds.  origin: (x, y) in m of the fish's material origin
     (the tail tip) in the tank.  hold_x: hold the fish's centroid x fixed (the paper's thrust
     set-up; the fish undulates and sways in y but cannot travel; ``fishsim.rollout.Swimmer``).
-    hold_y: hold its centroid y fixed too (with hold_x the paper's "centred along the x axis").  fluid_stride: store the fluid fields every k frames.
+    hold_y: hold its centroid y fixed too (with hold_x the paper's "centred along the x axis").
+    fluid_stride: store the fluid fields every k frames.
     flush_every: HDF5 write period (frames). ParaView opens the run through the XDMF sidecar
     written beside the trajectory (fishsim.io.xdmf).
     device: cpu | cuda.  overwrite: replace an existing output (else refused: a finished run is never lost).

@@ -30,7 +30,7 @@ import torch
 from torch import Tensor
 
 from fishsim.coupling import CouplingConfig, exchange_to_solid, fluid_to_solid, solid_to_fluid
-from fishsim.coupling.added_mass import stabilise_translation, stabilising_force
+from fishsim.coupling.added_mass import mass_centroid, stabilise_translation, stabilising_force
 from fishsim.coupling.config import AVERAGE
 from fishsim.errors import ConfigError, SimulationBlowUp
 from fishsim.fluid.base import Boundary, FluidModel, FluidParams, FluidState, RefinedState
@@ -238,12 +238,13 @@ class Swimmer:
             None if state.qdot_prev is None else predicted_start(state.q, state.qdot, state.qdot_prev, self.h))
         q, qdot = pd_step(self.solid, state.q, state.qdot, contraction, f_ext + self.added_mass_force(state),
                           params.E, start=solid_start, muscle_weight=weight)
+        mass = self.node_mass(q)
         if self.fluid is not None and self.coupling.force_mode == AVERAGE and state.qdot_prev is not None:
             free = (not self.hold[0], not self.hold[1])
-            q, qdot = stabilise_translation(q, qdot, state.qdot, state.qdot_prev, self.node_mass(q),
+            q, qdot = stabilise_translation(q, qdot, state.qdot, state.qdot_prev, mass,
                                             self.coupling.added_mass_ratio, self.h, free)
         if any(self.hold):
-            q, qdot = hold_centroid(q, qdot, state.q, self.node_mass(q), self.hold)
+            q, qdot = hold_centroid(q, qdot, state.q, mass, self.hold)
         require_finite(solid_positions_q=q, solid_velocities_qdot=qdot)
         require_no_inversion(q, self.triangles)
         if self.fluid is not None:
@@ -258,11 +259,8 @@ def hold_centroid(q: Tensor, qdot: Tensor, q_prev: Tensor, mass: Tensor, axes: t
     its mass-weighted centroid coordinate equals q_prev's, and remove the mass-weighted mean
     velocity from qdot (the momentum along that axis is zero). mass [N]. Returns (q, qdot),
     differentiable."""
-    w = (mass / mass.sum())[None, :, None]
     keep = torch.tensor(axes, dtype=q.dtype, device=q.device)
-    shift = ((q - q_prev) * w).sum(1, keepdim=True) * keep
-    vshift = (qdot * w).sum(1, keepdim=True) * keep
-    return q - shift, qdot - vshift
+    return q - mass_centroid(q - q_prev, mass) * keep, qdot - mass_centroid(qdot, mass) * keep
 
 
 # ------------------------------------------------------------------------------------------------
@@ -290,7 +288,7 @@ def frame_metrics(swimmer: Swimmer, state: SwimState, out: FrameOutput) -> dict[
     gives the fluid, P = -sum_i f_ext,i . qdot_i), each [B]."""
     mesh, mass = swimmer.solid.mesh, swimmer.node_mass(state.q)
     head, tail = head_node(mesh), tail_node(mesh)
-    centroid = (state.q * mass[None, :, None]).sum(1) / mass.sum()
+    centroid = mass_centroid(state.q, mass)[:, 0]
     power = -(out.f_ext * state.qdot).sum((1, 2))
     values = [state.q[:, head, 0], state.q[:, head, 1], state.q[:, tail, 1], centroid[:, 0],
               centroid[:, 1], out.f_ext[..., 0].sum(1), out.f_ext[..., 1].sum(1), power]

@@ -51,6 +51,12 @@ def stabilising_force(mass: Tensor, qdot: Tensor, qdot_prev: Tensor, h: float) -
     return mass[None, :, None] * (qdot - qdot_prev) / h
 
 
+def mass_centroid(x: Tensor, mass: Tensor) -> Tensor:
+    """Mass-weighted mean over the nodes of a nodal field x [B, N, 2] (positions: the centroid;
+    velocities: the momentum / M), [B, 1, 2]; mass [N]."""
+    return (x * mass[None, :, None]).sum(1, keepdim=True) / mass.sum()
+
+
 def stabilise_translation(q: Tensor, qdot: Tensor, qdot_t: Tensor, qdot_prev: Tensor, mass: Tensor,
                           ratio: float, h: float, axes: tuple[bool, bool]) -> tuple[Tensor, Tensor]:
     """The added-mass stabilisation of the rigid translation along each axis flagged in ``axes``
@@ -61,9 +67,8 @@ def stabilise_translation(q: Tensor, qdot: Tensor, qdot_t: Tensor, qdot_prev: Te
 
     q by h times the velocity shift (implicit Euler).  qdot_t, qdot_prev: the velocities of
     frames t and t-1; mass [N].  Differentiable."""
-    w = (mass / mass.sum())[None, :, None]
     keep = torch.tensor(axes, dtype=q.dtype, device=q.device)
-    v_new, v_t, v_prev = ((x * w).sum(1, keepdim=True) for x in (qdot, qdot_t, qdot_prev))
+    v_new, v_t, v_prev = (mass_centroid(x, mass) for x in (qdot, qdot_t, qdot_prev))
     target = v_t + ((v_new - v_t) + ratio * (v_t - v_prev)) / (1 + ratio)
     shift = (target - v_new) * keep
     return q + h * shift, qdot + shift

@@ -238,6 +238,10 @@ def project(u: Faces, dx: float, inverse: Tensor | None = None) -> tuple[Faces, 
     return (u[0] - gx, u[1] - gy), phi
 
 
+IMMERSE_TOL = 1e-6      # PCG relative residual of ``immerse``: div v ~ 1e-6 of div u
+IMMERSE_MAX_ITER = 200  # ~11 iterations a solve on the heaving thin ellipse (lambda = 1e4, n = 4-16)
+
+
 def immerse(w: Faces, b: Faces, v_d: Faces, lam_dt: Tensor | float, dx: float,
             start: Tensor | None = None) -> tuple[Faces, Tensor, Faces]:
     """The rate penalisation and the projection in one implicit solve (module docstring):
@@ -252,10 +256,6 @@ def immerse(w: Faces, b: Faces, v_d: Faces, lam_dt: Tensor | float, dx: float,
     gx, gy = gradient(phi, dx)
     v = (u[0] - cx * gx, u[1] - cy * gy)
     return v, phi, (v[0] - w[0] + gx, v[1] - w[1] + gy)
-
-
-IMMERSE_TOL = 1e-6      # PCG relative residual of ``immerse``: div v ~ 1e-6 of div u
-IMMERSE_MAX_ITER = 200  # ~11 iterations a solve on the swimming fish
 
 
 # --------------------------------------------------------------------------------------------
