@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from fishsim.fluid import grid as G
-from fishsim.fluid.base import Grid
+from fishsim.fluid.base import Boundary, Grid
 
 D = torch.float64
 
@@ -210,3 +210,19 @@ def test_stencils_are_differentiable_and_keep_dtype():
     assert ax.dtype == torch.float32
     (ax.square().sum() + ay.square().sum()).backward()
     assert torch.isfinite(a.grad).all() and a.grad.abs().sum() > 0
+
+
+@pytest.mark.parametrize("dtype, tiny", [(torch.float64, 1e-310), (torch.float32, 1e-40)])
+def test_union_gradient_is_finite_where_a_mask_is_subnormal(dtype, tiny):
+    """A soft mask decays to subnormal values far from the body; there the mask-weighted mean
+    v_d = (b1 v1 + b2 v2) / (b1 + b2) must keep a finite gradient (dividing by a subnormal w, the
+    quotient's derivative -num / w^2 overflowed and the HydroNet Fig. 5 gradient came out NaN),
+    and the union must still be the weighted mean wherever the masks are not negligible."""
+    b1 = torch.tensor([tiny, 0.5, 0.0, 0.25], dtype=dtype).view(1, 1, 1, 4).requires_grad_()
+    b2 = torch.tensor([0.0, 0.5, 0.0, 0.75], dtype=dtype).view(1, 1, 1, 4)
+    v1, v2 = torch.ones(1, 2, 1, 4, dtype=dtype), -torch.ones(1, 2, 1, 4, dtype=dtype)
+    u = G.union(Boundary(b1, v1), Boundary(b2, v2))
+    (grad,) = torch.autograd.grad((u.mask * u.velocity).sum() + u.velocity.sum(), b1)
+    assert torch.isfinite(grad).all()
+    assert torch.allclose(u.velocity[0, 0, 0, 1:], torch.tensor([0.0, 0.0, -0.5], dtype=dtype))
+    assert torch.allclose(u.mask[0, 0, 0], torch.tensor([tiny, 0.75, 0.0, 0.8125], dtype=dtype))
