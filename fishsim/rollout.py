@@ -206,10 +206,10 @@ class Swimmer:
         if self.coupling.force == "exchange":
             share = diag.body_share(fish.mask, boundary.mask)
             f_ext = exchange_to_solid(state.q, diag.cell_forces(params.fluid.rho, share), self.surface,
-                                      self.fluid.grid, self.coupling, step=t + 1)
+                                      self.fluid.grid, self.coupling, step=t + 1, mass=self.node_mass(state.q))
         else:
             f_ext = fluid_to_solid(state.q, fluid.p, boundary, self.surface, self.fluid.grid,
-                                   self.coupling, step=t + 1)
+                                   self.coupling, step=t + 1, mass=self.node_mass(state.q))
         self.timer.add("coupling", t0, dev)
         return fluid, f_ext
 

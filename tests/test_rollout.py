@@ -108,6 +108,27 @@ def test_per_node_and_average_force_modes():
     np.testing.assert_allclose(m_avg["centroid_y"].numpy(), ep.origin[1], atol=2e-5)
 
 
+def test_averaged_forces_exert_no_torque_about_the_centre_of_mass():
+    """Averaged forces are the paper's directional thrust: on the graded mesh (node masses span
+    100x) they must still turn nothing, i.e. sum_i (q_i - c) x f_i = 0 about the centre of mass c
+    every frame (equal shares F / N exerted (x_mean - c) x F and spun the held Fig. 5 fish)."""
+    cfg = load_config("simulate", [*SMALL, "fluid=numerical", "coupling.force_mode=average"])
+    ep = build_episode(cfg)
+    torques, scales = [], []
+
+    def on_frame(t, s, out, m):
+        mass = ep.swimmer.node_mass(s.q)
+        r = s.q - (mass[:, None] * s.q).sum(1, keepdim=True) / mass.sum()
+        f = out.f_ext
+        torques.append(float((r[..., 0] * f[..., 1] - r[..., 1] * f[..., 0]).sum().abs()))
+        scales.append(float(r.norm(dim=-1).max() * f.sum(1).norm()))
+
+    with torch.no_grad():
+        rollout(ep.swimmer, ep.swimmer.initial_state(ep.params, ep.origin), ep.params, 6, on_frame=on_frame)
+    assert max(scales) > 0
+    assert max(t / s for t, s in zip(torques, scales) if s > 0) < 1e-10
+
+
 @pytest.mark.slow
 def test_averaged_forces_leave_a_held_fish_its_heading():
     """The paper's Fig. 5 set-up (held in x and y, averaged forces, 2 Hz), the real fish and
@@ -183,9 +204,10 @@ def test_checkpointed_gradient_equals_plain_backprop(fluid, tiny_model):
     solutions (HydroNet: at the default, loose pressure tolerance, where a solve from another
     start would give another pressure), and its PD steps need no L-BFGS iteration."""
     # at SMALL's 1e-8 N some PD steps stall above atol (the line search's energy test reaches
-    # round-off), and a stalled step iterates again when replayed; 1e-6 N converges everywhere
+    # round-off, ~1e-6 N here), and a stalled step iterates again when replayed; 3e-6 N converges
+    # everywhere
     extra = [f"fluid.model_file={tiny_model}"] if fluid == "hydronet" else []
-    cfg, sw, ep = small_swimmer([f"fluid={fluid}", "solid.pd.atol=1e-6", *extra])
+    cfg, sw, ep = small_swimmer([f"fluid={fluid}", "solid.pd.atol=3e-6", *extra])
     grads = []
     for segment in (0, 3):
         omega = torch.tensor([2 * math.pi * 5.0], dtype=torch.float64, requires_grad=True)

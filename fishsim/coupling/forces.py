@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import torch
 from torch import Tensor
 
 from fishsim.coupling.config import AVERAGE, PER_NODE
@@ -17,21 +18,28 @@ def burn_in_scale(step: int, n_burn_in: int) -> float:
 
 def fext_from_surface(f_surface: Tensor, surface_idx: Tensor, n_nodes: int,
                       mode: str = PER_NODE, fix_lateral: bool = False,
-                      scale: float = 1.0) -> Tensor:
+                      scale: float = 1.0, mass: Tensor | None = None) -> Tensor:
     """External force on every mesh node, [B, N, 2] N (per unit depth).
 
     f_surface: forces on the surface nodes [B, S, 2]; surface_idx: their mesh indices [S].
     mode "per_node": f_ext[surface_idx] = f_surface, 0 on interior nodes (free swimming).
-    mode "average": every one of the N nodes gets sum_k f_k / N (the paper's averaged thrust,
-        Sec. 4.4), so the total force is unchanged and no torque or deformation is applied.
+    mode "average": the total F = sum_k f_k shared by the nodes in proportion to their masses,
+        f_i = F m_i / M (the paper's averaged thrust, Sec. 4.4): every node gets the same
+        acceleration F / M, so the total force is unchanged and no torque about the centre of
+        mass and no deformation is applied. The paper divides by the node count, f_i = F / N
+        (``mass`` None: the same for equal masses); on a graded mesh that exerts the torque
+        (x_mean - x_c) x F (the default fish: node mean 3.3 cm behind its centre of mass).
     fix_lateral: drop the y component ("x-axis fixed", Sec. 4.4).
     scale: multiplies the result (the burn-in factor ``burn_in_scale``).
+    mass: lumped node masses [N] (kg per unit depth), used by mode "average"; None: equal.
     """
     B = f_surface.shape[0]
     if mode == PER_NODE:
         f = f_surface.new_zeros(B, n_nodes, 2).index_add(1, surface_idx, f_surface)
     elif mode == AVERAGE:
-        f = (f_surface.sum(1, keepdim=True) / n_nodes).expand(B, n_nodes, 2)
+        share = (torch.full((n_nodes,), 1.0 / n_nodes, dtype=f_surface.dtype, device=f_surface.device)
+                 if mass is None else (mass / mass.sum()).to(f_surface))
+        f = f_surface.sum(1, keepdim=True) * share[:, None]
     else:
         raise ValueError(f"mode must be 'per_node' or 'average', got {mode!r}")
     if fix_lateral:

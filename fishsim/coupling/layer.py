@@ -57,22 +57,23 @@ def solid_to_fluid(q: Tensor, qdot: Tensor, surface, grid: Grid, cfg: CouplingCo
 
 
 def fluid_to_solid(q: Tensor, p: Tensor, boundary: Boundary, surface, grid: Grid,
-                   cfg: CouplingConfig, step: int | None = None) -> Tensor:
+                   cfg: CouplingConfig, step: int | None = None, mass: Tensor | None = None) -> Tensor:
     """External hydrodynamic force on every mesh node, f_ext [B, N, 2] N (per unit depth).
 
     q: node positions [B, N, 2] (m); p: pressure [B, 1, H, W] (Pa); boundary: the mask used to
-    weight the IBM samples; step: time-step index t for the burn-in (None: no burn-in).
+    weight the IBM samples; step: time-step index t for the burn-in (None: no burn-in);
+    mass: lumped node masses [N], how ``force_mode=average`` shares the total (None: equally).
     Result in q.dtype; differentiable in q, p and boundary.mask.
     """
     idx = surface_index(surface, q.device)
     f = ibm_force(q[:, idx], p, boundary.mask, grid, cfg.sigma_prime, cfg.ibm_weight,
                   cfg.ibm_fit, cfg.ibm_area)
     scale = 1.0 if step is None else burn_in_scale(step, cfg.n_burn_in)
-    return fext_from_surface(f, idx, q.shape[1], cfg.force_mode, cfg.fix_lateral, scale)
+    return fext_from_surface(f, idx, q.shape[1], cfg.force_mode, cfg.fix_lateral, scale, mass)
 
 
 def exchange_to_solid(q: Tensor, cell_force: Tensor, surface, grid: Grid, cfg: CouplingConfig,
-                      step: int | None = None) -> Tensor:
+                      step: int | None = None, mass: Tensor | None = None) -> Tensor:
     """External hydrodynamic force on every mesh node by momentum exchange, f_ext [B, N, 2] N.
 
     cell_force: the fluid step's force on the fish per cell [B, 2, H, W] N/m
@@ -83,4 +84,4 @@ def exchange_to_solid(q: Tensor, cell_force: Tensor, surface, grid: Grid, cfg: C
     idx = surface_index(surface, q.device)
     f, _ = spread_to_surface(q[:, idx], cell_force, grid, cfg.sigma_spread)
     scale = 1.0 if step is None else burn_in_scale(step, cfg.n_burn_in)
-    return fext_from_surface(f, idx, q.shape[1], cfg.force_mode, cfg.fix_lateral, scale)
+    return fext_from_surface(f, idx, q.shape[1], cfg.force_mode, cfg.fix_lateral, scale, mass)

@@ -35,6 +35,21 @@ def test_average_mode_keeps_total_force_on_every_node():
     assert torch.allclose(f, f[:, :1].expand_as(f))
 
 
+def test_average_mode_with_masses_is_a_uniform_acceleration_without_torque():
+    """Shared in proportion to the node masses, the total force F gives every node the same
+    acceleration F / M, so it exerts no torque about the centre of mass, whatever the mesh's
+    grading (F / N on every node of unequal masses does)."""
+    mass = torch.tensor([1.0, 4.0, 0.5, 2.0, 1.0, 3.0, 0.25], dtype=torch.float64)
+    q = torch.randn(N, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    f = fext_from_surface(surface_forces(), SURFACE, N, mode="average", mass=mass)
+    assert torch.allclose(f.sum(1), surface_forces().sum(1))
+    a = f / mass[:, None]
+    assert torch.allclose(a, a[:, :1].expand_as(a))
+    r = q - (mass[:, None] * q).sum(0) / mass.sum()
+    torque = r[:, 0] * f[..., 1] - r[:, 1] * f[..., 0]
+    assert torch.allclose(torque.sum(1), torch.zeros(2, dtype=torch.float64), atol=1e-12)
+
+
 @pytest.mark.parametrize("mode", ["per_node", "average"])
 def test_fix_lateral_zeros_y(mode):
     f = fext_from_surface(surface_forces(), SURFACE, N, mode=mode, fix_lateral=True)
