@@ -30,8 +30,10 @@ K n = 16, against 5.4 M at K n = 4), which the coupling's added-mass stabilisati
 ``substeps``).
 
 Rate penalisation (``brinkman`` = lambda, ``fluid.brinkman``): the body forcing is a rate,
-dv/dt = ... + lambda b (v_d - v), taken implicitly together with the projection, so that the
-pressure and the forcing balance in one solve instead of alternating:
+dv/dt = ... + lambda chi(b) (v_d - v), taken implicitly together with the projection, so that the
+pressure and the forcing balance in one solve instead of alternating (below b_f stands for the
+face's chi(b), ``penalised_fraction``: a smoothstep of the mask with compact support, so that the
+penalised body has a fixed extent):
 
     (1 + lambda dt b_f) v = w + lambda dt b_f v_d - grad phi,   div v = 0
     ->  u = (w + lambda dt b_f v_d) / (1 + lambda dt b_f),  c_f = 1 / (1 + lambda dt b_f),
@@ -39,10 +41,15 @@ pressure and the forcing balance in one solve instead of alternating:
 
 It is a discretisation of one PDE (Brinkman-penalised Navier-Stokes with permeability
 1 / (lambda b)), so it converges as dt -> 0: a thin ellipse heaving broadside in the paper's tank
-has an added mass of 1.2591 / 1.2598 / 1.2602 rho pi a^2 at n = 4 / 8 / 16 (lambda = 1e4 1/s;
-~11 PCG iterations a solve), where the split scheme's grows without limit (0.83 / 0.91 / 0.99 /
-1.13 at n = 4 / 8 / 16 / 32): any blend towards v_d once per sub-step stiffens the soft band as n
-grows.  lambda sets how rigid the band is (its cells with lambda b >> 1 / h move with the body).
+has an added mass of 1.3394 / 1.3408 / 1.3415 rho pi a^2 at n = 4 / 8 / 16 (lambda = 1e4 1/s,
+momentum exchange; ~11 PCG iterations a solve), where the split scheme's grows without limit (0.83 / 0.91 / 0.99 /
+1.13 at n = 4 / 8 / 16 / 32 by the sampled pressure, 1.24 / 1.36 / 1.44 at n = 4 / 8 / 16 by
+momentum exchange): any blend towards v_d once per sub-step stiffens the soft band as n
+grows.  It also converges in lambda, measured by the momentum the body exchanges with the fluid
+(``StepDiagnostics.cell_forces``): 1.341 / 1.383 / 1.397 at lambda = 1e4 / 1e5 / 1e6 1/s, n = 8
+(with b itself as the weight: 1.531 / 1.680 / 1.807, no limit). The pressure sampled around the
+surface does not converge in lambda (1.14 / 3.10 / 22.6): the pressure inside a stiffly
+penalised body is not a surface pressure, so forces from this scheme are momentum exchange.
 
 Sub-steps are per sample and fixed: n_b = max(r * substeps, the count that keeps sample b's
 advective Courant number max|v| dt / dx <= ``cfl`` and its diffusion number nu dt / dx^2 <=
@@ -74,6 +81,7 @@ from fishsim.errors import SimulationBlowUp
 from fishsim.fluid.base import Boundary, FluidParams, FluidState, Grid, RefinedState, rest_state
 from fishsim.fluid.dct import neumann_inverse, solve_neumann_poisson
 from fishsim.fluid.grid import (
+    MASK_FLOOR,
     NO_SLIP,
     Faces,
     WallBC,
@@ -173,9 +181,8 @@ class StepDiagnostics:
         given the united mask ``total`` (b_total = 1 - (1 - b_body)(1 - b_other)); 0 where
         nothing is penalised, 1 wherever only the body is."""
         r = self.refinement
-        tiny = torch.finfo(total.dtype).tiny
         pairs = zip(face_masks(_prolong_centres(body, r)), face_masks(_prolong_centres(total, r)))
-        return tuple(torch.where(t > tiny, b / t.clamp_min(tiny), torch.zeros_like(t)) for b, t in pairs)
+        return tuple(b / t.clamp_min(MASK_FLOOR) for b, t in pairs)
 
 
 def _prolong_centres(q: Tensor, r: int) -> Tensor:
@@ -236,6 +243,22 @@ def project(u: Faces, dx: float, inverse: Tensor | None = None) -> tuple[Faces, 
     phi = solve_neumann_poisson(divergence(u, dx), dx, inverse)
     gx, gy = gradient(phi, dx)
     return (u[0] - gx, u[1] - gy), phi
+
+
+CHI_SUPPORT = (0.05, 0.95)
+"""The mask values over which the rate penalisation's weight chi(b) rises from 0 to 1 (with the
+default mask softness, half a cell either side of the surface)."""
+
+
+def penalised_fraction(b: Tensor) -> Tensor:
+    """chi(b) = S((b - b_0) / (b_1 - b_0)), S(t) = t^2 (3 - 2 t) on [0, 1] (C^1), (b_0, b_1) =
+    CHI_SUPPORT: the rate penalisation's weight, 0 where b < b_0. Its compact support gives the
+    body a fixed extent, so lambda -> infinity has a limit; penalising b itself, whose Gaussian
+    tail never vanishes, the body grows with lambda without bound (cells with lambda dt b >> 1
+    move with it: s^2 ~ sigma ln(lambda dt))."""
+    lo, hi = CHI_SUPPORT
+    t = ((b - lo) / (hi - lo)).clamp(0.0, 1.0)
+    return t * t * (3 - 2 * t)
 
 
 IMMERSE_TOL = 1e-6      # PCG relative residual of ``immerse``: div v ~ 1e-6 of div u
@@ -335,6 +358,8 @@ class NumericalFluid:
         r, dx, h = self.refinement, self.fine.dx, params.h
         v = v_start = curl(self._fine_potential(state), dx)
         b = face_masks(_prolong_centres(boundary.mask, r))
+        if self.brinkman is not None:
+            b = tuple(penalised_fraction(x) for x in b)
         v_d = vector_to_faces(_prolong_centres(boundary.velocity, r))
         rho, mu = per_sample(params.rho, v[0]), per_sample(params.mu, v[0])
         nu = mu / rho

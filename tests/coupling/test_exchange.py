@@ -40,6 +40,18 @@ def test_body_share_is_one_away_from_the_walls_and_excludes_them():
     torch.testing.assert_close(sx, expected)
 
 
+def test_body_share_gradient_is_finite_where_the_masks_are_subnormal():
+    """Far from the body the soft mask is tiny (1e-300) or subnormal; b / b_total there must keep a
+    finite gradient (the quotient's derivative ~ 1 / b_total overflows under any sizeable upstream
+    gradient, and inf - inf = NaN)."""
+    diag = StepDiagnostics(substeps=1, penalty=(None, None), dx=1.0, refinement=1)
+    b_fish = torch.tensor([1e-300, 1e-310, 0.5, 1.0], dtype=D).view(1, 1, 1, 4).requires_grad_()
+    sx, sy = diag.body_share(b_fish, b_fish)
+    (grad,) = torch.autograd.grad(1e10 * (sx.sum() + sy.sum()), b_fish)
+    assert torch.isfinite(grad).all()
+    torch.testing.assert_close(sx[..., 2:4].detach(), torch.ones(1, 1, 1, 2, dtype=D))
+
+
 def test_towed_disc_node_forces_add_up_to_the_exchanged_momentum():
     """A disc of radius 4 cells towed at 0.1 m/s and heaving (A = 5 mm, 2 Hz) in a closed tank:
     every step the 31 node forces sum to the penalization's reaction on the disc plus the momentum
