@@ -192,9 +192,10 @@ class Swimmer:
         return layer_weights(self.solid, thickness, params.muscle_x_range)
 
     def fluid_step(self, state: SwimState, fish: Boundary, boundary: Boundary, params: SwimParams,
-                   t: int, start: SwimState | None) -> tuple[FluidState, Tensor]:
+                   t: int, start: SwimState | None, mass: Tensor) -> tuple[FluidState, Tensor]:
         """Steps 2-3: the fluid's step and the force it exerts on the fish's nodes, by the sampled
-        pressure or (``coupling.force=exchange``) by momentum exchange (fishsim.coupling)."""
+        pressure or (``coupling.force=exchange``) by momentum exchange (fishsim.coupling); mass:
+        the nodal masses [N] (how averaged forces are shared)."""
         t0, dev = time.perf_counter(), state.q.device
         if self.coupling.force == "exchange":
             fluid, diag = self.fluid.step_with_diagnostics(state.fluid, boundary, params.fluid)
@@ -206,10 +207,10 @@ class Swimmer:
         if self.coupling.force == "exchange":
             share = diag.body_share(fish.mask, boundary.mask)
             f_ext = exchange_to_solid(state.q, diag.cell_forces(params.fluid.rho, share), self.surface,
-                                      self.fluid.grid, self.coupling, step=t + 1, mass=self.node_mass(state.q))
+                                      self.fluid.grid, self.coupling, step=t + 1, mass=mass)
         else:
             f_ext = fluid_to_solid(state.q, fluid.p, boundary, self.surface, self.fluid.grid,
-                                   self.coupling, step=t + 1, mass=self.node_mass(state.q))
+                                   self.coupling, step=t + 1, mass=mass)
         self.timer.add("coupling", t0, dev)
         return fluid, f_ext
 
@@ -223,11 +224,11 @@ class Swimmer:
         dev, clock = state.q.device, self.timer
         t0 = time.perf_counter()
         fluid, boundary = state.fluid, None
-        f_ext = torch.zeros_like(state.q)
+        f_ext, mass = torch.zeros_like(state.q), self.node_mass(state.q)
         if self.fluid is not None:
             fish, boundary = self.fish_and_boundary(state)
             t0 = clock.add("coupling", t0, dev)
-            fluid, f_ext = self.fluid_step(state, fish, boundary, params, t, start)
+            fluid, f_ext = self.fluid_step(state, fish, boundary, params, t, start, mass)
             t0 = time.perf_counter()
         if muscles is None:
             muscles = self.muscle_weights(params)
@@ -238,7 +239,6 @@ class Swimmer:
             None if state.qdot_prev is None else predicted_start(state.q, state.qdot, state.qdot_prev, self.h))
         q, qdot = pd_step(self.solid, state.q, state.qdot, contraction, f_ext + self.added_mass_force(state),
                           params.E, start=solid_start, muscle_weight=weight)
-        mass = self.node_mass(q)
         if self.fluid is not None and self.coupling.force_mode == AVERAGE and state.qdot_prev is not None:
             free = (not self.hold[0], not self.hold[1])
             q, qdot = stabilise_translation(q, qdot, state.qdot, state.qdot_prev, mass,

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import torch
 from torch import Tensor
 
 from fishsim.coupling.config import AVERAGE, PER_NODE
@@ -37,9 +36,8 @@ def fext_from_surface(f_surface: Tensor, surface_idx: Tensor, n_nodes: int,
     if mode == PER_NODE:
         f = f_surface.new_zeros(B, n_nodes, 2).index_add(1, surface_idx, f_surface)
     elif mode == AVERAGE:
-        share = (torch.full((n_nodes,), 1.0 / n_nodes, dtype=f_surface.dtype, device=f_surface.device)
-                 if mass is None else (mass / mass.sum()).to(f_surface))
-        f = f_surface.sum(1, keepdim=True) * share[:, None]
+        total = f_surface.sum(1, keepdim=True)
+        f = (total / n_nodes).expand(B, n_nodes, 2) if mass is None else total * (mass / mass.sum()).to(total)[:, None]
     else:
         raise ValueError(f"mode must be 'per_node' or 'average', got {mode!r}")
     if fix_lateral:
