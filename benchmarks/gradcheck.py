@@ -4,12 +4,17 @@ differences at several step sizes, for the objectives `fishsim optimize` offers.
     python -m benchmarks.gradcheck                                     # numerical fluid, distance, 100 frames
     python -m benchmarks.gradcheck --fluid hydronet --objective thrust --frames 300
     python -m benchmarks.gradcheck --param amplitude --points 10 12.1 15 --deltas 1e-3 1e-4 1e-5
+    python -m benchmarks.gradcheck --frames 50 100 200 300 --points 5    # growth with the horizon
 
 For each parameter point x: J and dJ/dx by autograd (one episode forward and backward), and the
 central differences (J(x + d) - J(x - d)) / 2d for every relative step d (one batched episode of
 2 x len(deltas) fish). Reported: each difference quotient, its spread over the steps (a flat,
 smooth frame map gives the same value at every step) and autograd's error against the
-difference quotient at the middle step. ``thrust`` runs the paper's set-up (fish held in x,
+difference quotient at the middle step. With several ``--frames`` horizons T it also fits the
+growth rate per second of |dJ/dx| (autograd, and the middle-step difference quotient) as the
+least-squares slope of ln|dJ/dx| against T h: a rate well above the objective's own growth is an
+exponentially ill-conditioned episode (chaotic flow, or amplification through a network's
+rollout). ``thrust`` runs the paper's set-up (fish held in x,
 averaged forces). The fluid runs in float64 (``fluid.dtype=float32`` as an override checks the
 default precision; its rounding limits the steps to >= 1e-3). Writes --out (JSON) and prints a
 Markdown table.
@@ -63,6 +68,27 @@ def check(fluid: str, objective: str, frames: int, param: str, points, deltas, o
     return rows
 
 
+def growth_rates(rows: list[dict], h: float = 0.01) -> list[dict]:
+    """Per (fluid, objective, param, x): the slope of ln|dJ/dx| against the horizon T h (1/s),
+    for autograd and the middle-step central difference, over the rows' horizons."""
+    import numpy as np
+
+    groups: dict = {}
+    for r in rows:
+        groups.setdefault((r["fluid"], r["objective"], r["param"], r["x"]), []).append(r)
+    out = []
+    for key, rs in groups.items():
+        if len({r["frames"] for r in rs}) < 2:
+            continue
+        t = np.array([r["frames"] * h for r in rs])
+        fit = {name: float(np.polyfit(t, np.log(np.abs([f(r) for r in rs])), 1)[0])
+               for name, f in (("autograd", lambda r: r["autograd"]),
+                               ("central", lambda r: r["central"][len(r["central"]) // 2]))}
+        out.append(dict(zip(("fluid", "objective", "param", "x"), key)) | {"horizons": [r["frames"] for r in rs]}
+                   | {f"rate_{k}_per_s": v for k, v in fit.items()})
+    return out
+
+
 def markdown(rows: list[dict], header: bool = True) -> str:
     lines = []
     if header:
@@ -79,7 +105,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--fluid", default="numerical", choices=["numerical", "hydronet"])
     ap.add_argument("--objective", default="distance", choices=["distance", "thrust", "speed", "cost_of_transport"])
-    ap.add_argument("--frames", type=int, default=100)
+    ap.add_argument("--frames", type=int, nargs="+", default=[100], help="horizons (several: growth rates)")
     ap.add_argument("--param", default="frequency", choices=list(DEFAULT_POINTS))
     ap.add_argument("--points", type=float, nargs="*")
     ap.add_argument("--deltas", type=float, nargs="*", default=[1e-4, 1e-5, 1e-6])
@@ -87,10 +113,15 @@ def main() -> None:
     ap.add_argument("--out", default="outputs/gradcheck.json")
     ap.add_argument("overrides", nargs="*", help="more `fishsim optimize` overrides")
     args = ap.parse_args()
-    rows = check(args.fluid, args.objective, args.frames, args.param, args.points or DEFAULT_POINTS[args.param],
-                 args.deltas, args.overrides, args.truncate)
+    rows = [r for frames in args.frames
+            for r in check(args.fluid, args.objective, frames, args.param, args.points or DEFAULT_POINTS[args.param],
+                           args.deltas, args.overrides, args.truncate)]
+    growth = growth_rates(rows)
+    for g in growth:
+        print(f"growth of |dJ/d{g['param']}| at {g['x']:g} over {g['horizons']} frames: autograd "
+              f"{g['rate_autograd_per_s']:.2f} /s, central differences {g['rate_central_per_s']:.2f} /s", flush=True)
     with open(args.out, "w") as f:
-        json.dump(rows, f, indent=1)
+        json.dump({"rows": rows, "growth": growth}, f, indent=1)
 
 
 if __name__ == "__main__":
