@@ -20,7 +20,6 @@ coupling and the adjoints; a second backward through the same graph replays them
 from __future__ import annotations
 
 import dataclasses
-import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -567,11 +566,3 @@ def failing_samples(swimmer: Swimmer, state: SwimState, params: SwimParams, t: i
     if not bool(bad.any()) or bool((alive & ~bad).sum() == 0):
         raise SimulationBlowUp(f"simulation blew up at frame {t + 1}: {err}")
     return bad
-
-
-def strouhal(tail_y: np.ndarray, frequency: float, speed: float) -> float:
-    """St = f A / U with A the tail's peak-to-peak excursion (m) and U the mean speed (m/s)."""
-    amplitude = float(np.max(tail_y) - np.min(tail_y))
-    return frequency * amplitude / speed if speed > 0 else math.nan
-
-

@@ -315,11 +315,6 @@ def stream_function(v: Faces, dx: float) -> Tensor:
     return a - a.mean(dim=(-2, -1), keepdim=True)
 
 
-def velocity_pressure(a: Tensor, p: Tensor, dx: float) -> tuple[Faces, Tensor]:
-    """(a, p) -> (v = curl a, p)."""
-    return curl(a, dx), p
-
-
 def potential_pressure(v: Faces, p: Tensor, dx: float) -> tuple[Tensor, Tensor]:
     """(v, p) -> (a, p) with ``stream_function`` (v divergence free) and p mean free."""
     return stream_function(v, dx), p - p.mean(dim=(-2, -1), keepdim=True)
@@ -328,12 +323,6 @@ def potential_pressure(v: Faces, p: Tensor, dx: float) -> tuple[Tensor, Tensor]:
 # --------------------------------------------------------------------------------------------
 # Domain boundaries: wall bands and inflow / outflow bands (Boundary on the cell centres)
 # --------------------------------------------------------------------------------------------
-
-
-def _band(grid: Grid, rows: slice, cols: slice, batch: int, device, dtype) -> Tensor:
-    m = torch.zeros(batch, 1, grid.H, grid.W, device=device, dtype=dtype)
-    m[..., rows, cols] = 1.0
-    return m
 
 
 def wall_mask(

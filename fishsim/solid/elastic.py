@@ -128,18 +128,8 @@ def _add_muscle(model: SolidModel, S: np.ndarray, s0: np.ndarray, s1: np.ndarray
     return S
 
 
-def internal_stress(model: SolidModel, p: Projections) -> np.ndarray:
-    """S = sum_i w_i (F - P_i) in Z layout; dE_int/dX = G^T S."""
-    rot, vol = _elastic_residuals(p)
-    coords = [p.w_corotated * r for r in rot]
-    if vol is not None:
-        coords = [c + p.w_volume * v for c, v in zip(coords, vol)]
-    m0, m1 = _muscle_residual(p)
-    return _add_muscle(model, _assemble_conformal(*coords), p.w_muscle * m0, p.w_muscle * m1)
-
-
 def energy_and_stress(model: SolidModel, p: Projections, out: np.ndarray | None = None):
-    """(E_int [B], S) in one pass over the residuals (see internal_energy, internal_stress);
+    """(E_int [B], S) in one pass over the residuals (see internal_energy);
     S is written into `out` [2, T, 2, B] if given."""
     rot, vol = _elastic_residuals(p)
     coords = [p.w_corotated * r for r in rot]

@@ -141,7 +141,3 @@ class SolidModel:
         K0 = (G.T @ sp.diags(per_E) @ G).tocsc()
         K_muscle = (G.T @ sp.diags(muscle_rows) @ G).tocsc()
         return K0, K_muscle
-
-    def global_matrix(self, E: float) -> sp.csc_matrix:
-        """A(E) = M/h^2 + K_muscle + E K0, [N, N] sparse SPD."""
-        return (sp.diags(self.mass_h2) + self.K_muscle + E * self.K0).tocsc()

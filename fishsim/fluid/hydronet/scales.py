@@ -18,7 +18,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import torch
 from torch import Tensor
 
 from fishsim.fluid.base import FluidParams, Grid
@@ -51,9 +50,3 @@ def scales_of(grid: Grid, params: FluidParams) -> Scales:
         residual=rho * u / params.h,
         nu=mu * params.h / (rho * grid.dx**2),
     )
-
-
-def as_batch(value, batch: int, device=None, dtype=torch.float32) -> Tensor:
-    """A scalar or [B] parameter as a [B] tensor (helper for FluidParams construction)."""
-    t = torch.as_tensor(value, device=device, dtype=dtype)
-    return t.expand(batch).clone() if t.ndim == 0 else t
