@@ -21,8 +21,8 @@ from concurrent.futures import ProcessPoolExecutor
 
 import torch
 
-from fishsim.commands.simulate import build_episode
 from fishsim.config import load_config
+from fishsim.episode import build_episode
 from fishsim.errors import SimulationBlowUp
 from fishsim.rollout import SwimParams, rollout
 

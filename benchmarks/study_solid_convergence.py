@@ -1,4 +1,4 @@
-"""Mesh convergence of the swimming solid (fishsim/solid/convergence.py: the studies, also run by
+"""Mesh convergence of the swimming solid (fishsim/solid_study.py: the studies, also run by
 `fishsim validate suite=solid`): the same fish, controller and fluid at several element sizes,
 with the default muscle layer and with the paper's station muscles.
 
@@ -8,7 +8,7 @@ with the default muscle layer and with the paper's station muscles.
     python -m benchmarks.study_solid_convergence --beam                   # the cantilever against beam theory
     python -m benchmarks.study_solid_convergence --timing                 # PD step cost per edge length
 
-The stroke table's columns are those of fishsim.solid.convergence.stroke_study (its solid step
+The stroke table's columns are those of fishsim.solid_study.stroke_study (its solid step
 includes the first compiled call once; run on an otherwise idle machine for timings worth
 quoting).
 
@@ -16,7 +16,7 @@ quoting).
 after 40 warm-up steps): forward and backward ms per step, best of 5 repeats of 20 steps, with
 benchmarks/bench_solid.py's timers.
 
-`--beam`: fishsim.solid.convergence.beam_study: the clamped 100 x 5 mm cantilever's static tip
+`--beam`: fishsim.solid_study.beam_study: the clamped 100 x 5 mm cantilever's static tip
 deflection and first bending frequency against Euler-Bernoulli at 2, 4, 8 and 16 elements
 across the thickness.
 """
@@ -28,7 +28,7 @@ import argparse
 import numpy as np
 import torch
 
-from fishsim.solid.convergence import EDGES, beam_markdown, beam_study, stroke_markdown, stroke_study
+from fishsim.solid_study import EDGES, beam_markdown, beam_study, stroke_markdown, stroke_study
 
 
 def timing_study(edges=EDGES, steps: int = 20, warmup: int = 40, repeats: int = 5) -> list[dict]:

@@ -12,8 +12,8 @@ import sys
 
 import torch
 
-from fishsim.commands.simulate import build_episode
 from fishsim.config import load_config
+from fishsim.episode import build_episode
 from fishsim.rollout import SwimParams, rollout
 
 

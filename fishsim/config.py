@@ -376,7 +376,7 @@ STUDY_FLUIDS = ("none", "numerical", "hydronet")
 
 @dataclass
 class SolidStudyConfig:
-    """suite=solid (``fishsim.solid.convergence``). edges: fish edge lengths (m), each a
+    """suite=solid (``fishsim.solid_study``). edges: fish edge lengths (m), each a
     `fishsim simulate` run per muscle model (deviations from the finest). muscles: layer and/or
     paper. fluid: none (vacuum) | numerical | hydronet. frames: episode length at h = 0.01 s
     (stroke over the second half). beam_across: the cantilever's elements across its thickness

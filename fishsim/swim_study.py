@@ -44,8 +44,8 @@ def episode(overrides: list[str], frequencies, frames: int, device: str = "cpu")
     """One batched `fishsim simulate` episode (B = one fish per frequency, in memory, no files)
     with ``overrides``: the head's x displacement [mm] and the mean thrust F_x [mN/m] per fish,
     the wall time and any fish that blew up (NaN, with its frame and reason)."""
-    from fishsim.commands.simulate import build_episode
     from fishsim.config import load_config
+    from fishsim.episode import build_episode
     from fishsim.rollout import head_node, rollout
 
     freqs = ",".join(str(f) for f in frequencies)

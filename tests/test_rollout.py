@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import torch
 
-from fishsim.commands.simulate import batch_params, build_episode
 from fishsim.config import load_config
 from fishsim.coupling import fluid_to_solid
 from fishsim.coupling.config import CouplingConfig
+from fishsim.episode import batch_params, build_episode
 from fishsim.errors import ConfigError, SimulationBlowUp
 from fishsim.fluid.numerical import NumericalFluid, RefinedState
 from fishsim.rollout import Swimmer, SwimState, rollout

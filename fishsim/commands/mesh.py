@@ -12,39 +12,9 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
-from fishsim.config import FishConfig, MeshCommandConfig
+from fishsim.config import MeshCommandConfig
+from fishsim.episode import build_fish_mesh
 from fishsim.io.outdir import make_out_dir, output_file
-
-
-def build_fish_mesh(fish: FishConfig):
-    """The fish mesh a config asks for: read from ``fish.mesh_file`` or generated."""
-    from fishsim.io.mesh_io import read_mesh
-    from fishsim.mesh import make_fish_mesh
-
-    if fish.mesh_file:
-        return read_mesh(fish.mesh_file)
-    return make_fish_mesh(
-        length=fish.length,
-        profile=fish.profile,
-        poly_coeffs=list(fish.poly_coeffs) or None,
-        edge_length=fish.edge_length,
-        min_angle=fish.min_angle,
-        actuator_spacing=fish.actuator_spacing,
-        actuator_x_range=tuple(fish.actuator_x_range),
-        tail_tip_width=fish.tail_tip_width,
-        elements_across=fish.mesh_elements_across(),
-    )
-
-
-def build_muscles(fish: FishConfig, mesh):
-    """The muscle layout a config asks for (fishsim.solid.muscles): ``fish.muscles=layer`` (the
-    default, a layer of ``fish.muscle_thickness`` times the local half-width along each side within
-    ``fish.actuator_x_range``) or ``paper`` (the mesher's stations)."""
-    from fishsim.solid.muscles import layer_muscles, station_muscles
-
-    if fish.muscles == "paper":
-        return station_muscles(mesh)
-    return layer_muscles(mesh, fish.muscle_thickness, tuple(fish.actuator_x_range))
 
 
 def run(cfg: MeshCommandConfig) -> dict:

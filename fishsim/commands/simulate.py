@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 import math
 import time
-from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -14,74 +13,15 @@ from rich.markup import escape
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
 
-from fishsim.commands.mesh import build_fish_mesh, build_muscles
 from fishsim.config import SimulateConfig, to_yaml
+from fishsim.episode import Episode, build_episode
 from fishsim.errors import ConfigError, FishsimError
-from fishsim.fluid.factory import SHIPPED_HYDRONET, fluid_dtype, fluid_params, make_fluid, make_tank
 from fishsim.fluid.grid import curl, faces_to_centres
-from fishsim.fluid.hydronet.trained_range import check_fluid
 from fishsim.io.outdir import make_out_dir, output_file
 from fishsim.io.trajectory import TrajectoryWriter, trajectory_series
 from fishsim.io.xdmf import write_xdmf
-from fishsim.resources import announce_time, check_memory, check_time
-from fishsim.rollout import METRICS, Swimmer, SwimParams, rollout
-from fishsim.solid import SolidModel
-from fishsim.solid.controller import WaveController, calibrated_amplitude
-
-
-@dataclass
-class Episode:
-    """Everything one simulation needs, built from a config."""
-
-    swimmer: Swimmer
-    params: SwimParams
-    origin: tuple[float, float]
-    device: torch.device
-
-
-def build_episode(cfg: SimulateConfig) -> Episode:
-    """Mesh, solid, fluid, tank, coupling and the batch's parameters from the config."""
-    device = torch.device(cfg.device)
-    check_memory(cfg, cfg.batch.size)
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise ConfigError("device=cuda but torch sees no CUDA device (install a CUDA build of torch: see README)")
-    mesh = build_fish_mesh(cfg.fish)
-    fluid = make_fluid(cfg.fluid, device)
-    if cfg.fluid.model == "hydronet":
-        check_fluid(fluid.model, cfg.fluid.model_file or SHIPPED_HYDRONET, cfg.fluid.rho, cfg.fluid.mu,
-                    cfg.fluid.dx, cfg.h, cfg.fluid.strict_range)
-    solid = SolidModel(mesh, cfg.solid.material, h=cfg.h, options=cfg.solid.pd,
-                       added_mass_ratio=cfg.coupling.stabilisation_ratio if fluid is not None else 0.0,
-                       muscles=build_muscles(cfg.fish, mesh))
-    walls = make_tank(cfg.fluid, device) if fluid is not None else None
-    swimmer = Swimmer(solid, fluid, cfg.coupling, walls, fluid_dtype=fluid_dtype(cfg.fluid),
-                      hold_x=cfg.hold_x, hold_y=cfg.hold_y)
-    params = batch_params(cfg, mesh.length, device)
-    peak = params.controller.peak_contraction(solid)
-    if bool((peak >= 1).any()):
-        worst = float(peak.max())
-        raise ConfigError(f"controller amplitude C = {float(params.controller.C.max()):g} 1/m contracts a muscle by "
-                          f"{worst:.2f} >= 1 (a muscle would vanish); use amplitude < "
-                          f"{float(params.controller.C.max()) / worst:.4g}")
-    return Episode(swimmer, params, tuple(cfg.origin), device)
-
-
-def batch_params(cfg: SimulateConfig, length: float, device) -> SwimParams:
-    """Per-fish controller, E and fluid parameters as [B] tensors (config ``batch`` lists)."""
-    B, c, b = cfg.batch.size, cfg.controller, cfg.batch
-
-    def per_fish(values, default) -> torch.Tensor:
-        values = list(values) or [default]
-        return torch.tensor(values * (B // len(values)), dtype=torch.float64, device=device)
-
-    gamma = c.wave_number if c.wave_number is not None else 2 * math.pi / length
-    C = c.amplitude if c.amplitude is not None else calibrated_amplitude(cfg.fish.muscles)
-    controller = WaveController(C=per_fish(b.amplitude, C),
-                                omega=2 * math.pi * per_fish(b.frequency, c.frequency),
-                                gamma=per_fish(b.wave_number, gamma), t_a=c.t_a)
-    E = per_fish(b.youngs_modulus, cfg.solid.material.youngs_modulus)
-    fluid = fluid_params(cfg.fluid, B, cfg.h, device) if cfg.fluid.model != "none" else None
-    return SwimParams(controller=controller, E=E, fluid=fluid)
+from fishsim.resources import announce_time, check_time
+from fishsim.rollout import METRICS, rollout
 
 
 def open_writer(cfg: SimulateConfig, episode: Episode, path) -> TrajectoryWriter:

@@ -4,7 +4,7 @@ suite=hydronet: the HydroNet model against the numerical solver on held-out scen
 (``fishsim.fluid.hydronet.evaluate``): metrics.json, a printed table, and a picture of the final
 vorticity of both models side by side (comparison.png/.svg).
 
-suite=solid: the solid's mesh convergence and its beam validation (``fishsim.solid.convergence``,
+suite=solid: the solid's mesh convergence and its beam validation (``fishsim.solid_study``,
 docs/validation.md): the swimming stroke at several edge lengths with each muscle model, and a
 clamped cantilever against Euler-Bernoulli; metrics.json, printed tables, and a plot of the tail
 peak-to-peak against the edge length and of the beam's errors against refinement
@@ -134,7 +134,7 @@ def run_swim(cfg: ValidateConfig) -> dict:
 def run_solid(cfg: ValidateConfig) -> dict:
     """suite=solid: the stroke study and the beam check (module docstring)."""
     from fishsim.render.plots import plot_solid_convergence
-    from fishsim.solid.convergence import beam_study, stroke_study, summary
+    from fishsim.solid_study import beam_study, stroke_study, summary
 
     out_dir = make_out_dir("validate", cfg.out_dir)
     s = cfg.solid

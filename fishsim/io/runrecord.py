@@ -75,8 +75,9 @@ def end(folders: list[Path], status: str) -> None:
     sys.stdout, sys.stderr = run["streams"]
     if not folders:
         return
+    from omegaconf import OmegaConf
+
     from fishsim import __version__
-    from fishsim.config import to_yaml
 
     commit, dirty = git_commit()
     about = {"command": run["command"], "fishsim_version": __version__, "git_commit": commit,
@@ -87,8 +88,8 @@ def end(folders: list[Path], status: str) -> None:
         hydra = Path(folder) / ".hydra"
         hydra.mkdir(exist_ok=True)
         (hydra / "config.yaml").write_text(run["config"])
-        (hydra / "overrides.yaml").write_text(to_yaml(run["overrides"]))
-        (hydra / "fishsim.yaml").write_text(to_yaml(about))
+        (hydra / "overrides.yaml").write_text(OmegaConf.to_yaml(run["overrides"]))
+        (hydra / "fishsim.yaml").write_text(OmegaConf.to_yaml(about))
         (Path(folder) / f"{run['command']}.log").write_text(log)
 
 

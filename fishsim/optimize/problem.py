@@ -105,12 +105,12 @@ class Evaluation:
 
 class Problem:
     """Candidates z [B, P] -> objective J [B], by one batched, checkpointed rollout of the episode
-    built from the config (fishsim.commands.simulate.build_episode with B = 1, then each
+    built from the config (fishsim.episode.build_episode with B = 1, then each
     optimised parameter set per candidate). segment: gradient-checkpoint segment (frames);
     truncate: truncated backpropagation window (frames, 0: full; fishsim.rollout.rollout)."""
 
     def __init__(self, cfg, space: Space, objective_cfg: ObjectiveConfig, segment: int = 25, truncate: int = 0):
-        from fishsim.commands.simulate import build_episode
+        from fishsim.episode import build_episode
         from fishsim.resources import check_memory
 
         check_memory(cfg, 1, gradient_frames=cfg.frames, segment=segment)      # a gradient iteration

@@ -121,7 +121,7 @@ def plot_fluid_comparison(final: Mapping, path: str | Path, labels: Sequence[str
 
 def plot_solid_convergence(rows: Sequence[Mapping], beam_rows: Sequence[Mapping], path: str | Path) -> list[Path]:
     """Left: tail peak-to-peak [mm] against the edge length [mm] (finer to the right), one line
-    per muscle model (rows of ``fishsim.solid.convergence.stroke_study``). Right (if beam_rows):
+    per muscle model (rows of ``fishsim.solid_study.stroke_study``). Right (if beam_rows):
     |relative error| [%] of the cantilever's tip deflection and first frequency against the
     elements across its thickness, log-log (rows of ``beam_study``)."""
     fig = Figure(figsize=(10 if beam_rows else 5.5, 3.8), layout="constrained")

@@ -35,8 +35,8 @@ def simulate_stroke(edge_length: float, muscles: str = "layer", fluid: str = "no
     """One in-memory `fishsim simulate` run; its stroke and cost numbers (module docstring):
     edge_mm, muscles, fluid, nodes, n_act, tail_p2p_mm, head_dx_mm, head_y_p2p_mm,
     solid_ms_per_step, wall_s."""
-    from fishsim.commands.simulate import build_episode
     from fishsim.config import load_config
+    from fishsim.episode import build_episode
     from fishsim.rollout import rollout
 
     cfg = load_config("simulate", [f"fluid={fluid}", f"frames={frames}", f"fish.edge_length={edge_length}",
