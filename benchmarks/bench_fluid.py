@@ -25,9 +25,9 @@ from contextlib import contextmanager
 
 import torch
 
+from fishsim.fields import Boundary, FluidParams, Grid
 from fishsim.fluid import cases
 from fishsim.fluid import grid as G
-from fishsim.fluid.base import Boundary, FluidParams, Grid
 from fishsim.fluid.numerical import NumericalFluid
 
 GRID = Grid(100, 300, 2.5e-3)

@@ -13,7 +13,7 @@ from dataclasses import replace
 
 import torch
 
-from fishsim.fluid.base import Boundary, FluidParams, FluidState, Grid
+from fishsim.fields import Boundary, FluidParams, FluidState, Grid
 from fishsim.fluid.grid import closed_tank
 from fishsim.fluid.hydronet import train as T
 from fishsim.fluid.hydronet.config import NETWORK, NetConfig, TrainConfig

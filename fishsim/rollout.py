@@ -32,7 +32,7 @@ from fishsim.coupling import CouplingConfig, exchange_to_solid, fluid_to_solid, 
 from fishsim.coupling.added_mass import mass_centroid, stabilise_translation, stabilising_force
 from fishsim.coupling.config import AVERAGE
 from fishsim.errors import ConfigError, SimulationBlowUp
-from fishsim.fluid.base import Boundary, FluidModel, FluidParams, FluidState, RefinedState
+from fishsim.fields import Boundary, FluidModel, FluidParams, FluidState, RefinedState
 from fishsim.fluid.grid import union
 from fishsim.mesh.triangulate import element_areas
 from fishsim.solid import SolidModel, pd_step, predicted_start

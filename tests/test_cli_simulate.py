@@ -294,7 +294,7 @@ def test_simulate_blow_up_exit_code_2_and_partial_file_kept(tmp_path, monkeypatc
     code 2, and the frames before it kept in a readable file marked incomplete with the reason."""
     import torch
 
-    from fishsim.fluid.base import FluidState
+    from fishsim.fields import FluidState
     from fishsim.fluid.numerical import NumericalFluid
 
     real, calls = NumericalFluid.step, {"n": 0}
@@ -324,7 +324,7 @@ def test_a_batch_carries_on_past_a_fish_that_blows_up(tmp_path, monkeypatch):
 
     import torch
 
-    from fishsim.fluid.base import FluidState
+    from fishsim.fields import FluidState
     from fishsim.fluid.numerical import NumericalFluid
 
     real = NumericalFluid.step

@@ -341,7 +341,7 @@ def test_exchange_force_needs_the_numerical_fluid(tiny_model):
 
 def test_a_fish_leaving_the_tank_stops_the_run():
     """An unphysical state (a node outside the tank) stops the episode with a named reason."""
-    from fishsim.fluid.base import Grid
+    from fishsim.fields import Grid
     from fishsim.rollout import require_physical
 
     grid = Grid(40, 120, 5e-3)

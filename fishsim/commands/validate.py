@@ -181,7 +181,7 @@ def run_hydronet(cfg: ValidateConfig) -> dict:
     """suite=hydronet: evaluate, write metrics.json and the comparison picture, print the table."""
     import torch
 
-    from fishsim.fluid.base import Grid
+    from fishsim.fields import Grid
     from fishsim.fluid.factory import SHIPPED_HYDRONET
     from fishsim.fluid.hydronet import HydroNetFluid, load_hydronet
     from fishsim.fluid.hydronet.evaluate import energy_checks, evaluate, summarise

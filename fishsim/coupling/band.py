@@ -28,7 +28,7 @@ from torch import Tensor
 
 from fishsim.coupling.config import NODE, SEGMENT
 from fishsim.coupling.geometry import next_nodes
-from fishsim.fluid.base import Grid
+from fishsim.fields import Grid
 
 _CHUNK_ELEMENTS = 1 << 22  # cells x segments x batch per chunk of the no-grad pass (16 MB fp32)
 

@@ -36,7 +36,7 @@ from torch import Tensor
 
 from fishsim.coupling.config import NONE
 from fishsim.coupling.ibm import KERNEL_RADIUS, kernel_cells, sample_weights
-from fishsim.fluid.base import Grid
+from fishsim.fields import Grid
 
 #: Variance of the spreading kernel in cell units squared (standard deviation 1.5 cells).
 SPREAD_CELLS2 = 2.25

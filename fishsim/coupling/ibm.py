@@ -58,7 +58,7 @@ from torch import Tensor
 
 from fishsim.coupling.config import BODY, CHORD, FLUID, LINEAR, MEAN, NONE, PAPER
 from fishsim.coupling.geometry import area_vectors, surface_geometry
-from fishsim.fluid.base import Grid
+from fishsim.fields import Grid
 
 KERNEL_RADIUS = 4.0  # in standard deviations sqrt(sigma')
 

@@ -27,7 +27,7 @@ from fishsim.coupling.exchange import spread_to_surface
 from fishsim.coupling.forces import burn_in_scale, fext_from_surface
 from fishsim.coupling.ibm import ibm_force
 from fishsim.coupling.mask import boundary_velocity, soft_mask
-from fishsim.fluid.base import Boundary, Grid
+from fishsim.fields import Boundary, Grid
 
 
 def surface_index(surface, device) -> Tensor:

@@ -51,7 +51,7 @@ from torch import Tensor
 from fishsim.coupling.band import SurfaceBand, band_margin, gather_nodes, scatter_band, surface_band
 from fishsim.coupling.config import ARITHMETIC, HARMONIC, NODE, SEGMENT
 from fishsim.coupling.geometry import segment_closest_point
-from fishsim.fluid.base import Grid
+from fishsim.fields import Grid
 
 XI, SIGMA, TAU = 5e-7, 5e-7, 5e-7
 

@@ -21,8 +21,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from fishsim.fields import Boundary, FluidParams, FluidState, Grid
 from fishsim.fluid import grid as G
-from fishsim.fluid.base import Boundary, FluidParams, FluidState, Grid
 from fishsim.fluid.numerical import NumericalFluid
 
 # Ghia, Ghia & Shin 1982, J. Comput. Phys. 48:387, Table I: u on the vertical centreline, Re = 100.

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import torch
 
-from fishsim.fluid.base import Boundary, FluidModel, FluidParams, Grid
+from fishsim.fields import Boundary, FluidModel, FluidParams, Grid
 from fishsim.fluid.grid import channel, closed_tank
 
 

@@ -1,6 +1,6 @@
 """MAC-grid stencils in physical units, shared by HydroNet's loss and the numerical solver.
 
-Layout (``fishsim.fluid.base``; docs/physics.md section 4): H x W cells of side ``dx`` [m], row index i
+Layout (``fishsim.fields``; docs/physics.md section 4): H x W cells of side ``dx`` [m], row index i
 along y, column index j along x, every field ``[B, C, rows, cols]``:
 
 * ``a``  [B, 1, H+1, W+1]  vector potential at vertices ``(j dx, i dx)``                    [m^2/s]
@@ -27,7 +27,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from fishsim.fluid.base import Boundary, Grid
+from fishsim.fields import Boundary, Grid
 
 Faces = tuple[Tensor, Tensor]
 """A MAC face field ``(vx [B, C, H, W+1], vy [B, C, H+1, W])``."""

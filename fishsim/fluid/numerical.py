@@ -78,7 +78,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from fishsim.errors import SimulationBlowUp
-from fishsim.fluid.base import Boundary, FluidParams, FluidState, Grid, RefinedState, rest_state
+from fishsim.fields import Boundary, FluidParams, FluidState, Grid, RefinedState, rest_state
 from fishsim.fluid.dct import neumann_inverse, solve_neumann_poisson
 from fishsim.fluid.grid import (
     MASK_FLOOR,

@@ -50,7 +50,7 @@ import scipy.sparse as sp
 import torch
 from torch import Tensor
 
-from fishsim.fluid.base import Grid
+from fishsim.fields import Grid
 from fishsim.fluid.dct import neumann_inverse, solve_neumann_poisson
 from fishsim.fluid.grid import Faces, divergence, gradient
 from fishsim.fluid.residual import fluid_face_masks, momentum_residual

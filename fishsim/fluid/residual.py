@@ -14,7 +14,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from fishsim.fluid.base import Grid
+from fishsim.fields import Grid
 from fishsim.fluid.grid import NO_SLIP, Faces, WallBC, advection, face_masks, gradient, laplacian_faces
 
 

@@ -8,8 +8,8 @@ import math
 import torch
 
 from fishsim.coupling.exchange import spread_to_surface
+from fishsim.fields import Boundary, FluidParams, Grid
 from fishsim.fluid import grid as G
-from fishsim.fluid.base import Boundary, FluidParams, Grid
 from fishsim.fluid.cases import disc_mask, disc_polyline, moving
 from fishsim.fluid.numerical import NumericalFluid, StepDiagnostics
 

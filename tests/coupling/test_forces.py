@@ -11,7 +11,7 @@ from fishsim.coupling import (
     solid_to_fluid,
 )
 from fishsim.errors import ConfigError
-from fishsim.fluid.base import Boundary, Grid
+from fishsim.fields import Boundary, Grid
 from tests.coupling.shapes import fish_outline
 
 N = 7

@@ -11,7 +11,7 @@ import torch
 from torch.autograd import gradcheck
 
 from fishsim.coupling import CouplingConfig, boundary_velocity, fluid_to_solid, ibm_force, soft_mask
-from fishsim.fluid.base import Boundary, Grid
+from fishsim.fields import Boundary, Grid
 
 GRID = Grid(H=14, W=20, dx=2.5e-3)
 

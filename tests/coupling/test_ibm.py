@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from fishsim.coupling import area_vectors, ibm_force, polygon_area, soft_mask
-from fishsim.fluid.base import Grid
+from fishsim.fields import Grid
 from tests.coupling.shapes import ellipse, fish_outline
 
 GRID = Grid()
@@ -74,7 +74,7 @@ def test_sampled_pressure_is_continuous_across_cell_boundaries():
     import torch
 
     from fishsim.coupling.ibm import surface_pressure
-    from fishsim.fluid.base import Grid
+    from fishsim.fields import Grid
 
     torch.manual_seed(0)
     g = Grid(40, 40, 2.5e-3)

@@ -8,7 +8,7 @@ import torch
 
 from fishsim.coupling import polygon_area, soft_mask
 from fishsim.coupling.mask import SIGMA
-from fishsim.fluid.base import Grid
+from fishsim.fields import Grid
 from tests.coupling.shapes import ellipse, fish_outline, polyline_signed_distance
 
 GRID = Grid()

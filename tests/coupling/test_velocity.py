@@ -5,7 +5,7 @@ import torch
 from fishsim.coupling import boundary_velocity, soft_mask, surface_band
 from fishsim.coupling.band import band_margin
 from fishsim.coupling.mask import SIGMA
-from fishsim.fluid.base import Grid
+from fishsim.fields import Grid
 from tests.coupling.shapes import fish_outline, polyline_signed_distance
 
 GRID = Grid()

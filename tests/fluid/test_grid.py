@@ -5,8 +5,8 @@ import math
 import pytest
 import torch
 
+from fishsim.fields import Boundary, Grid
 from fishsim.fluid import grid as G
-from fishsim.fluid.base import Boundary, Grid
 
 D = torch.float64
 

@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from fishsim.errors import SimulationBlowUp
+from fishsim.fields import Boundary, FluidModel, FluidParams, FluidState, Grid
 from fishsim.fluid import grid as G
-from fishsim.fluid.base import Boundary, FluidModel, FluidParams, FluidState, Grid
 from fishsim.fluid.cases import taylor_green
 from fishsim.fluid.dct import dct, idct, solve_neumann_poisson
 from fishsim.fluid.numerical import NumericalFluid, RefinedState, project

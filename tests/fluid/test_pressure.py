@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import torch
 
+from fishsim.fields import FluidParams, FluidState, Grid
 from fishsim.fluid import grid as G
-from fishsim.fluid.base import FluidParams, FluidState, Grid
 from fishsim.fluid.numerical import NumericalFluid
 from fishsim.fluid.pressure import RecoveryConfig, WeightedPoisson, recover_pressure, solve_weighted_poisson
 
@@ -83,7 +83,7 @@ def _heave_added_mass(model, a=0.05, b=0.005, amplitude=5e-3, frequency=2.5, ste
     steps. Potential flow: rho pi a^2."""
     from fishsim.coupling.ibm import ibm_force
     from fishsim.coupling.mask import SIGMA
-    from fishsim.fluid.base import Boundary
+    from fishsim.fields import Boundary
     from fishsim.fluid.hydronet.pool import mask_from_distance
 
     g = Grid(100, 300, 2.5e-3)

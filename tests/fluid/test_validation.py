@@ -10,8 +10,8 @@ import pytest
 import torch
 
 from fishsim.coupling.ibm import ibm_force
+from fishsim.fields import Boundary, FluidParams, Grid
 from fishsim.fluid import grid as G
-from fishsim.fluid.base import Boundary, FluidParams, Grid
 from fishsim.fluid.cases import (
     BENCHMARK_STEPPING,
     CYLINDER_CI,

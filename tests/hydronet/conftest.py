@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from fishsim.fluid.base import FluidParams, Grid
+from fishsim.fields import FluidParams, Grid
 from fishsim.fluid.hydronet.config import NetConfig, PoolConfig
 
 

@@ -9,7 +9,7 @@ import torch
 from typer.testing import CliRunner
 
 from fishsim.cli import app
-from fishsim.fluid.base import Grid
+from fishsim.fields import Grid
 from fishsim.fluid.hydronet.config import EvalConfig
 from fishsim.fluid.hydronet.evaluate import Scenes, energy_checks, evaluate, kinetic_energy, summarise
 from fishsim.fluid.numerical import NumericalFluid
@@ -84,7 +84,7 @@ def test_energy_checks_are_exact_for_the_reference_itself():
     checks = energy_checks(NumericalFluid(grid), NumericalFluid(grid), SMALL)
     assert checks["still_fish_max_speed_3"] == 0.0
     assert checks["kinetic_energy_ref_4"] > 0 and checks["kinetic_energy_ratio"] == pytest.approx(1.0, rel=1e-6)
-    from fishsim.fluid.base import FluidState
+    from fishsim.fields import FluidState
 
     U, y = 0.1, torch.arange(grid.H + 1, dtype=torch.float32)[:, None] * grid.dx
     stream = FluidState((U * y).expand(grid.H + 1, grid.W + 1)[None, None], torch.zeros(1, 1, grid.H, grid.W))

@@ -4,7 +4,7 @@ import math
 
 import torch
 
-from fishsim.fluid.base import Boundary, FluidParams, FluidState
+from fishsim.fields import Boundary, FluidParams, FluidState
 from fishsim.fluid.grid import closed_tank, stream_function, vector_to_faces
 from fishsim.fluid.hydronet.loss import LossConfig, boundary_loss, hydronet_loss, momentum_loss, teacher_loss
 from fishsim.fluid.residual import boundary_face_masks, fluid_face_masks
@@ -69,7 +69,7 @@ def test_boundary_term_in_cells_per_step(grid):
 
 def test_dimensionless_in_rho():
     """Same velocities, p proportional to rho and mu proportional to rho: identical loss."""
-    from fishsim.fluid.base import Grid
+    from fishsim.fields import Grid
 
     grid = Grid(12, 20)
     g = torch.Generator().manual_seed(1)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from fishsim.fluid.base import Grid
+from fishsim.fields import Grid
 from fishsim.fluid.factory import SHIPPED_HYDRONET
 from fishsim.fluid.hydronet import HydroNet, HydroNetFluid, PoolConfig, ScenePool, load_hydronet
 from fishsim.fluid.hydronet.config import EvalConfig

@@ -8,7 +8,7 @@ from dataclasses import replace
 import pytest
 import torch
 
-from fishsim.fluid.base import FluidState
+from fishsim.fields import FluidState
 from fishsim.fluid.hydronet import train as T
 from fishsim.fluid.hydronet.config import TrainConfig
 from fishsim.fluid.hydronet.loss import hydronet_loss

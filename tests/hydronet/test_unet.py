@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from fishsim.fluid.base import Boundary, FluidModel, FluidParams, FluidState
+from fishsim.fields import Boundary, FluidModel, FluidParams, FluidState
 from fishsim.fluid.grid import closed_tank
 from fishsim.fluid.hydronet.config import NetConfig
 from fishsim.fluid.hydronet.unet import (
@@ -128,7 +128,10 @@ def test_residual_update_is_identity_for_zero_output(grid, tiny_net):
 
 
 def test_conditioning_changes_the_step(grid):
-    """condition=True: 15 input channels, and (rho, mu) change the output."""
+    """condition=True: 15 input channels, and (rho, mu) change the output. The initial weights
+    are seeded: with hidden = 4 some draws (2 of 40 seeds) give a net whose ReLUs are all dead on
+    this input, whose output is then the same for any (rho, mu)."""
+    torch.manual_seed(0)
     model = HydroNet(NetConfig(hidden=4, depth=2, condition=True)).eval()
     assert model.unet.inc[0].in_channels == 15
     state, boundary = _random_inputs(grid, 1)

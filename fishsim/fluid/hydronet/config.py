@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 from fishsim.errors import ConfigError
 
 if TYPE_CHECKING:
-    from fishsim.fluid.base import Grid
+    from fishsim.fields import Grid
 
 RECOVERED, NETWORK = "recovered", "network"
 PRESSURES = (RECOVERED, NETWORK)
@@ -99,7 +99,7 @@ class PoolConfig:
 
     @property
     def grid(self) -> Grid:
-        from fishsim.fluid.base import Grid
+        from fishsim.fields import Grid
 
         return Grid(self.H, self.W, self.dx)
 

@@ -38,7 +38,7 @@ from torch import Tensor
 
 from fishsim.coupling.ibm import ibm_force
 from fishsim.coupling.mask import SIGMA
-from fishsim.fluid.base import Boundary, FluidModel, FluidParams, FluidState, Grid
+from fishsim.fields import Boundary, FluidModel, FluidParams, FluidState, Grid
 from fishsim.fluid.grid import closed_tank, curl, divergence, union, vorticity
 from fishsim.fluid.hydronet.config import EvalConfig
 from fishsim.fluid.hydronet.loss import momentum_loss

@@ -51,7 +51,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from fishsim.fluid.base import Boundary, FluidParams, FluidState, Grid
+from fishsim.fields import Boundary, FluidParams, FluidState, Grid
 from fishsim.fluid.grid import curl, gradient, vector_to_faces
 from fishsim.fluid.hydronet.scales import scales_of
 from fishsim.fluid.residual import boundary_face_masks, fluid_face_masks, momentum_residual

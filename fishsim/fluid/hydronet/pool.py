@@ -35,7 +35,7 @@ import torch
 from torch import Tensor
 
 from fishsim.coupling import band_margin, boundary_velocity, soft_mask, surface_band
-from fishsim.fluid.base import Boundary, FluidParams, FluidState, Grid
+from fishsim.fields import Boundary, FluidParams, FluidState, Grid
 from fishsim.fluid.grid import channel, union
 from fishsim.fluid.hydronet.config import PoolConfig
 

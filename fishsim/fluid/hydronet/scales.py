@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 from torch import Tensor
 
-from fishsim.fluid.base import FluidParams, Grid
+from fishsim.fields import FluidParams, Grid
 
 
 @dataclass(frozen=True)

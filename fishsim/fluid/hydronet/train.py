@@ -39,7 +39,7 @@ import torch.distributed as dist
 from torch import nn
 
 from fishsim.errors import ConfigError, InputFileError, Terminated
-from fishsim.fluid.base import Boundary, FluidParams, FluidState, rest_state
+from fishsim.fields import Boundary, FluidParams, FluidState, rest_state
 from fishsim.fluid.hydronet.config import RESUME_NEEDS_OUT_DIR, NetConfig, TrainConfig
 from fishsim.fluid.hydronet.loss import EPS, LossConfig, LossTerms, hydronet_loss, teacher_loss
 from fishsim.fluid.hydronet.pool import ScenePool, advance, random_scene, scene_boundaries

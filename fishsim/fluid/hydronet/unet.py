@@ -39,7 +39,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 from torch.nn.utils.fusion import fuse_conv_bn_eval
 
-from fishsim.fluid.base import Boundary, FluidParams, FluidState, Grid, rest_state
+from fishsim.fields import Boundary, FluidParams, FluidState, Grid, rest_state
 from fishsim.fluid.grid import curl
 from fishsim.fluid.hydronet.config import PRESSURES, RECOVERED, NetConfig
 from fishsim.fluid.hydronet.scales import scales_of

@@ -1,4 +1,6 @@
-"""The one fluid contract shared by HydroNet and the numerical solver.
+"""The ground floor: the grid and the fields the solid's coupling and the fluids exchange (Grid,
+Boundary, FluidState, FluidParams), and the one fluid contract (FluidModel) shared by HydroNet
+and the numerical solver. It imports nothing from fishsim, so coupling/ and fluid/ both build on it.
 
 Grid and array conventions (docs/physics.md section 4; all lengths in metres, times in seconds):
 
