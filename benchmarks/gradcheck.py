@@ -60,7 +60,7 @@ def check(fluid: str, objective: str, frames: int, param: str, points, deltas, o
         fd = [float(J[i] - J[n + i]) / (2 * s) for i, s in enumerate(steps)]
         mid = fd[n // 2]
         spread = (max(fd) - min(fd)) / abs(mid) if mid else float("inf")
-        rows.append({"fluid": fluid, "objective": objective, "frames": frames, "param": param, "x": x0,
+        rows.append({"fluid": fluid, "objective": objective, "frames": frames, "h": cfg.h, "param": param, "x": x0,
                      "J": float(ev.J[0]), "autograd": autograd, "deltas": list(deltas), "central": fd,
                      "fd_spread": spread, "autograd_error": (autograd - mid) / abs(mid) if mid else float("inf"),
                      "truncate": truncate, "seconds_autograd": t_ad, "seconds_total": time.perf_counter() - t0})
@@ -68,7 +68,7 @@ def check(fluid: str, objective: str, frames: int, param: str, points, deltas, o
     return rows
 
 
-def growth_rates(rows: list[dict], h: float = 0.01) -> list[dict]:
+def growth_rates(rows: list[dict]) -> list[dict]:
     """Per (fluid, objective, param, x): the slope of ln|dJ/dx| against the horizon T h (1/s),
     for autograd and the middle-step central difference, over the rows' horizons."""
     import numpy as np
@@ -80,7 +80,7 @@ def growth_rates(rows: list[dict], h: float = 0.01) -> list[dict]:
     for key, rs in groups.items():
         if len({r["frames"] for r in rs}) < 2:
             continue
-        t = np.array([r["frames"] * h for r in rs])
+        t = np.array([r["frames"] * r["h"] for r in rs])
         fit = {name: float(np.polyfit(t, np.log(np.abs([f(r) for r in rs])), 1)[0])
                for name, f in (("autograd", lambda r: r["autograd"]),
                                ("central", lambda r: r["central"][len(r["central"]) // 2]))}

@@ -8,7 +8,8 @@ is and whether each optimiser found it.
 
 --grid name=v1,v2,... (repeatable) gives the values of each optimised parameter (``params``);
 the default grid is the co-design one (frequency x amplitude C x Young's modulus E). Members of a
-batch are independent fish (with the numerical fluid they share its adaptive sub-step count).
+batch are independent fish (each runs its own sub-step count in the numerical fluid; HydroNet's
+round-off differs with the batch, README "Measured: the paper's Fig. 5").
 Prints the best grid points and writes every (parameters, J) to --out (JSON).
 """
 
