@@ -362,10 +362,19 @@ class OptimizeConfig(SimulateConfig):
                  "resume=true needs out_dir=<the run folder to continue>")
         b = self.optimizer.budget
         if b is not None:
-            cheapest = min(2 * self.frames if m != "cma" else (self.optimizer.popsize or 4) * self.frames
-                           for m in self.optimizer.methods)
-            _require(b >= cheapest, f"optimizer.budget = {b} fish-frames cannot afford one iteration "
-                     f"({cheapest} fish-frames at frames={self.frames}); raise it or shorten the episode")
+            for m in self.optimizer.methods:
+                cost = self.iteration_cost(m)
+                _require(b >= cost, f"optimizer.budget = {b} fish-frames cannot afford one iteration of {m} "
+                         f"({cost} fish-frames at frames={self.frames}); raise it or shorten the episode")
+
+    def iteration_cost(self, method: str) -> int:
+        """Fish-frames of one iteration of ``method``: 2 x frames for a gradient method (the forward
+        pass and its checkpoint recomputation), popsize x frames for a CMA-ES generation (pycma's
+        default population 4 + floor(3 ln P) for P parameters)."""
+        if method != "cma":
+            return 2 * self.frames
+        popsize = self.optimizer.popsize or 4 + int(3 * math.log(len(self.params)))
+        return popsize * self.frames
 
 
 # ---------------------------------------------------------------------------------- validate

@@ -94,7 +94,7 @@ def optimise(problem: Problem, cfg: OptimizeConfig, name: str, folder: Path, con
         saved = torch.load(state_path, weights_only=False)
         method.load(saved["method"])
         rows = saved["rows"]
-    cost = cfg.frames * (getattr(method, "popsize", 0) or 2)
+    cost = cfg.iteration_cost(name)
     left = o.iterations - len(rows)
     if o.budget is not None:
         left = min(left, max(0, (o.budget - (rows[-1]["frames"] if rows else 0)) // cost))

@@ -24,10 +24,16 @@ from fishsim.errors import ConfigError
 GRADIENT_FREE = ("cma",)
 
 
+#: torch.optim optimisers that cannot take one dense gradient per step: LBFGS needs a closure that
+#: re-evaluates J (an episode per line-search point), SparseAdam sparse gradients.
+UNSUPPORTED = ("lbfgs", "sparseadam")
+
+
 def torch_optimizer(name: str) -> type:
-    """The torch.optim class called ``name`` (case-insensitive)."""
+    """The torch.optim class called ``name`` (case-insensitive), one that steps on a dense gradient."""
     table = {k.lower(): v for k, v in vars(torch.optim).items()
-             if isinstance(v, type) and issubclass(v, torch.optim.Optimizer) and v is not torch.optim.Optimizer}
+             if isinstance(v, type) and issubclass(v, torch.optim.Optimizer) and v is not torch.optim.Optimizer
+             and k.lower() not in UNSUPPORTED}
     if name.lower() not in table:
         raise ConfigError(f"unknown optimiser '{name}' (choose cma or a torch.optim optimiser: "
                           f"{', '.join(sorted(table))})")

@@ -231,6 +231,10 @@ def test_a_nan_gradient_stops_the_run_with_the_history_kept(monkeypatch, tmp_pat
     (["params.frequency.lower=8", "params.frequency.upper=3"], "empty or inverted"),
     (["optimizer.methods=[cma]", "optimizer.popsize=1"], "popsize must be >= 2"),
     (["optimizer.budget=10"], "cannot afford one iteration"),
+    (["optimizer.methods=[adam,cma]", "+params.amplitude={lower:5,upper:20}", "frames=8",
+      "+params.youngs_modulus={lower:2e5,upper:2e6}", "optimizer.budget=40"],
+     "cannot afford one iteration of cma (56 fish-frames"),          # pycma's population 7 for 3 parameters
+    (["optimizer.methods=[lbfgs]"], "unknown optimiser 'lbfgs'"),    # needs a closure, not one gradient
     (["hold_x=true"], "objective distance needs a free fish"),
     (["optimizer.methods=[adamm]"], "unknown optimiser 'adamm'"),
     (["objective.name=drag"], "unknown objective 'drag'"),
