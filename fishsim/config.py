@@ -236,6 +236,9 @@ class SimulateConfig:
     (the tail tip) in the tank.  hold_x: hold the fish's centroid x fixed (the paper's thrust
     set-up; the fish undulates and sways in y but cannot travel; ``fishsim.rollout.Swimmer``).
     hold_y: hold its centroid y fixed too (with hold_x the paper's "centred along the x axis").
+    tunnel: a swim tunnel: the fish held in x while the water flows past it at its own
+        swimming speed U(t), set by its x momentum (``fishsim.rollout.Swimmer``): steady swimming
+        for any number of frames; the speed and distances count the water swum through.
     fluid_stride: store the fluid fields every k frames.
     flush_every: HDF5 write period (frames). ParaView opens the run through the XDMF sidecar
     written beside the trajectory (fishsim.io.xdmf).
@@ -255,6 +258,7 @@ class SimulateConfig:
     origin: list[float] = field(default_factory=lambda: [0.06, 0.125])
     hold_x: bool = False
     hold_y: bool = False
+    tunnel: bool = False
     fluid_stride: int = 5
     flush_every: int = 10
     device: str = "cpu"
@@ -271,6 +275,10 @@ class SimulateConfig:
         _require(self.fluid_stride >= 1 and self.flush_every >= 1, "fluid_stride and flush_every must be >= 1")
         _require(self.device in ("cpu", "cuda") or self.device.startswith("cuda:"),
                  f"device must be cpu or cuda (got '{self.device}')")
+        if self.tunnel:
+            _require(self.fluid.model != "none", "tunnel=true needs a fluid (fluid=numerical or fluid=hydronet)")
+            _require(self.fluid.inflow == 0.0, f"tunnel=true sets the inflow itself (the fish's speed); "
+                     f"drop fluid.inflow={self.fluid.inflow}")
         if self.fluid.model != "none":
             Lx, Ly = self.fluid.W * self.fluid.dx, self.fluid.H * self.fluid.dx
             x0, y0 = self.origin
@@ -356,7 +364,7 @@ class OptimizeConfig(SimulateConfig):
                  "(e.g. +params.frequency={lower:1,upper:10})")
         for name, spec in self.params.items():
             spec.check(name)
-        self.objective.check(self.hold_x)
+        self.objective.check(self.hold_x and not self.tunnel)
         self.optimizer.validate()
         _require(self.resume is False or self.out_dir is not None,
                  "resume=true needs out_dir=<the run folder to continue>")

@@ -74,9 +74,9 @@ def build_episode(cfg: SimulateConfig) -> Episode:
     solid = SolidModel(mesh, cfg.solid.material, h=cfg.h, options=cfg.solid.pd,
                        added_mass_ratio=cfg.coupling.stabilisation_ratio if fluid is not None else 0.0,
                        muscles=build_muscles(cfg.fish, mesh))
-    walls = make_tank(cfg.fluid, device) if fluid is not None else None
+    walls = make_tank(cfg.fluid, device, unit_inflow=cfg.tunnel) if fluid is not None else None
     swimmer = Swimmer(solid, fluid, cfg.coupling, walls, fluid_dtype=fluid_dtype(cfg.fluid),
-                      hold_x=cfg.hold_x, hold_y=cfg.hold_y)
+                      hold_x=cfg.hold_x, hold_y=cfg.hold_y, tunnel=cfg.tunnel)
     params = batch_params(cfg, mesh.length, device)
     peak = params.controller.peak_contraction(solid)
     if bool((peak >= 1).any()):

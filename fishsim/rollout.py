@@ -47,12 +47,15 @@ class SwimState:
     fluid: the fluid state (None in vacuum).
     qdot_prev: the previous frame's velocities (the added-mass stabilisation's a_t and the PD
         step's predicted start; None: a start from rest).
+    tunnel: in a swim tunnel (``Swimmer(tunnel=True)``) the speed U of the water past the fish
+        at this frame and the previous one, [B, 2] (m/s, float64); None elsewhere.
     """
 
     q: Tensor
     qdot: Tensor
     fluid: FluidState | None = None
     qdot_prev: Tensor | None = None
+    tunnel: Tensor | None = None
 
 
 @dataclass(frozen=True)
@@ -120,13 +123,22 @@ class Swimmer:
         removed, so its centroid x never moves while it undulates and sways freely in y.
     hold_y: the same in y: the centroid stays on its start line (with hold_x, the paper's
         "centred along the x axis": no sideways drift, the body still undulates).
+    tunnel: a swim tunnel whose water speed follows the fish (a flow-speed servo, as in a
+        laboratory swim tunnel), so a fish swims steadily for as long as the episode lasts in a
+        tank it would cross in seconds. The fish is held in x (hold_x) and the water flows at
+        -U(t) through the end bands of the walls (``walls``: a channel of unit speed, scaled
+        by -U each frame); U is the fish's swimming speed through the water, set by its x
+        momentum (``tunnel_speed``). Everything else is as in free swimming.
     """
 
     def __init__(self, solid: SolidModel, fluid: FluidModel | None, coupling: CouplingConfig,
                  walls: Boundary | None = None, fluid_dtype: torch.dtype = torch.float32,
-                 hold_x: bool = False, hold_y: bool = False):
+                 hold_x: bool = False, hold_y: bool = False, tunnel: bool = False):
+        if tunnel and (fluid is None or walls is None):
+            raise ConfigError("a swim tunnel needs a fluid and its channel walls")
         self.solid, self.fluid, self.coupling = solid, fluid, coupling
-        self.walls, self.fluid_dtype, self.hold = walls, fluid_dtype, (hold_x, hold_y)
+        self.walls, self.fluid_dtype, self.hold = walls, fluid_dtype, (hold_x or tunnel, hold_y)
+        self.tunnel = tunnel
         self.surface = torch.as_tensor(solid.mesh.surface, dtype=torch.long)
         self.triangles = torch.as_tensor(solid.mesh.triangles, dtype=torch.long)
         if fluid is not None and coupling.force == "exchange" and not hasattr(fluid, "step_with_diagnostics"):
@@ -153,7 +165,8 @@ class Swimmer:
         if self.fluid is not None:
             fluid = self.fluid.initial_state(B, device=q.device, dtype=self.fluid_dtype)
         qdot = torch.zeros_like(q)
-        return SwimState(q=q, qdot=qdot, fluid=fluid, qdot_prev=None if fluid is None else qdot)
+        tunnel = q.new_zeros(B, 2) if self.tunnel else None
+        return SwimState(q=q, qdot=qdot, fluid=fluid, qdot_prev=None if fluid is None else qdot, tunnel=tunnel)
 
     def boundary(self, state: SwimState) -> Boundary:
         """Step 1: the fish's soft mask and velocity, united with the tank walls."""
@@ -166,8 +179,26 @@ class Swimmer:
         if self.walls is None:
             return fish, fish
         B = state.q.shape[0]
-        walls = Boundary(self.walls.mask.expand(B, -1, -1, -1), self.walls.velocity.expand(B, -1, -1, -1))
+        velocity = self.walls.velocity.expand(B, -1, -1, -1)
+        if self.tunnel:                                 # the water comes at the fish (facing +x) at U
+            velocity = velocity * -state.tunnel[:, 0].to(velocity.dtype).view(B, 1, 1, 1)
+        walls = Boundary(self.walls.mask.expand(B, -1, -1, -1), velocity)
         return fish, union(fish, walls)
+
+    def tunnel_speed(self, state: SwimState, f_ext: Tensor, rho: Tensor, mass: Tensor) -> Tensor:
+        """The swim tunnel's speed after this frame, [B, 2] (U_t+1, U_t), from the fish's x
+        momentum: the fish of mass M and area A (per unit depth) swims through the water at U,
+
+            M (U_t+1 - U_t) / h = F_x,t + rho A (U_t - U_t-1) / h,
+
+        F_x,t = sum_i f_ext,i,x the fluid's force on the held fish this frame. The last term
+        undoes the tunnel's own doing: the whole channel's water accelerates with U, and the
+        pressure gradient that drives it pushes on the body with rho A dU/dt (the buoyancy of an
+        accelerating flow), a force a fish accelerating through still water does not feel."""
+        U, U_prev = state.tunnel.unbind(-1)
+        area = float(self.solid.fem.area.sum())
+        F = f_ext[..., 0].sum(1) + rho.to(U) * area * (U - U_prev) / self.h
+        return torch.stack([U + self.h * F / mass.sum(), U], -1)
 
     def node_mass(self, like: Tensor) -> Tensor:
         """Lumped nodal masses [N] (kg per unit depth) as ``like``'s dtype and device."""
@@ -244,13 +275,14 @@ class Swimmer:
                                             self.coupling.added_mass_ratio, self.h, free)
         if any(self.hold):
             q, qdot = hold_centroid(q, qdot, state.q, mass, self.hold)
+        tunnel = self.tunnel_speed(state, f_ext, params.fluid.rho, mass) if self.tunnel else None
         require_finite(solid_positions_q=q, solid_velocities_qdot=qdot)
         require_no_inversion(q, self.triangles)
         if self.fluid is not None:
             require_physical(q, qdot, self.fluid.grid)
             require_bounded_force(f_ext, params.fluid.rho, self.solid.mesh.length)
         clock.add("solid", t0, dev)
-        return SwimState(q, qdot, fluid, state.qdot), FrameOutput(f_ext, contraction, boundary)
+        return SwimState(q, qdot, fluid, state.qdot, tunnel), FrameOutput(f_ext, contraction, boundary)
 
 
 def hold_centroid(q: Tensor, qdot: Tensor, q_prev: Tensor, mass: Tensor, axes: tuple[bool, bool]) -> Tensor:
@@ -278,19 +310,22 @@ def tail_node(mesh) -> int:
     return int(mesh.surface[np.argmin(np.hypot(pts[:, 0], pts[:, 1]))])
 
 
-METRICS = ["head_x", "head_y", "tail_y", "centroid_x", "centroid_y", "thrust_x", "force_y", "power"]
+METRICS = ["head_x", "head_y", "tail_y", "centroid_x", "centroid_y", "thrust_x", "force_y", "power", "tunnel_u"]
 
 
 def frame_metrics(swimmer: Swimmer, state: SwimState, out: FrameOutput) -> dict[str, Tensor]:
     """head_x, head_y, tail_y (m), centroid_x (m, mass weighted), thrust_x, force_y (N per unit
     depth, total hydrodynamic force on the fish), power (W per unit depth, the power the fish
-    gives the fluid, P = -sum_i f_ext,i . qdot_i), each [B]."""
+    gives the fluid, P = -sum_i f_ext,i . (qdot_i + U e_x), in the water's rest frame),
+    tunnel_u (m/s, the swim tunnel's water speed U during the frame; 0 outside a tunnel), each [B]."""
     mesh, mass = swimmer.solid.mesh, swimmer.node_mass(state.q)
     head, tail = head_node(mesh), tail_node(mesh)
     centroid = mass_centroid(state.q, mass)[:, 0]
-    power = -(out.f_ext * state.qdot).sum((1, 2))
+    thrust = out.f_ext[..., 0].sum(1)
+    U = state.tunnel[:, 1] if state.tunnel is not None else torch.zeros_like(thrust)
+    power = -(out.f_ext * state.qdot).sum((1, 2)) - U * thrust
     values = [state.q[:, head, 0], state.q[:, head, 1], state.q[:, tail, 1], centroid[:, 0],
-              centroid[:, 1], out.f_ext[..., 0].sum(1), out.f_ext[..., 1].sum(1), power]
+              centroid[:, 1], thrust, out.f_ext[..., 1].sum(1), power, U]
     return dict(zip(METRICS, values))
 
 
@@ -356,22 +391,25 @@ def require_finite(**fields: Tensor) -> None:
 
 def _flatten(state: SwimState) -> tuple[Tensor, ...]:
     """The state as a fixed tuple of tensors (checkpoint segments pass these): q, qdot,
-    qdot_prev and, with a fluid, a, p and the refined fluid's fine potential (an empty tensor
-    when there is none), so that a refined fluid keeps its fine-scale flow across segments."""
+    qdot_prev and, with a fluid, a, p, the refined fluid's fine potential and the swim tunnel's
+    speeds (each an empty tensor when there is none), so that a refined fluid keeps its
+    fine-scale flow, and a tunnel its speed, across segments."""
     qdot_prev = state.qdot if state.qdot_prev is None else state.qdot_prev
     if state.fluid is None:
         return state.q, state.qdot, qdot_prev
     fine = getattr(state.fluid, "fine_a", None)
-    return state.q, state.qdot, qdot_prev, state.fluid.a, state.fluid.p, state.fluid.a.new_empty(0) if fine is None else fine
+    or_empty = lambda x, like: like.new_empty(0) if x is None else x
+    return (state.q, state.qdot, qdot_prev, state.fluid.a, state.fluid.p, or_empty(fine, state.fluid.a),
+            or_empty(state.tunnel, state.q))
 
 
 def _unflatten(tensors: tuple[Tensor, ...]) -> SwimState:
     if len(tensors) == 3:
         q, qdot, qdot_prev = tensors
         return SwimState(q, qdot, qdot_prev=qdot_prev)
-    q, qdot, qdot_prev, a, p, fine = tensors
+    q, qdot, qdot_prev, a, p, fine, tunnel = tensors
     fluid = FluidState(a=a, p=p) if fine.numel() == 0 else RefinedState(a=a, p=p, fine_a=fine)
-    return SwimState(q, qdot, fluid, qdot_prev)
+    return SwimState(q, qdot, fluid, qdot_prev, None if tunnel.numel() == 0 else tunnel)
 
 
 def _param_tensors(params: SwimParams) -> tuple[Tensor, ...]:
@@ -532,7 +570,8 @@ def park(state: SwimState, params: SwimParams, alive: Tensor, rest: SwimState) -
 
     fluid = None if state.fluid is None else state.fluid.map(at_rest)
     qdot_prev = _select(alive, state.qdot_prev, rest.qdot_prev if rest.qdot_prev is not None else torch.zeros_like(rest.q))
-    parked = SwimState(_select(alive, state.q, rest.q), _select(alive, state.qdot, rest.qdot), fluid, qdot_prev)
+    parked = SwimState(_select(alive, state.q, rest.q), _select(alive, state.qdot, rest.qdot), fluid, qdot_prev,
+                       _select(alive, state.tunnel, rest.tunnel))
     C = params.controller.C
     controller = dataclasses.replace(params.controller, C=torch.where(alive, C, torch.zeros_like(C)))
     return parked, dataclasses.replace(params, controller=controller)
@@ -546,7 +585,7 @@ def _sample(state: SwimState, params: SwimParams, b: int) -> tuple[SwimState, Sw
     controller = dataclasses.replace(c, C=one(c.C), omega=one(c.omega), gamma=one(c.gamma))
     fp = None if params.fluid is None else dataclasses.replace(params.fluid, rho=one(params.fluid.rho),
                                                                mu=one(params.fluid.mu))
-    return (SwimState(one(state.q), one(state.qdot), fluid, one(state.qdot_prev)),
+    return (SwimState(one(state.q), one(state.qdot), fluid, one(state.qdot_prev), one(state.tunnel)),
             dataclasses.replace(params, controller=controller, E=one(params.E), fluid=fp))
 
 

@@ -160,26 +160,30 @@ def summarise(episode: Episode, rows: list[dict], n_frames: int, wall: float) ->
 
 
 def fish_summaries(cfg: SimulateConfig, episode: Episode, history: dict) -> list[dict]:
-    """One row per fish: its controller, the head's distance, the centroid's mean speed and the
-    tail's peak-to-peak excursion over the second half, the mean thrust, and the Strouhal number
-    f A / U over whole tail-beat periods of the second half (NaN with less than one period or
-    no forward speed)."""
-    m = {k: np.stack(v) for k, v in history.items()}                     # [frames, B]
+    """One row per fish: its controller, the head's distance, the mean speed through the water
+    (``fishsim.optimize.problem.mean_speed``) and the tail's peak-to-peak excursion over the
+    whole tail beats of the second half, the mean thrust, and the Strouhal number f A / U (NaN
+    with less than one beat or no forward speed). In a swim tunnel the distances count the water
+    swum through."""
+    from fishsim.optimize.problem import mean_speed, travel
+
+    m = {k: torch.from_numpy(np.stack(v)).double() for k, v in history.items()}    # [frames, B]
     n, h = m["head_x"].shape[0], cfg.h
+    s, water = travel(m, h), h * m["tunnel_u"].sum(0)
     c = episode.params.controller
-    freqs = (c.omega / (2 * math.pi)).cpu().numpy()
+    freqs = (c.omega / (2 * math.pi)).cpu().double()
+    beats = torch.floor((n - n // 2) * h * freqs + 1e-9)                 # whole beats in the second half
+    speeds = mean_speed(s, s[0], h, beats.clamp(min=1) / freqs) if n else torch.full_like(freqs, math.nan)
     rows = []
     for b in range(m["head_x"].shape[1]):
-        f = float(freqs[b])
-        period = max(1, round(1.0 / (f * h)))                           # frames per tail beat
-        k = (n - n // 2) // period * period                              # whole periods in the second half
-        speed = float((m["centroid_x"][-1, b] - m["centroid_x"][n - 1 - k, b]) / (k * h)) if k else float("nan")
+        f, k = float(freqs[b]), round(float(beats[b]) / float(freqs[b]) / h)
+        speed = float(speeds[b]) if k else float("nan")
         tail = m["tail_y"][n - k:, b] if k else m["tail_y"][n // 2:, b]
         amplitude = float(tail.max() - tail.min()) if len(tail) else 0.0
         st = f * amplitude / speed if k and speed > 1e-6 else float("nan")
         rows.append({"fish": b, "frequency [Hz]": f, "amplitude C [1/m]": float(c.C[b]),
-                     "head distance [m]": float(m["head_x"][-1, b] - m["head_x"][0, b]) if n else 0.0,
-                     "mean speed [m/s]": speed, "mean thrust x [N]": float(np.mean(m["thrust_x"][:, b])),
+                     "head distance [m]": float(m["head_x"][-1, b] - m["head_x"][0, b] + water[b]) if n else 0.0,
+                     "mean speed [m/s]": speed, "mean thrust x [N]": float(m["thrust_x"][:, b].mean()),
                      "tail peak-to-peak [m]": amplitude, "Strouhal f A / U": st})
     return rows
 

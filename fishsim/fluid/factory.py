@@ -46,12 +46,12 @@ def make_fluid(cfg, device=None) -> FluidModel | None:
     raise ValueError(f"unknown fluid model {cfg.model!r}")
 
 
-def make_tank(cfg, device=None) -> Boundary:
+def make_tank(cfg, device=None, unit_inflow: bool = False) -> Boundary:
     """The tank's walls [1, ., H, W] in ``cfg.dtype``: closed, or a channel with ``cfg.inflow``
-    m/s at the ends."""
+    m/s at the ends (``unit_inflow``: 1 m/s, a swim tunnel's walls that the rollout scales)."""
     grid, dtype = make_grid(cfg), fluid_dtype(cfg)
-    if cfg.inflow != 0.0:
-        return channel(grid, cfg.inflow, cfg.wall_y, cfg.wall_x, 1, device, dtype)
+    if cfg.inflow != 0.0 or unit_inflow:
+        return channel(grid, 1.0 if unit_inflow else cfg.inflow, cfg.wall_y, cfg.wall_x, 1, device, dtype)
     return closed_tank(grid, cfg.wall_y, cfg.wall_x, 1, device, dtype)
 
 

@@ -48,7 +48,8 @@ META = {
     "metrics/centroid_y": ("m", "y of the mass centroid"),
     "metrics/thrust_x": ("N/m", "total x force of the fluid on the fish"),
     "metrics/force_y": ("N/m", "total y force of the fluid on the fish"),
-    "metrics/power": ("W/m", "power the fish gives to the fluid"),
+    "metrics/power": ("W/m", "power the fish gives to the fluid (in the water's rest frame)"),
+    "metrics/tunnel_u": ("m/s", "swim tunnel: speed of the water past the fish (0 outside a tunnel)"),
 }
 
 #: dataset -> its dimension names (first match: the dataset, then its group's "*")

@@ -40,17 +40,25 @@ class ParamSpec:
 
 @dataclass
 class ObjectiveConfig:
-    """The objective (problem.py's docstring): name in OBJECTIVES; window: the speed's averaging
-    window in s (null: the episode's second half)."""
+    """The objective (problem.py's docstring): name in OBJECTIVES; cycles: the speed's averaging
+    window, the last ``cycles`` tail beats of the fish's frequency."""
 
     name: str = "distance"
-    window: float | None = None
+    cycles: float = 2.0
 
     def check(self, hold_x: bool) -> None:
         if self.name not in OBJECTIVES:
             raise ConfigError(f"unknown objective '{self.name}' (choose from {', '.join(OBJECTIVES)})")
         if hold_x and self.name in FREE_ONLY:
             raise ConfigError(f"objective {self.name} needs a free fish, but hold_x=true holds it in x "
-                              "(use objective=thrust, or hold_x=false)")
-        if self.window is not None and not self.window > 0:
-            raise ConfigError(f"objective.window must be > 0 s or null (got {self.window})")
+                              "(use objective=thrust, hold_x=false, or the swim tunnel tunnel=true)")
+        if not self.cycles > 0:
+            raise ConfigError(f"objective.cycles must be > 0 tail beats (got {self.cycles})")
+
+    def check_window(self, lowest_frequency: float, frames: int, h: float) -> None:
+        """The speed's window must fit in the episode at the slowest frequency the fish may have."""
+        span = self.cycles / lowest_frequency
+        if self.name == "speed" and span > frames * h + 1e-12:
+            raise ConfigError(f"objective.cycles={self.cycles:g} at {lowest_frequency:g} Hz spans {span:.3g} s, longer "
+                              f"than the {frames * h:.3g} s episode: lower objective.cycles, raise frames or the "
+                              "lowest frequency")

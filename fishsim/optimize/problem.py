@@ -7,23 +7,28 @@ Parameters live in normalised coordinates z in [0, 1]^P, the optimisers' space:
     x = lo (hi / lo)^z                   (log scale, lo > 0)
 
 Objectives J (maximised; every optimiser minimises -J), per fish, over an episode of T frames of
-h seconds, with F_x(t) the total hydrodynamic x force on the fish (N per unit depth) and
-P(t) = -sum_i f_ext,i(t) . qdot_i(t) the power it gives the fluid (W per unit depth):
+h seconds (t_k = k h), with F_x(t) the total hydrodynamic x force on the fish (N per unit depth),
+P(t) = -sum_i f_ext,i(t) . qdot_i(t) the power it gives the fluid (W per unit depth, in the
+water's rest frame) and s(t) = x_c(t) + h sum_{k <= t} U_k the distance its mass centroid has
+swum through the water (x_c alone in free swimming; in a swim tunnel, where the fish is held and
+the water passes it at U, the water's travel is added):
 
     thrust              J = h sum_t F_x(t)                                  N s / m
                         (the forward impulse; the paper's L = -sum_t F_x(t) = -J / h, Fig. 5)
-    distance            J = x_head(T) - x_head(0)                           m
-    speed               J = the least-squares slope of x_c(t) over the last ``window`` s   m/s
-                        (default the episode's second half; a line fit averages out the surge
-                        within each tail beat, and unlike an end-point difference over whole
-                        beats it is smooth in the frequency: no window that jumps by a frame)
-    cost_of_transport   J = (x_c(T) - x_c(0)) / (h sum_t P(t))              m^2 / J
+    distance            J = x_head(T) - x_head(0) (+ h sum_t U_t)           m
+    speed               J = (s(T) - s(T - W)) / W,  W = N / f               m/s
+                        (the mean speed over the last N = ``cycles`` tail beats of the fish's
+                        frequency f: over whole beats the surge within a beat cancels; s at the
+                        window's start is interpolated linearly between frames, so J is smooth
+                        in f, its window never jumps by a frame)
+    cost_of_transport   J = (s(T) - s(0)) / (h sum_t P(t))                  m^2 / J
                         (distance per unit of work done on the fluid per unit depth: the
                         transport efficiency; the work the fluid receives stands in for the
-                        muscles' work, which the PD solid does not separate from elastic energy)
+                        muscles' work, which the PD solid does not separate from elastic energy.
+                        A fish that did no positive work is failed: its J is undefined)
 
 thrust is measured on a fish held in x (``hold_x=true``, the paper's set-up) or a free one;
-the others need a free fish.
+the others on a free fish or in the swim tunnel (``tunnel=true``).
 """
 
 from __future__ import annotations
@@ -64,31 +69,42 @@ class Space:
         return torch.stack(cols, -1)
 
 
-def objective(name: str, metrics: dict[str, Tensor], h: float, start: dict[str, Tensor],
-              window: float | None = None) -> Tensor:
+def objective(cfg: ObjectiveConfig, metrics: dict[str, Tensor], h: float, start: dict[str, Tensor],
+              frequency: Tensor) -> Tensor:
     """J [B] of the module docstring from a rollout's metrics ([T, B] each); ``start``: the
-    metrics' values at the initial state ([B])."""
-    if name == "thrust":
+    metrics' values at the initial state ([B]); frequency: each fish's gait frequency [B] (Hz).
+    NaN where J is undefined (cost of transport without positive work)."""
+    water = h * metrics["tunnel_u"].sum(0)
+    if cfg.name == "thrust":
         return h * metrics["thrust_x"].sum(0)
-    if name == "distance":
-        return metrics["head_x"][-1] - start["head_x"]
-    cx = metrics["centroid_x"]
-    if name == "speed":
-        return line_slope(cx, h, window)
-    if name == "cost_of_transport":
-        return (cx[-1] - start["centroid_x"]) / (h * metrics["power"].sum(0))
-    raise ConfigError(f"unknown objective '{name}'")
+    if cfg.name == "distance":
+        return metrics["head_x"][-1] - start["head_x"] + water
+    s = travel(metrics, h)
+    if cfg.name == "speed":
+        return mean_speed(s, start["centroid_x"], h, cfg.cycles / frequency)
+    if cfg.name == "cost_of_transport":
+        work = h * metrics["power"].sum(0)
+        return (s[-1] - start["centroid_x"]) / torch.where(work > 0, work, torch.full_like(work, math.nan))
+    raise ConfigError(f"unknown objective '{cfg.name}'")
 
 
-def line_slope(x: Tensor, h: float, window: float | None = None) -> Tensor:
-    """Least-squares slope dx/dt [B] of x [T, B] sampled every h s, over the last ``window`` s
-    (None: the second half; at least 2 frames)."""
-    T = x.shape[0]
-    n = max(2, min(T, round(window / h) if window is not None else T - T // 2))
-    y = x[-n:]
-    t = torch.arange(n, dtype=y.dtype, device=y.device)[:, None] * h
-    tc = t - t.mean()
-    return (tc * (y - y.mean(0))).sum(0) / (tc ** 2).sum()
+def travel(metrics: dict[str, Tensor], h: float) -> Tensor:
+    """s(t) [T, B] (m): the centroid's x plus the water the swim tunnel has passed it by."""
+    return metrics["centroid_x"] + h * torch.cumsum(metrics["tunnel_u"], 0)
+
+
+def mean_speed(s: Tensor, s0: Tensor, h: float, window: Tensor) -> Tensor:
+    """(s(T) - s(T - W)) / W [B] (m/s) from positions s [T, B] at t = h, 2h, ..., T h and s0 [B]
+    at t = 0, over the last ``window`` W [B] seconds (<= T h), s(T - W) interpolated linearly
+    between frames (smooth in W)."""
+    full = torch.cat([s0[None].to(s), s])                          # [T + 1, B] at t = 0, h, ..., T h
+    T = s.shape[0]
+    u = ((T * h - window) / h).to(s)                               # the window's start in frames
+    k = u.detach().floor().clamp(0, T - 1).long()
+    w = u - k
+    at = lambda i: full.gather(0, i[None])[0]
+    start = at(k) * (1 - w) + at(k + 1) * w
+    return (full[-1] - start) / window.to(s)
 
 
 @dataclass
@@ -122,6 +138,9 @@ class Problem:
         self.episode = build_episode(cfg)
         self.base = self.episode.params
         self._check_amplitude()
+        f = self.space.specs[self.space.names.index("frequency")].lower if "frequency" in self.space.names else \
+            float(self.base.controller.omega.min()) / (2 * math.pi)
+        objective_cfg.check_window(f, cfg.frames, cfg.h)
 
     def _check_amplitude(self) -> None:
         """The largest amplitude the bounds allow must keep every muscle's contraction below 1."""
@@ -177,7 +196,8 @@ class Problem:
             try:
                 _, metrics = rollout(sw, state, params, cfg.frames, segment=self.segment if gradient else 0,
                                      failures=failures, truncate=self.truncate)
-                J = objective(self.objective_cfg.name, metrics, cfg.h, start, self.objective_cfg.window)
+                J = objective(self.objective_cfg, metrics, cfg.h, start, params.controller.omega / (2 * math.pi))
+                undefined(J, failures, cfg.frames, self.objective_cfg.name)
             except SimulationBlowUp:
                 if failures is None or len(failures) < z.shape[0]:
                     raise
@@ -185,7 +205,8 @@ class Problem:
             grad = None
             if gradient:
                 if not bool(torch.isfinite(J).all()):
-                    raise SimulationBlowUp(f"the objective is {J.tolist()} (not finite)")
+                    raise SimulationBlowUp(f"the objective is {J.tolist()} (not finite"
+                                           f"{': ' + UNDEFINED[self.objective_cfg.name] if self.objective_cfg.name in UNDEFINED else ''})")
                 (grad,) = torch.autograd.grad(J.sum(), z)
                 if not bool(torch.isfinite(grad).all()):
                     raise SimulationBlowUp(f"the gradient dJ/dz is {grad.tolist()} (not finite) at J = {J.tolist()}")
@@ -213,6 +234,16 @@ class Problem:
             offset += c.shape[0]
         return Evaluation(torch.cat([part.J for part in parts]), None, failures, sum(part.frames for part in parts),
                           time.perf_counter() - t0)
+
+
+UNDEFINED = {"cost_of_transport": "the fish did no positive work on the fluid, so its cost of transport is undefined"}
+
+
+def undefined(J: Tensor, failures: dict | None, frames: int, name: str) -> None:
+    """Record each member whose objective is not finite (and that did not fail before) as failed
+    at the episode's end, with the reason (UNDEFINED)."""
+    for b in torch.nonzero(~torch.isfinite(J.detach())).flatten().tolist() if failures is not None else []:
+        failures.setdefault(b, (frames, f"objective {name} is not finite: {UNDEFINED.get(name, 'check the episode')}"))
 
 
 def _result(job) -> Evaluation:
