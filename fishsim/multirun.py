@@ -104,7 +104,7 @@ def run_job(command: str, raw, run: Callable) -> dict:
     try:
         raw = OmegaConf.merge(raw, {"out_dir": str(folder)})
         summary = run(to_dataclass(command, raw)) or {}
-        record.update({k: v for k, v in summary.items() if isinstance(v, (int, float, str, bool))})
+        record.update(flat(summary))
     except FishsimError as err:
         record["status"] = f"failed: {err}"
         print(f"job {hc.job.num} failed: {err}", file=sys.stderr)
@@ -113,6 +113,18 @@ def run_job(command: str, raw, run: Callable) -> dict:
     folder.mkdir(parents=True, exist_ok=True)
     (folder / SUMMARY).write_text(json.dumps(record, indent=1, default=str))
     return record
+
+
+def flat(summary: dict, prefix: str = "") -> dict:
+    """A command's summary as one CSV row: scalars kept, nested dicts' keys joined with dots
+    (``{"adam": {"best": {"frequency": 6.1}}}`` -> ``adam.best.frequency``), anything else dropped."""
+    row = {}
+    for k, v in summary.items():
+        if isinstance(v, dict):
+            row.update(flat(v, f"{prefix}{k}."))
+        elif isinstance(v, (int, float, str, bool)):
+            row[f"{prefix}{k}"] = v
+    return row
 
 
 def collect(folder: Path) -> list[dict]:

@@ -4,10 +4,12 @@ Each method of ``optimizer.methods`` runs into <out_dir>/<method>/:
 
     history.h5    every iteration: the evaluated parameters x [n, P], objective J, gradient dJ/dx
                   (gradient methods), the method's mean, the best so far, cumulative fish-frames
-                  and wall time; CMA-ES also its whole population (pop_x [n, lambda, P], pop_J)
+                  and wall time, the failed members and why (``failures``: one line per
+                  iteration, "member b at frame t: reason; ..."); CMA-ES also its whole
+                  population (pop_x [n, lambda, P], pop_J)
     history.csv   the same, one row per iteration (without the population)
     state.pt      the optimiser's state after the last completed iteration (resume=true)
-    best.yaml     the best parameters as a config: ``fishsim simulate --config best.yaml``
+    best.yaml     the best parameters so far as a config: ``fishsim simulate --config best.yaml``
 
 and <out_dir>/optimize.png/.svg (all methods on one figure, against iterations and fish-frames),
 <out_dir>/summary.json. Every file is rewritten atomically after each iteration, so a run killed
@@ -49,23 +51,36 @@ def run(cfg: OptimizeConfig) -> dict:
     space = Space(list(cfg.params), list(cfg.params.values()))
     problem = Problem(cfg, space, cfg.objective, segment=cfg.optimizer.segment, truncate=cfg.optimizer.truncate)
     console = Console(stderr=True)
-    histories, summary = {}, {}
-    for method in cfg.optimizer.methods:
-        rows = optimise(problem, cfg, method, out_dir / method, console)
+    histories: dict[str, list[dict]] = {}
+    x0 = problem.initial_x()
+
+    def report(method: str, rows: list[dict]) -> dict:
+        """After every iteration: the method's best.yaml, the plot and summary.json of all so far."""
         histories[method] = rows
-        summary[method] = _summary(rows, space, problem.initial_x())
         _write_best(cfg, space, rows, out_dir / method / "best.yaml")
+        summary = {m: _summary(r, space, x0) for m, r in histories.items()}
+        _plot(histories, space, cfg, out_dir / "optimize")
+        atomic_text(out_dir / "summary.json", json.dumps(summary, indent=2))
+        return summary
+
+    summary = {}
+    for method in cfg.optimizer.methods:
+        summary = report(method, optimise(problem, cfg, method, out_dir / method, console,
+                                          on_iteration=lambda rows, m=method: report(m, rows)))
+    _print(summary, space, cfg)
+    Console().print(f"outputs: {out_dir}/ (per method: history.h5, history.csv, best.yaml; plot: optimize.png)")
+    return summary
+
+
+def _plot(histories: dict[str, list[dict]], space: Space, cfg: OptimizeConfig, stem: Path) -> None:
+    """objective and parameters against iterations and fish-frames, every method on one figure."""
     unit = OBJECTIVES[cfg.objective.name]
-    plot = plot_optimisation_history(
+    plot_optimisation_history(
         {m: {"objective": [r["J"] for r in rows], "best": [r["best_J"] for r in rows],
              "frames": [r["frames"] for r in rows],
              "parameters": {n: [r["x"][i] for r in rows] for i, n in enumerate(space.names)}}
          for m, rows in histories.items() if rows},
-        out_dir / "optimize", objective_label=f"{cfg.objective.name} J [{unit}]", units=PARAMETERS)
-    atomic_text(out_dir / "summary.json", json.dumps(summary, indent=2))
-    _print(summary, space, cfg)
-    Console().print(f"outputs: {out_dir}/ (per method: history.h5, history.csv, best.yaml; plot: {plot[0].name})")
-    return summary
+        stem, objective_label=f"{cfg.objective.name} J [{unit}]", units=PARAMETERS)
 
 
 def _check_existing(cfg: OptimizeConfig, out_dir) -> None:
@@ -80,10 +95,12 @@ def _check_existing(cfg: OptimizeConfig, out_dir) -> None:
                           "drop resume=true to start one")
 
 
-def optimise(problem: Problem, cfg: OptimizeConfig, name: str, folder: Path, console: Console) -> list[dict]:
+def optimise(problem: Problem, cfg: OptimizeConfig, name: str, folder: Path, console: Console,
+             on_iteration=None) -> list[dict]:
     """One method's iterations, resumed from ``folder/state.pt`` when cfg.resume; returns the
-    history rows. A gradient run whose episode blows up or whose objective is not finite stops
-    with a one-line error, the history up to the last completed iteration kept."""
+    history rows; ``on_iteration(rows)`` after each completed iteration. A gradient run whose
+    episode blows up or whose objective is not finite stops with a one-line error, the history
+    up to the last completed iteration kept."""
     folder.mkdir(parents=True, exist_ok=True)
     o, space = cfg.optimizer, problem.space
     z0 = space.to_z(torch.tensor(problem.initial_x(), dtype=torch.float64)).tolist()
@@ -123,6 +140,8 @@ def optimise(problem: Problem, cfg: OptimizeConfig, name: str, folder: Path, con
             rows.append(_row(it, name, space, z, ev, method, rows))
             _save(folder, rows, space, cfg, name)
             atomic_save({"method": method.state(), "rows": rows}, state_path)
+            if on_iteration is not None:
+                on_iteration(rows)
             bar.update(task, completed=it + 1, status=_status(rows))
             if not console.is_terminal:                 # piped or logged: a plain line per iteration
                 print(f"[{time.strftime('%H:%M:%S')}] optimize {name}: iteration {it + 1}/{o.iterations}, "
@@ -178,7 +197,8 @@ def _status(rows: list[dict]) -> str:
 
 
 def _reasons(failures: dict) -> str:
-    return "; ".join(f"member {b} at frame {f}: {why}" for b, (f, why) in sorted(failures.items()))
+    """'member b at frame t: reason; ...' (keys may be ints or, in a saved history, strings)."""
+    return "; ".join(f"member {b} at frame {f}: {why}" for b, (f, why) in sorted(failures.items(), key=lambda i: int(i[0])))
 
 
 # ------------------------------------------------------------------------------------------------
@@ -192,6 +212,7 @@ def _save(folder: Path, rows: list[dict], space: Space, cfg: OptimizeConfig, nam
             f[key] = np.array([r[key] for r in rows])
         for key in ("x", "grad", "mean_x", "best_x"):
             f[key] = np.array([r[key] for r in rows], dtype=np.float64)
+        f["failures"] = np.array([_reasons(r["failures"]) for r in rows], dtype=h5py.string_dtype())
         if len({len(r["pop_J"]) for r in rows}) == 1:
             f["pop_x"] = np.array([r["pop_x"] for r in rows], dtype=np.float64)
             f["pop_J"] = np.array([r["pop_J"] for r in rows], dtype=np.float64)
@@ -202,10 +223,10 @@ def _save(folder: Path, rows: list[dict], space: Space, cfg: OptimizeConfig, nam
     buf = io.StringIO()
     w = csv.writer(buf)
     w.writerow(["iteration", "frames", "seconds", "J", "best_J", "failed",
-                *(f"{k}_{n}" for k in ("x", "grad", "mean") for n in space.names)])
+                *(f"{k}_{n}" for k in ("x", "grad", "mean") for n in space.names), "failures"])
     for r in rows:
         w.writerow([r["iteration"], r["frames"], f"{r['seconds']:.3f}", repr(r["J"]), repr(r["best_J"]), r["failed"],
-                    *map(repr, r["x"] + r["grad"] + r["mean_x"])])
+                    *map(repr, r["x"] + r["grad"] + r["mean_x"]), _reasons(r["failures"])])
     atomic_text(folder / "history.csv", buf.getvalue())
 
 

@@ -342,3 +342,109 @@ def test_speed_over_whole_beats_cancels_the_surge_and_is_smooth_in_the_frequency
     central = float(J(f.detach() + 1e-6) - J(f.detach() - 1e-6)) / 2e-6
     assert float(grad) == pytest.approx(central, rel=1e-6)
     assert float(grad) == pytest.approx(0.02 * 2 / 5.37**2, rel=2e-2)       # d/df of U + 0.02 (2T h - 2/f)
+
+
+def test_failed_members_reasons_reach_the_history(monkeypatch, tmp_path):
+    """A CMA-ES member that blows up is kept in history.h5 and history.csv with its frame and
+    reason, not only counted; best.yaml and the plot exist after every iteration."""
+    frame = Swimmer.frame
+    written = []
+
+    def fragile(self, state, params, t, start=None, **kw):
+        c = params.controller
+        if t >= 2 and bool(((c.omega > 2 * np.pi * 6) & (c.C > 0)).any()):
+            raise SimulationBlowUp("non-finite solid positions q")
+        return frame(self, state, params, t, start, **kw)
+
+    monkeypatch.setattr(Swimmer, "frame", fragile)
+    cfg = load_config("optimize", [*SMALL, "frames=5", "optimizer.methods=[cma]", "optimizer.popsize=4",
+                                   "optimizer.sigma=0.3", "optimizer.iterations=2", "params.frequency.lower=2",
+                                   "params.frequency.upper=12", f"out_dir={tmp_path}"])
+    import fishsim.commands.optimize as command
+
+    save = command._write_best
+    monkeypatch.setattr(command, "_write_best", lambda *a: (save(*a), written.append((tmp_path / "optimize.png").exists())))
+    run(cfg)
+    with h5py.File(tmp_path / "cma" / "history.h5") as f:
+        failed, reasons = f["failed"][:], [s.decode() for s in f["failures"][:]]
+        assert failed.sum() > 0 and all((n > 0) == ("at frame 3: non-finite solid" in r) for n, r in zip(failed, reasons))
+    rows = (tmp_path / "cma" / "history.csv").read_text().splitlines()
+    assert rows[0].endswith(",failures") and any("member" in r and "non-finite" in r for r in rows[1:])
+    assert len(written) == 3        # after iterations 1 and 2 (the first before its plot) and at the end
+    assert written[1:] == [True, True]
+
+
+def test_the_budget_caps_the_iterations(tmp_path):
+    """budget = 30 fish-frames with 12 an Adam iteration (6 frames forward + 6 recomputed): 2
+    iterations of the 10 asked, 24 fish-frames spent."""
+    cfg = load_config("optimize", [*SMALL, "frames=6", "optimizer.segment=3", "optimizer.iterations=10",
+                                   "optimizer.budget=30", f"out_dir={tmp_path}"])
+    summary = run(cfg)["adam"]
+    assert summary["iterations"] == 2 and summary["fish_frames"] == 24
+
+
+@pytest.mark.parametrize("experiment", ["paper_fig5", "codesign"])
+def test_the_shipped_experiments_load_with_their_settings(experiment):
+    cfg = load_config("optimize", [f"experiment={experiment}"])
+    if experiment == "paper_fig5":                         # the paper's Fig. 5 set-up, equal budgets
+        assert (cfg.frames, cfg.h, cfg.hold_x, cfg.hold_y, cfg.objective.name) == (500, 0.01, True, True, "thrust")
+        assert cfg.coupling.force_mode == "average" and (cfg.fluid.rho, cfg.fluid.mu) == (50.0, 1.25e-4)
+        assert cfg.params["frequency"].init == 2.0 and cfg.optimizer.methods == ["adam", "cma"]
+        assert cfg.optimizer.budget == 21 * cfg.iteration_cost("adam") == 21000
+        assert cfg.optimizer.budget // cfg.iteration_cost("cma") == 10
+    else:
+        assert list(cfg.params) == ["frequency", "amplitude", "youngs_modulus"] and cfg.params["youngs_modulus"].log
+        assert cfg.objective.name == "distance" and not cfg.hold_x
+        assert cfg.optimizer.budget // cfg.iteration_cost("adam") == 20
+        assert cfg.optimizer.budget // cfg.iteration_cost("cma") == 5
+
+
+def test_an_optimize_sweep_collects_each_job_s_result(tmp_path, monkeypatch):
+    """`fishsim optimize -m`: one job per value, and the sweep's summary.csv has each method's
+    result columns (best J, best parameters, cost)."""
+    import csv
+
+    monkeypatch.chdir(tmp_path)
+    result = runner.invoke(app, ["optimize", "-m", "optimizer.lr=0.1,0.3", *SMALL, "frames=4", "optimizer.segment=2",
+                                 "optimizer.iterations=1", "hydra.sweep.dir=sweep"])
+    assert result.exit_code == 0, result.output
+    with open(tmp_path / "sweep" / "summary.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [r["status"] for r in rows] == ["complete", "complete"]
+    for r in rows:
+        assert math.isfinite(float(r["adam.best_J"])) and float(r["adam.best.frequency"]) > 0
+        assert r["adam.fish_frames"] == "8" and r["adam.iterations"] == "1"
+
+
+def test_optimize_killed_mid_iteration_resumes_to_the_uninterrupted_run(tmp_path):
+    """A real SIGKILL while an iteration runs: everything up to the last completed iteration
+    is on disk (history, best.yaml, plot), and resume=true ends where an uninterrupted run ends."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
+    args = [*SMALL, "frames=6", "optimizer.methods=[cma]", "optimizer.popsize=3", "optimizer.iterations=5",
+            "params.frequency.lower=2", "params.frequency.upper=12"]
+    cmd = lambda out, *extra: [sys.executable, "-m", "fishsim", "optimize", *args, f"out_dir={out}", *extra]
+    straight = subprocess.run(cmd(tmp_path / "straight"), env=env, capture_output=True, text=True, timeout=300, check=False)
+    assert straight.returncode == 0, straight.stdout[-2000:] + straight.stderr[-2000:]
+    cut = tmp_path / "cut"
+    proc = subprocess.Popen(cmd(cut), env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    history = cut / "cma" / "history.csv"
+    deadline = time.time() + 240
+    while time.time() < deadline and not (history.exists() and len(history.read_text().splitlines()) >= 3):
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(timeout=60)
+    done = len(history.read_text().splitlines()) - 1
+    assert 2 <= done < 5 and (cut / "cma" / "best.yaml").exists() and (cut / "optimize.png").exists()
+    again = subprocess.run(cmd(cut, "resume=true"), env=env, capture_output=True, text=True, timeout=300, check=False)
+    assert again.returncode == 0, again.stdout[-2000:] + again.stderr[-2000:]
+    with h5py.File(tmp_path / "straight" / "cma" / "history.h5") as a, h5py.File(cut / "cma" / "history.h5") as b:
+        assert a["J"].shape == (5,)
+        for key in ("x", "J", "best_J", "frames", "mean_x", "pop_x"):
+            np.testing.assert_array_equal(a[key][:], b[key][:])
