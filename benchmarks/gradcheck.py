@@ -30,7 +30,7 @@ import torch
 
 DEFAULT_POINTS = {"frequency": [3.0, 5.0, 7.0], "amplitude": [10.0, 12.1, 15.0], "wave_number": [25.0, 31.4, 40.0],
                   "youngs_modulus": [4e5, 6e5, 9e5]}
-BOUNDS = {"frequency": (0.5, 20.0), "amplitude": (1.0, 40.0), "wave_number": (5.0, 80.0), "youngs_modulus": (1e5, 5e6)}
+BOUNDS = {"frequency": (2.0, 20.0), "amplitude": (1.0, 40.0), "wave_number": (5.0, 80.0), "youngs_modulus": (1e5, 5e6)}
 
 
 def check(fluid: str, objective: str, frames: int, param: str, points, deltas, overrides=(), truncate: int = 0) -> list[dict]:

@@ -365,6 +365,8 @@ class OptimizeConfig(SimulateConfig):
         for name, spec in self.params.items():
             spec.check(name)
         self.objective.check(self.hold_x and not self.tunnel)
+        slowest = self.params["frequency"].lower if "frequency" in self.params else self.controller.frequency
+        self.objective.check_window(slowest, self.frames, self.h)
         self.optimizer.validate()
         _require(self.resume is False or self.out_dir is not None,
                  "resume=true needs out_dir=<the run folder to continue>")

@@ -138,9 +138,6 @@ class Problem:
         self.episode = build_episode(cfg)
         self.base = self.episode.params
         self._check_amplitude()
-        f = self.space.specs[self.space.names.index("frequency")].lower if "frequency" in self.space.names else \
-            float(self.base.controller.omega.min()) / (2 * math.pi)
-        objective_cfg.check_window(f, cfg.frames, cfg.h)
 
     def _check_amplitude(self) -> None:
         """The largest amplitude the bounds allow must keep every muscle's contraction below 1."""

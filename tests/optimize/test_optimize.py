@@ -304,6 +304,7 @@ def test_a_nan_gradient_stops_the_run_with_the_history_kept(monkeypatch, tmp_pat
      "cannot afford one iteration of cma (56 fish-frames"),          # pycma's population 7 for 3 parameters
     (["optimizer.methods=[lbfgs]"], "unknown optimiser 'lbfgs'"),    # needs a closure, not one gradient
     (["hold_x=true"], "objective distance needs a free fish"),
+    (["objective=speed"], "objective.cycles=2 at 0.5 Hz spans 4 s, longer than the 1.2 s episode"),
     (["optimizer.methods=[adamm]"], "unknown optimiser 'adamm'"),
     (["objective.name=drag"], "unknown objective 'drag'"),
     (["params.frequency.log=true", "params.frequency.lower=0"], "log scale needs lower > 0"),
