@@ -25,11 +25,15 @@ PAPER = {"hydronet_forward_s_per_frame": 213.0 / 300, "comsol_s_per_frame": (5 *
 
 
 def spearman(a, b) -> float:
-    """Spearman rank correlation of two sequences (NaN if either is constant or has NaN)."""
+    """Spearman rank correlation of two sequences over the entries finite in both (a fish that
+    blew up in either fluid is left out); NaN with fewer than two such entries or if either is
+    constant on them."""
     from scipy.stats import spearmanr
 
     a, b = np.asarray(a, float), np.asarray(b, float)
-    if not (np.isfinite(a).all() and np.isfinite(b).all()) or a.std() == 0 or b.std() == 0:
+    ok = np.isfinite(a) & np.isfinite(b)
+    a, b = a[ok], b[ok]
+    if len(a) < 2 or a.std() == 0 or b.std() == 0:
         return math.nan
     return float(spearmanr(a, b).statistic)
 

@@ -16,7 +16,9 @@ def test_spearman_against_hand_values():
     assert spearman([1, 2, 3, 4], [10, 20, 30, 40]) == 1.0
     assert spearman([1, 2, 3, 4], [4, 3, 2, 1]) == -1.0
     assert abs(spearman([1, 2, 3, 4, 5], [2, 1, 4, 3, 5]) - 0.8) < 1e-12      # 1 - 6 * 4 / (5 * 24)
-    assert np.isnan(spearman([1, 2, 3], [1, np.nan, 2]))
+    assert np.isnan(spearman([1, 2], [1, np.nan]))                                # one entry left
+    # a fish that blew up (NaN) is left out: ranks [1, 2, 3, 4] against [1, 2, 4, 3]
+    assert abs(spearman([1, 2, 3, 4, 5], [1, 2, 4, 3, np.nan]) - 0.8) < 1e-12    # 1 - 6 * 2 / (4 * 15)
 
 
 def test_compare_mismatch_and_argmax():
