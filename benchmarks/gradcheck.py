@@ -5,6 +5,7 @@ differences at several step sizes, for the objectives `fishsim optimize` offers.
     python -m benchmarks.gradcheck --fluid hydronet --objective thrust --frames 300
     python -m benchmarks.gradcheck --param amplitude --points 10 12.1 15 --deltas 1e-3 1e-4 1e-5
     python -m benchmarks.gradcheck --frames 50 100 200 300 --points 5    # growth with the horizon
+    (the speed objective needs frames h >= objective.cycles / 2 Hz, the lowest frequency allowed)
 
 For each parameter point x: J and dJ/dx by autograd (one episode forward and backward), and the
 central differences (J(x + d) - J(x - d)) / 2d for every relative step d (one batched episode of

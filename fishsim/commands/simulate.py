@@ -173,7 +173,8 @@ def fish_summaries(cfg: SimulateConfig, episode: Episode, history: dict) -> list
     c = episode.params.controller
     freqs = (c.omega / (2 * math.pi)).cpu().double()
     beats = torch.floor((n - n // 2) * h * freqs + 1e-9)                 # whole beats in the second half
-    speeds = mean_speed(s, s[0], h, beats.clamp(min=1) / freqs) if n else torch.full_like(freqs, math.nan)
+    # the history starts after frame 1: s[0] stands for t = 0 and the window ends at s[-1]
+    speeds = mean_speed(s[1:], s[0], h, beats.clamp(min=1) / freqs) if n > 1 else torch.full_like(freqs, math.nan)
     rows = []
     for b in range(m["head_x"].shape[1]):
         f, k = float(freqs[b]), round(float(beats[b]) / float(freqs[b]) / h)
@@ -182,7 +183,7 @@ def fish_summaries(cfg: SimulateConfig, episode: Episode, history: dict) -> list
         amplitude = float(tail.max() - tail.min()) if len(tail) else 0.0
         st = f * amplitude / speed if k and speed > 1e-6 else float("nan")
         rows.append({"fish": b, "frequency [Hz]": f, "amplitude C [1/m]": float(c.C[b]),
-                     "head distance [m]": float(m["head_x"][-1, b] - m["head_x"][0, b] + water[b]) if n else 0.0,
+                     "head distance [m]": float(m["head_x"][-1, b] - m["head_x"][0, b] + water[b]),
                      "mean speed [m/s]": speed, "mean thrust x [N]": float(m["thrust_x"][:, b].mean()),
                      "tail peak-to-peak [m]": amplitude, "Strouhal f A / U": st})
     return rows

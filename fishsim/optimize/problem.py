@@ -8,8 +8,8 @@ Parameters live in normalised coordinates z in [0, 1]^P, the optimisers' space:
 
 Objectives J (maximised; every optimiser minimises -J), per fish, over an episode of T frames of
 h seconds (t_k = k h), with F_x(t) the total hydrodynamic x force on the fish (N per unit depth),
-P(t) = -sum_i f_ext,i(t) . qdot_i(t) the power it gives the fluid (W per unit depth, in the
-water's rest frame) and s(t) = x_c(t) + h sum_{k <= t} U_k the distance its mass centroid has
+P(t) = -sum_i f_ext,i(t) . (qdot_i(t) + U_t e_x) the power it gives the fluid (W per unit depth, in
+the water's rest frame) and s(t) = x_c(t) + h sum_{k < t} U_k the distance its mass centroid has
 swum through the water (x_c alone in free swimming; in a swim tunnel, where the fish is held and
 the water passes it at U, the water's travel is added):
 
@@ -95,16 +95,17 @@ def travel(metrics: dict[str, Tensor], h: float) -> Tensor:
 
 def mean_speed(s: Tensor, s0: Tensor, h: float, window: Tensor) -> Tensor:
     """(s(T) - s(T - W)) / W [B] (m/s) from positions s [T, B] at t = h, 2h, ..., T h and s0 [B]
-    at t = 0, over the last ``window`` W [B] seconds (<= T h), s(T - W) interpolated linearly
-    between frames (smooth in W)."""
+    at t = 0, over the last ``window`` W [B] seconds, s(T - W) interpolated linearly between
+    frames (smooth in W). A window longer than the episode is cut to it (W = T h)."""
     full = torch.cat([s0[None].to(s), s])                          # [T + 1, B] at t = 0, h, ..., T h
     T = s.shape[0]
+    window = window.to(s).clamp(max=T * h)
     u = ((T * h - window) / h).to(s)                               # the window's start in frames
     k = u.detach().floor().clamp(0, T - 1).long()
     w = u - k
     at = lambda i: full.gather(0, i[None])[0]
     start = at(k) * (1 - w) + at(k + 1) * w
-    return (full[-1] - start) / window.to(s)
+    return (full[-1] - start) / window
 
 
 @dataclass
@@ -194,7 +195,7 @@ class Problem:
                 _, metrics = rollout(sw, state, params, cfg.frames, segment=self.segment if gradient else 0,
                                      failures=failures, truncate=self.truncate)
                 J = objective(self.objective_cfg, metrics, cfg.h, start, params.controller.omega / (2 * math.pi))
-                undefined(J, failures, cfg.frames, self.objective_cfg.name)
+                mark_undefined(J, failures, cfg.frames, self.objective_cfg.name)
             except SimulationBlowUp:
                 if failures is None or len(failures) < z.shape[0]:
                     raise
@@ -236,7 +237,7 @@ class Problem:
 UNDEFINED = {"cost_of_transport": "the fish did no positive work on the fluid, so its cost of transport is undefined"}
 
 
-def undefined(J: Tensor, failures: dict | None, frames: int, name: str) -> None:
+def mark_undefined(J: Tensor, failures: dict | None, frames: int, name: str) -> None:
     """Record each member whose objective is not finite (and that did not fail before) as failed
     at the episode's end, with the reason (UNDEFINED)."""
     for b in torch.nonzero(~torch.isfinite(J.detach())).flatten().tolist() if failures is not None else []:

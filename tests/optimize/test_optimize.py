@@ -343,6 +343,9 @@ def test_speed_over_whole_beats_cancels_the_surge_and_is_smooth_in_the_frequency
     central = float(J(f.detach() + 1e-6) - J(f.detach() - 1e-6)) / 2e-6
     assert float(grad) == pytest.approx(central, rel=1e-6)
     assert float(grad) == pytest.approx(0.02 * 2 / 5.37**2, rel=2e-2)       # d/df of U + 0.02 (2T h - 2/f)
+    # a window longer than the episode is cut to it: the mean speed over the whole episode
+    whole = float(mean_speed(s, zero, h, torch.tensor([2.0])))              # 2 s > T h = 1.2 s
+    assert whole == pytest.approx(float(s[-1, 0]) / (T * h), rel=1e-12)
 
 
 def test_failed_members_reasons_reach_the_history(monkeypatch, tmp_path):
