@@ -204,7 +204,7 @@ class FluidConfig:
     model_file: str | None = None
     bf16: bool = False
     pressure: str = "recovered"
-    pressure_tol: float = 1e-2
+    pressure_tol: float = 1e-6
     strict_range: bool = False
     dtype: str = "float32"
 
