@@ -7,8 +7,8 @@ so that the mask and the IBM kernel resolve the body as at full scale. The solid
 atol = 1e-9 N (default 1e-5): the default's stopping noise in J, ~1e-9 m, is 0.1 % of the
 central difference at this step (5e-5 Hz: a 3e-7 m change of J), too much for a 1e-3 check of the
 finite difference itself; autograd is the derivative of the converged map. HydroNet runs the shipped
-model with its own pressure (the recovered pressure's iterative solve stops at a tolerance, so its
-frame map is only smooth to that tolerance: README "Gradients").
+model with its own pressure; the recovered pressure (its default), whose central differences spread
+2 % at this scale, has its own, looser check at the end.
 """
 
 import pytest
@@ -87,3 +87,18 @@ def test_gradient_is_bitwise_repeatable_and_thread_count_independent(reference):
     numba.set_num_threads(2)
     two = autograd(pr, space)
     assert abs(two - first) <= (1e-10 if fluid == "numerical" else 1e-6) * abs(first), (first, two)
+
+
+def test_recovered_pressure_gradient_matches_central_differences():
+    """HydroNet's default pressure, recovered from its velocities by a PCG solve to
+    fluid.pressure_tol (1e-6): autograd (implicit differentiation of the solve) within 0.7 % of
+    the central difference (measured 0.46 %; the differences themselves spread 2 % over steps 1e-4
+    to 1e-6 here). With the former tolerance, 1e-2, the solve depended on its warm start, which the
+    implicit gradient does not see: autograd was 1.04 % off here, and 2.8x off over 100 frames at
+    full scale (README "Gradients")."""
+    cfg = load_config("optimize", [*SCALE, "fluid=hydronet", "fluid.dtype=float64"])
+    space = Space(list(cfg.params), list(cfg.params.values()))
+    pr = Problem(cfg, space, cfg.objective)
+    J = pr.evaluate(space.to_z(torch.tensor([[F0 + DELTA], [F0 - DELTA]], dtype=torch.float64))).J
+    fd = float(J[0] - J[1]) / (2 * DELTA)
+    assert abs(autograd(pr, space) - fd) <= 7e-3 * abs(fd), fd
