@@ -2,7 +2,8 @@
 controller frequency, for several fluids, each batched (B = number of frequencies) in one rollout,
 compared with a reference fluid (the numerical solver on the refined grid by default).
 
-Per fluid: displacement [mm] per frequency, wall time, and against the reference the Spearman rank
+Per fluid: displacement [mm] per frequency, the lateral drift [mm] (the mass centroid's y
+displacement: a fish that turns), wall time, and against the reference the Spearman rank
 correlation rho_s (Pearson correlation of the ranks), the argmax frequency, and the mean absolute
 mismatch in mm and in grid cells (dx). A fish that blows up is marked (NaN, its frame and reason)
 and the rest of its batch carries on.
@@ -46,9 +47,11 @@ def run_fluid(name: str, cfg: SwimStudyConfig, device: str = "cpu") -> dict:
 
 def episode(overrides: list[str], frequencies, frames: int, device: str = "cpu") -> dict:
     """One batched `fishsim simulate` episode (B = one fish per frequency, in memory, no files)
-    with ``overrides``: the head's x displacement [mm] and the mean thrust F_x [mN/m] per fish,
-    the wall time and any fish that blew up (NaN, with its frame and reason)."""
+    with ``overrides``: the head's x displacement [mm], the centroid's y displacement (lateral
+    drift) [mm] and the mean thrust F_x [mN/m] per fish, the wall time and any fish that blew up
+    (NaN, with its frame and reason)."""
     from fishsim.config import load_config
+    from fishsim.coupling.added_mass import mass_centroid
     from fishsim.episode import build_episode
     from fishsim.rollout import head_node, rollout
 
@@ -57,16 +60,19 @@ def episode(overrides: list[str], frequencies, frames: int, device: str = "cpu")
     ep = build_episode(sim)
     state = ep.swimmer.initial_state(ep.params, ep.origin)
     head0 = state.q[:, head_node(ep.swimmer.solid.mesh), 0].clone()
+    y0 = mass_centroid(state.q, ep.swimmer.node_mass(state.q))[:, 0, 1].clone()
     failures: dict = {}
     t0 = time.perf_counter()
     with torch.no_grad():
         _, m = rollout(ep.swimmer, state, ep.params, sim.frames, failures=failures)
     wall = time.perf_counter() - t0
     dx_mm = (1e3 * (m["head_x"][-1] - head0)).cpu().numpy()
+    drift_mm = (1e3 * (m["centroid_y"][-1] - y0)).cpu().numpy()
     thrust = (1e3 * m["thrust_x"].mean(0)).cpu().numpy()
     for b in failures:
-        dx_mm[b] = thrust[b] = math.nan
-    return {"displacement_mm": dx_mm.tolist(), "mean_thrust_mN": thrust.tolist(), "wall_s": wall,
+        dx_mm[b] = drift_mm[b] = thrust[b] = math.nan
+    return {"displacement_mm": dx_mm.tolist(), "lateral_drift_mm": drift_mm.tolist(),
+            "mean_thrust_mN": thrust.tolist(), "wall_s": wall,
             "dx_mm": 1e3 * sim.fluid.dx, "s_per_fish_frame": wall / (len(frequencies) * sim.frames),
             "failures": {str(frequencies[b]): {"frame": f, "reason": why} for b, (f, why) in failures.items()}}
 

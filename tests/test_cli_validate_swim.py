@@ -40,6 +40,8 @@ def test_validate_swim_small(tmp_path):
     assert abs(ref["spearman"] - 1.0) < 1e-12 and ref["mean_mismatch_mm"] == 0.0
     assert len(r1["displacement_mm"]) == 2 and np.isfinite(r1["displacement_mm"]).all()
     assert r1["displacement_mm"] != ref["displacement_mm"]
+    drift = np.asarray(r1["lateral_drift_mm"])              # the centroid's y displacement: small in 6 frames
+    assert drift.shape == (2,) and np.isfinite(drift).all() and (np.abs(drift) < 2.5).all(), drift   # < 1 cell
     assert (tmp_path / "swim.png").exists() and "Spearman" in result.output
 
 

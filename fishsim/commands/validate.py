@@ -124,6 +124,8 @@ def run_swim(cfg: ValidateConfig) -> dict:
     Console().print(f"paper (Fig. 4, Table 1): argmax {PAPER['argmax_hz']:g} Hz for both, mean mismatch "
                     f"{PAPER['mean_mismatch_mm']:g} mm ({PAPER['mean_mismatch_cells']:g} cells); HydroNet "
                     f"{PAPER['hydronet_forward_s_per_frame']:.2f} s / frame, COMSOL {PAPER['comsol_s_per_frame']:.0f} s / frame")
+    drift = ", ".join(f"{n} " + " / ".join(f"{v:.1f}" for v in r["lateral_drift_mm"]) for n, r in results.items())
+    Console().print(f"lateral drift [mm] (centroid y) at {' / '.join(f'{f:g}' for f in s.frequencies)} Hz: {drift}")
     for name, r in results.items():
         for f, fail in r["failures"].items():
             Console().print(f"[yellow]{name} {f} Hz blew up at frame {fail['frame']}: {escape(fail['reason'])}[/]")
