@@ -66,6 +66,8 @@ def build_episode(cfg: SimulateConfig) -> Episode:
     check_memory(cfg, cfg.batch.size)
     if device.type == "cuda" and not torch.cuda.is_available():
         raise ConfigError("device=cuda but torch sees no CUDA device (install a CUDA build of torch: see README)")
+    if device.type == "cuda":
+        full_float32_on_cuda()
     mesh = build_fish_mesh(cfg.fish)
     fluid = make_fluid(cfg.fluid, device)
     if cfg.fluid.model == "hydronet":
@@ -85,6 +87,15 @@ def build_episode(cfg: SimulateConfig) -> Episode:
                           f"{worst:.2f} >= 1 (a muscle would vanish); use amplitude < "
                           f"{float(params.controller.C.max()) / worst:.4g}")
     return Episode(swimmer, params, tuple(cfg.origin), device)
+
+
+def full_float32_on_cuda() -> None:
+    """Turn TF32 off for CUDA convolutions and matrix products (cuDNN's default is on): TF32 keeps
+    10 of float32's 23 mantissa bits. Measured on an H200 (benchmarks.cuda_check, 100 frames at
+    5 Hz): with TF32 HydroNet's frequency gradient is 20 % off the CPU's, without it 0.03 %, at
+    the same speed (21.8 against 20.7 s forward + backward)."""
+    torch.backends.cudnn.allow_tf32 = False
+    torch.backends.cuda.matmul.allow_tf32 = False
 
 
 def batch_params(cfg: SimulateConfig, length: float, device) -> SwimParams:

@@ -177,14 +177,15 @@ class Problem:
         return dataclasses.replace(base, controller=controller, E=pick("youngs_modulus", base.E), fluid=fluid)
 
     def evaluate(self, z: Tensor, gradient: bool = False, isolate: bool = True) -> Evaluation:
-        """J [B] of candidates z [B, P] (normalised); with ``gradient`` also dJ/dz by autograd
-        through the checkpointed rollout. ``isolate``: a failing candidate is marked (J = NaN,
+        """J [B] of candidates z [B, P] (normalised, on the CPU); with ``gradient`` also dJ/dz by
+        autograd through the checkpointed rollout, run on the episode's device (both returned on
+        the CPU). ``isolate``: a failing candidate is marked (J = NaN,
         its reason in ``failures``) and the others carry on; else a blow-up raises."""
         from fishsim.rollout import rollout
 
         t0 = time.perf_counter()
         sw, cfg = self.episode.swimmer, self.cfg
-        z = z.detach().to(torch.float64).clone().requires_grad_(gradient)
+        z = z.detach().to(self.episode.device, torch.float64).clone().requires_grad_(gradient)
         failures: dict = {} if isolate else None
         with torch.set_grad_enabled(gradient):
             x = self.space.to_x(z)
@@ -208,11 +209,11 @@ class Problem:
                 (grad,) = torch.autograd.grad(J.sum(), z)
                 if not bool(torch.isfinite(grad).all()):
                     raise SimulationBlowUp(f"the gradient dJ/dz is {grad.tolist()} (not finite) at J = {J.tolist()}")
-        J = J.detach().clone()
+        J = J.detach().cpu().clone()
         for b in (failures or {}):
             J[b] = float("nan")
         frames = z.shape[0] * cfg.frames * (2 if gradient and self.segment < cfg.frames else 1)
-        return Evaluation(J, grad, failures or {}, frames, time.perf_counter() - t0)
+        return Evaluation(J, None if grad is None else grad.cpu(), failures or {}, frames, time.perf_counter() - t0)
 
     def evaluate_population(self, z: Tensor, max_batch: int | None = None, executor=None) -> Evaluation:
         """J [B] of a gradient-free population z [B, P] in chunks of at most ``max_batch`` fish
