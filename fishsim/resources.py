@@ -4,7 +4,7 @@ job stops before it starts. ``check_resources=false`` overrides both.
 
 The estimate of an episode (bytes), with B fish, C = (H r) (W r) fluid cells on the internal grid
 (r the refinement), N mesh nodes (estimated from the edge length before meshing: the default
-0.2 m fish has 1775 nodes at 2 mm (graded), N ~ (L / h_e)^2) and, for gradient runs, T frames:
+0.2 m fish has 1803 nodes at 2 mm (graded), N ~ (L / h_e)^2) and, for gradient runs, T frames:
 
     base 0.6 GB (Python, torch, compiled kernels)
     + B C 400 B          fluid state and the solver's / U-Net's work arrays per fish
@@ -20,7 +20,7 @@ running (default fish, 60 frames: numerical fluid 84 ms a frame, of which the fl
 solid and the coupling 14 ms; HydroNet 44 ms a frame, the network 30 ms; gradient factors from
 ``make bench``, 300 frames forward / backward: 19 / 89 s numerical, 18 / 25 s HydroNet):
 
-    per fish and frame  t = 14 ms (N / 1775)^1.5 + c_fluid C r^3    c_numerical = 2.2 us, c_hydronet = 1.0 us
+    per fish and frame  t = 14 ms (N / 1803)^1.5 + c_fluid C r^3    c_numerical = 2.2 us, c_hydronet = 1.0 us
     episode             T frames B fish t, times g for a gradient run (g = 5.6 numerical, 2.4 HydroNet, 1.5 vacuum)
 
 (r^3: r^2 the cells of the refined grid, r the sub-steps.)  The estimate is printed before a run on
@@ -36,7 +36,7 @@ from pathlib import Path
 
 from fishsim.errors import ConfigError
 
-NODES_DEFAULT, EDGE_DEFAULT, LENGTH_DEFAULT = 1775, 2.0e-3, 0.2
+NODES_DEFAULT, EDGE_DEFAULT, LENGTH_DEFAULT = 1803, 2.0e-3, 0.2
 SOLID_FRAME_S = 14e-3                                   # solid + coupling, default fish, one frame [s]
 FLUID_CELL_FRAME_S = {"numerical": 2.2e-6, "hydronet": 1.0e-6, "none": 0.0}
 GRADIENT_FACTOR = {"numerical": 5.6, "hydronet": 2.4, "none": 1.5}  # (forward + backward) / forward
