@@ -21,6 +21,8 @@ from pathlib import Path
 
 import torch
 
+from benchmarks.table import markdown_table
+
 
 def run(fluid: str, dtype: str, device: str, frames: int, frequency: float, tf32: bool = False) -> dict:
     """One gradient evaluation: J [m], dJ/df [m/Hz] and the wall time of forward + backward."""
@@ -56,12 +58,11 @@ def compare(rows: list[dict]) -> list[dict]:
 
 def markdown(rows: list[dict]) -> str:
     pct = lambda v: "" if v is None else f"{100 * v:+.3g} %"
-    lines = ["| fluid | precision | device | TF32 | J [mm] | dJ/df [mm/Hz] | J vs CPU | dJ/df vs CPU | forward + backward [s] |",
-             "|---|---|---|---|---|---|---|---|---|"]
-    for r in rows:
-        lines.append(f"| {r['fluid']} | {r['dtype']} | {r['name']} | {'on' if r['tf32'] else 'off'} | {1e3 * r['J']:.5g} | "
-                     f"{1e3 * r['dJ_df']:.5g} | {pct(r['J_vs_cpu'])} | {pct(r['grad_vs_cpu'])} | {r['seconds']:.1f} |")
-    return "\n".join(lines)
+    columns = ["fluid", "precision", "device", "TF32", "J [mm]", "dJ/df [mm/Hz]", "J vs CPU", "dJ/df vs CPU",
+               "forward + backward [s]"]
+    return markdown_table(columns, [[r["fluid"], r["dtype"], r["name"], "on" if r["tf32"] else "off",
+                                     f"{1e3 * r['J']:.5g}", f"{1e3 * r['dJ_df']:.5g}", pct(r["J_vs_cpu"]),
+                                     pct(r["grad_vs_cpu"]), f"{r['seconds']:.1f}"] for r in rows])
 
 
 def main() -> None:

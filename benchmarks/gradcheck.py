@@ -29,6 +29,8 @@ import time
 
 import torch
 
+from benchmarks.table import markdown_table
+
 DEFAULT_POINTS = {"frequency": [3.0, 5.0, 7.0], "amplitude": [10.0, 12.1, 15.0], "wave_number": [25.0, 31.4, 40.0],
                   "youngs_modulus": [4e5, 6e5, 9e5]}
 BOUNDS = {"frequency": (2.0, 20.0), "amplitude": (1.0, 40.0), "wave_number": (5.0, 80.0), "youngs_modulus": (1e5, 5e6)}
@@ -91,15 +93,12 @@ def growth_rates(rows: list[dict]) -> list[dict]:
 
 
 def markdown(rows: list[dict], header: bool = True) -> str:
-    lines = []
-    if header:
-        lines = [("| fluid | objective | frames | param | x | autograd dJ/dx | central differences (delta rel.) | "
-                 "spread | autograd vs mid |"), "|---|---|---|---|---|---|---|---|---|"]
-    for r in rows:
-        fd = ", ".join(f"{v:.4g} ({d:g})" for v, d in zip(r["central"], r["deltas"]))
-        lines.append(f"| {r['fluid']} | {r['objective']} | {r['frames']} | {r['param']} | {r['x']:g} | "
-                     f"{r['autograd']:.4g} | {fd} | {100 * r['fd_spread']:.1f} % | {100 * r['autograd_error']:+.1f} % |")
-    return "\n".join(lines)
+    columns = ["fluid", "objective", "frames", "param", "x", "autograd dJ/dx", "central differences (delta rel.)",
+               "spread", "autograd vs mid"]
+    cells = [[r["fluid"], r["objective"], str(r["frames"]), r["param"], f"{r['x']:g}", f"{r['autograd']:.4g}",
+              ", ".join(f"{v:.4g} ({d:g})" for v, d in zip(r["central"], r["deltas"])),
+              f"{100 * r['fd_spread']:.1f} %", f"{100 * r['autograd_error']:+.1f} %"] for r in rows]
+    return markdown_table(columns, cells, header)
 
 
 def main() -> None:
