@@ -51,10 +51,7 @@ def check(fluid: str, objective: str, frames: int, param: str, points, deltas, o
     rows = []
     for x0 in points:
         t0 = time.perf_counter()
-        x = torch.tensor([[x0]], dtype=torch.float64)
-        ev = problem.evaluate(space.to_z(x), gradient=True, isolate=False)
-        dxdz = (hi - lo)
-        autograd = float(ev.grad_z[0, 0]) / dxdz
+        J0, autograd = autograd_at(problem, space, x0)
         t_ad = time.perf_counter() - t0
         steps = [d * abs(x0) for d in deltas]
         xs = torch.tensor([[x0 + s] for s in steps] + [[x0 - s] for s in steps], dtype=torch.float64)
@@ -64,11 +61,19 @@ def check(fluid: str, objective: str, frames: int, param: str, points, deltas, o
         mid = fd[n // 2]
         spread = (max(fd) - min(fd)) / abs(mid) if mid else float("inf")
         rows.append({"fluid": fluid, "objective": objective, "frames": frames, "h": cfg.h, "param": param, "x": x0,
-                     "J": float(ev.J[0]), "autograd": autograd, "deltas": list(deltas), "central": fd,
+                     "J": J0, "autograd": autograd, "deltas": list(deltas), "central": fd,
                      "fd_spread": spread, "autograd_error": (autograd - mid) / abs(mid) if mid else float("inf"),
                      "truncate": truncate, "seconds_autograd": t_ad, "seconds_total": time.perf_counter() - t0})
         print(markdown(rows[-1:], header=not rows[:-1]), flush=True)
     return rows
+
+
+def autograd_at(problem, space, x0: float) -> tuple[float, float]:
+    """J and dJ/dx by autograd at the point x0 of a one-parameter problem (x physical; the
+    Space's z is linear in x between its bounds, so dJ/dx = dJ/dz / (upper - lower))."""
+    ev = problem.evaluate(space.to_z(torch.tensor([[x0]], dtype=torch.float64)), gradient=True, isolate=False)
+    spec = space.specs[0]
+    return float(ev.J[0]), float(ev.grad_z[0, 0]) / (spec.upper - spec.lower)
 
 
 def growth_rates(rows: list[dict]) -> list[dict]:
