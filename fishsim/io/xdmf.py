@@ -6,7 +6,8 @@ meshio reads XDMF 3 with whole HDF5 datasets only (no hyperslab of one), so ``wr
 to the trajectory one view per fish b and frame t (per stored fluid frame k for the fluid): an
 HDF5 virtual dataset, a name and a selection of the series it points at in the same file (source
 file ``.``, so renaming the file keeps it valid), holding no data. Each costs ~0.5 kB of metadata
-against the frame's 16 N bytes it names: +1.6 % on a fish-only run of the default fish (N = 1775, the mesh before its outline was snapped).
+against the frame's 16 N bytes it names: +1.6 % on a fish-only run of the default fish (N = 1775,
+measured on the mesh before its outline was snapped).
 
     /xdmf/solid/<name>/<b>/<t>    [N, 2]    = /solid/<name>[t, b]      q (m), qdot (m/s), f_ext (N/m)
     /xdmf/fluid/<name>/<b>/<k>    [H W]     = /fluid/<name>[k, b]      p (Pa), vx, vy (m/s), mask (1);

@@ -20,8 +20,9 @@ simulate fluid=none frames=120`'s summary) is 30.0 mm = 0.15 L, the middle of do
 - DEFAULT_C = 12.1 1/m for the default muscle layer (thickness 0.3 of the local half-width,
   X in [0.05, 0.95] L) on the graded mesh (2 mm edges, at least 6 elements across the rear body,
   1803 nodes): 30.1 mm (30.07 mm, and 29.84 mm at 12.0, on the 1775-node mesh the default fish
-  had on AVX-512 machines before the mesher's outline was snapped). The stroke is mesh-converged: 31.2 / 31.2 / 31.2 /
-  31.5 mm at 3 / 2 / 1.4 / 1 mm edges and C = 12.6 (README, `fishsim validate suite=solid`).
+  had on AVX-512 machines before the mesher's outline was snapped). The stroke is
+  mesh-converged: 31.2 / 31.2 / 31.2 / 31.5 mm at 3 / 2 / 1.4 / 1 mm edges and C = 12.6 (README,
+  `fishsim validate suite=solid`).
   On the paper's uniform mesh (fish.elements_across=2), where linear triangles are too stiff in
   the thin rear body, C = 12.6 gave 30.0 mm at 2 mm and converged slowly (28.2 / 30.0 / 30.9 /
   31.4 mm); the project's results before the graded mesh were measured there.
