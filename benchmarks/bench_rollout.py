@@ -4,7 +4,7 @@ B = 16 (time per fish and frame, over ``FISHSIM_BENCH_FRAMES_B16`` = 30 frames),
 model; plus the distance travelled in 1.2 s at 3-7 Hz (the paper's Fig. 4 in preview), and the
 peak memory of a ``FISHSIM_BENCH_FRAMES_LONG`` = 500-frame HydroNet episode (checkpointed every 10
 frames), the HydroNet B = 1 episode with its bfloat16 trunk (``fluid.bf16=true``), and with the
-network's own pressure instead of the recovered one (``fluid.pressure=network``: timing and
+recovered pressure instead of the network's own (``fluid.pressure=recovered``: timing and
 distances).
 ``FISHSIM_BENCH_FRAMES`` shortens the episode for a quick look.
 
@@ -49,7 +49,7 @@ def _peak_mib() -> float:
 
 
 VARIANTS = {"hydronet-bf16": ["fluid=hydronet", "fluid.bf16=true"],
-            "hydronet-network-pressure": ["fluid=hydronet", "fluid.pressure=network"]}
+            "hydronet-recovered-pressure": ["fluid=hydronet", "fluid.pressure=recovered"]}
 
 
 def _episode(fluid: str, batch: int, frequencies=None):
@@ -131,8 +131,8 @@ def run() -> dict:
                       "distance_1.2s_m": _recorded(distance_sweep, fluid)}
     out["hydronet"][f"B=1, {FRAMES_LONG} frames"] = _recorded(episode_timing, "hydronet", 1, FRAMES_LONG)
     out["hydronet-bf16"] = {"B=1": _recorded(episode_timing, "hydronet-bf16", 1, FRAMES)}
-    out["hydronet-network-pressure"] = {"B=1": _recorded(episode_timing, "hydronet-network-pressure", 1, FRAMES),
-                                        "distance_1.2s_m": _recorded(distance_sweep, "hydronet-network-pressure")}
+    out["hydronet-recovered-pressure"] = {"B=1": _recorded(episode_timing, "hydronet-recovered-pressure", 1, FRAMES),
+                                          "distance_1.2s_m": _recorded(distance_sweep, "hydronet-recovered-pressure")}
     return out
 
 

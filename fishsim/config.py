@@ -178,8 +178,9 @@ class FluidConfig:
         upwinding written as smooth functions: smoother gradients; fishsim.fluid.grid.albada).
     model_file: hydronet only, a trained model (best.pt); null: the shipped fishsim/assets/hydronet.pt.
     bf16: hydronet only, run the U-Net trunk in bfloat16 (faster on CPUs with AMX and on GPUs).
-    pressure: hydronet only, "recovered" (the pressure that best satisfies the momentum equation for
-        the network's velocities, fishsim/fluid/pressure.py) or "network" (the network's own output).
+    pressure: hydronet only, "network" (the network's own output, the paper's method) or "recovered"
+        (the pressure that best satisfies the momentum equation for the network's velocities,
+        fishsim/fluid/pressure.py).
     pressure_tol: hydronet only, relative residual of the pressure recovery's PCG solve.
     strict_range: hydronet only, refuse a run whose rho, mu, dx or h lies outside the range the
         model was trained for (default: a one-line warning; fishsim/fluid/hydronet/trained_range.py).
@@ -203,7 +204,7 @@ class FluidConfig:
     scheme: str = "koren"
     model_file: str | None = None
     bf16: bool = False
-    pressure: str = "recovered"
+    pressure: str = "network"
     pressure_tol: float = 1e-6
     strict_range: bool = False
     dtype: str = "float32"
@@ -423,14 +424,14 @@ class SolidStudyConfig:
 @dataclass
 class ValidateConfig:
     """suite: hydronet | solid | swim | convergence. model_file: the HydroNet to judge (null: shipped).
-    bf16: run it in bfloat16. pressure: recovered | network (``fishsim.fluid.pressure``).
+    bf16: run it in bfloat16. pressure: network | recovered (``fishsim.fluid.pressure``).
     device: cpu | cuda. scenes: the held-out scenes and protocol (hydronet).
     solid: the mesh study and beam check (solid). swim: the frequency study (swim)."""
 
     suite: str = "hydronet"
     model_file: str | None = None
     bf16: bool = False
-    pressure: str = "recovered"
+    pressure: str = "network"
     device: str = "cpu"
     scenes: EvalConfig = field(default_factory=EvalConfig)
     solid: SolidStudyConfig = field(default_factory=SolidStudyConfig)

@@ -15,7 +15,7 @@ FLUIDS = {
     "numerical_r2": ["fluid=numerical", "fluid.refinement=2"],
     "numerical": ["fluid=numerical"],
     "hydronet": ["fluid=hydronet"],
-    "hydronet_network": ["fluid=hydronet", "fluid.pressure=network"],
+    "hydronet_recovered": ["fluid=hydronet", "fluid.pressure=recovered"],
 }
 
 
@@ -28,7 +28,7 @@ class SwimStudyConfig:
 
     frequencies: list[float] = field(default_factory=lambda: [3.0, 4.0, 5.0, 6.0, 7.0])
     frames: int = 120
-    fluids: list[str] = field(default_factory=lambda: ["numerical_r2", "numerical", "hydronet", "hydronet_network"])
+    fluids: list[str] = field(default_factory=lambda: ["numerical_r2", "numerical", "hydronet", "hydronet_recovered"])
     reference: str = "numerical_r2"
     overrides: list[str] = field(default_factory=list)
     hydronet_overrides: list[str] = field(default_factory=list)

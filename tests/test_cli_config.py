@@ -165,5 +165,5 @@ def test_simulate_help_lists_every_config_group():
     for group in ("fish", "solid", "controller", "batch", "fluid", "coupling"):
         assert f"{group}: {group}." in out, group
     for key in ("solid.material.youngs_modulus=600000.0", "solid.pd.preconditioner=lagged_newton",
-                "fluid.pressure=recovered", "coupling.distance=segment", "coupling.force_mode=per_node"):
+                "fluid.pressure=network", "coupling.distance=segment", "coupling.force_mode=per_node"):
         assert key in out, key

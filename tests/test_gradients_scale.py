@@ -1,14 +1,15 @@
-"""Gradients at a reduced but not trivial scale: the real (graded) fish on a 48 x 144 grid of
-5 mm cells, 60 frames, d(head x displacement)/d(frequency) by autograd through the checkpointed
-rollout against central finite differences, for both fluids.
+"""Gradients at a reduced but not trivial scale: the real (graded) fish on a 48 x 144 grid, 60
+frames, d(head x displacement)/d(frequency) by autograd through the checkpointed rollout against
+central finite differences, for both fluids.
 
-The coupling's widths are scaled with the grid (sigma, xi, tau and sigma' are areas: x (5/2.5)^2),
-so that the mask and the IBM kernel resolve the body as at full scale. The solid is solved to
-atol = 1e-9 N (default 1e-5): the default's stopping noise in J, ~1e-9 m, is 0.1 % of the
-central difference at this step (5e-5 Hz: a 3e-7 m change of J), too much for a 1e-3 check of the
-finite difference itself; autograd is the derivative of the converged map. HydroNet runs the shipped
-model with its own pressure; the recovered pressure (its default), whose central differences spread
-2 % at this scale, has its own, looser check at the end.
+The numerical fluid runs on 5 mm cells with the coupling's widths scaled with the grid (sigma, xi,
+tau and sigma' are areas: x (5/2.5)^2), so that the mask and the IBM kernel resolve the body as at
+full scale. HydroNet runs on the 2.5 mm cells it was trained for (a 12 x 36 cm tank; on 5 mm cells
+it would extrapolate), the shipped model with its own pressure (the default); the recovered
+pressure has its own check at the end. The solid is solved to atol = 1e-9 N (default 1e-5): the
+default's stopping noise in J, ~1e-9 m, is 0.1 % of the central difference at this step (a 3e-7 m
+change of J), too much for a 1e-3 check of the finite difference itself; autograd is the
+derivative of the converged map.
 """
 
 import pytest
@@ -17,16 +18,17 @@ import torch
 from fishsim.config import load_config
 from fishsim.optimize.problem import Problem, Space
 
-SCALE = ["fluid.H=48", "fluid.W=144", "fluid.dx=5e-3", "origin=[0.2,0.12]", "frames=60",
-         "coupling.sigma=2e-6", "coupling.xi=2e-6", "coupling.tau=2e-6", "coupling.sigma_prime=2.5e-5",
-         "params.frequency.lower=0.5", "params.frequency.upper=20", "solid.pd.atol=1e-9"]
-FLUIDS = {"numerical": ["fluid=numerical"], "hydronet": ["fluid=hydronet", "fluid.pressure=network"]}
+COMMON = ["frames=60", "params.frequency.lower=0.5", "params.frequency.upper=20", "solid.pd.atol=1e-9"]
+FLUIDS = {"numerical": ["fluid=numerical", "fluid.H=48", "fluid.W=144", "fluid.dx=5e-3", "origin=[0.2,0.12]",
+                        "coupling.sigma=2e-6", "coupling.xi=2e-6", "coupling.tau=2e-6", "coupling.sigma_prime=2.5e-5"],
+          "hydronet": ["fluid=hydronet", "fluid.H=48", "fluid.W=144", "origin=[0.1,0.06]"]}
 F0, DELTA = 5.0, 1e-5 * 5.0   # Hz: the frequency and the central-difference step (1e-5 relative: the
                               # episode's J is curved enough that 1e-4 is 0.16 % off, 1e-3 0.9 %)
+STEPS = (1e-4, 1e-5, 1e-6)    # HydroNet's relative steps (its central differences scatter, below)
 
 
-def problem(fluid: str, dtype: str, device: str = "cpu") -> tuple[Problem, Space]:
-    cfg = load_config("optimize", [*SCALE, *FLUIDS[fluid], f"fluid.dtype={dtype}", f"device={device}"])
+def problem(fluid: str, dtype: str, device: str = "cpu", extra=()) -> tuple[Problem, Space]:
+    cfg = load_config("optimize", [*COMMON, *FLUIDS[fluid], *extra, f"fluid.dtype={dtype}", f"device={device}"])
     space = Space(list(cfg.params), list(cfg.params.values()))
     return Problem(cfg, space, cfg.objective), space
 
@@ -37,14 +39,23 @@ def autograd(pr: Problem, space: Space) -> float:
     return float(ev.grad_z[0, 0]) / (hi - lo)
 
 
+def central_differences(pr: Problem, space: Space, steps) -> list[float]:
+    """(J(F0 + d) - J(F0 - d)) / 2d for each relative step, one batched evaluation."""
+    ds = [s * F0 for s in steps]
+    f = torch.tensor([[F0 + sign * d] for d in ds for sign in (1, -1)], dtype=torch.float64)
+    J = pr.evaluate(space.to_z(f)).J
+    return [float(J[2 * k] - J[2 * k + 1]) / (2 * d) for k, d in enumerate(ds)]
+
+
 @pytest.fixture(scope="module", params=list(FLUIDS))
 def reference(request):
-    """(fluid, float64 problem, the central difference at F0 in float64, the float64 autograd
-    gradient on one thread), computed once for the tests below."""
+    """(fluid, float64 problem, its central differences at F0 in float64 (numerical: the 1e-5
+    step; HydroNet: each of STEPS), the float64 autograd gradient on one thread), computed once
+    for the tests below."""
     import numba
 
     pr, space = problem(request.param, "float64")
-    J = pr.evaluate(space.to_z(torch.tensor([[F0 + DELTA], [F0 - DELTA]], dtype=torch.float64))).J
+    fd = central_differences(pr, space, (1e-5,) if request.param == "numerical" else STEPS)
     before = torch.get_num_threads(), numba.get_num_threads()
     torch.set_num_threads(1)
     numba.set_num_threads(1)
@@ -53,27 +64,31 @@ def reference(request):
     finally:
         torch.set_num_threads(before[0])
         numba.set_num_threads(before[1])
-    return request.param, pr, space, float(J[0] - J[1]) / (2 * DELTA), grad
+    return request.param, pr, space, fd, grad
 
 
 def test_float64_gradient_matches_central_differences(reference):
-    """Within 1e-3 for the numerical fluid (its central differences are flat within 0.2 % over
-    steps 1e-4 to 1e-7 of f here, and autograd within 0.05 % of them). HydroNet's map is rougher
-    (its ReLU network is piecewise linear, and a step crosses activation kinks: the likely cause,
-    not isolated); its differences are
-    2.0008 / 1.9514 / 2.0099 / 2.0072 / 2.0361 e-3 at steps 1e-3 to 1e-7 and autograd 2.0030e-3,
-    0.34 % from the 1e-5 one (measured on the snapped mesh; 0.1 % held on the one before). Bound
-    5e-3 for it."""
+    """The numerical fluid: within 1e-3 of the 1e-5 difference (its differences are flat within
+    0.2 % over steps 1e-4 to 1e-7 of f here, and autograd within 0.05 % of them). HydroNet's map
+    is rough on fine scales (a ReLU network is piecewise linear, so every step crosses activation
+    kinks): its differences are 4.737 / 4.333 / 4.185 / 4.310 / 4.184 e-3 at steps 1e-3 to 1e-7
+    and autograd 4.339e-3, the local slope, within the band the differences over 1e-4 to 1e-6
+    span (0.14 % above it, measured with the model shipped on 2026-11-26); checked as: inside
+    that band widened by 1 % of its centre."""
     fluid, _, _, fd, grad = reference
-    assert abs(grad - fd) <= (1e-3 if fluid == "numerical" else 5e-3) * abs(fd), (fluid, fd, grad)
+    if fluid == "numerical":
+        assert abs(grad - fd[0]) <= 1e-3 * abs(fd[0]), (fluid, fd, grad)
+    else:
+        margin = 1e-2 * abs(sum(fd) / len(fd))
+        assert min(fd) - margin <= grad <= max(fd) + margin, (fluid, fd, grad)
 
 
-def test_float32_gradient_is_within_its_rounding_of_the_float64_differences(reference):
+def test_float32_gradient_is_within_its_rounding_of_float64(reference):
     """float32, the default: the fluid's rounding moves the 60-frame gradient by 1e-6 (numerical)
-    and 4e-3 (HydroNet) relative (measured)."""
-    fluid, _, _, fd, _ = reference
+    and 7e-4 (HydroNet) relative (measured)."""
+    fluid, _, _, _, grad64 = reference
     pr, space = problem(fluid, "float32")
-    assert abs(autograd(pr, space) - fd) <= 5e-3 * abs(fd), fd
+    assert abs(autograd(pr, space) - grad64) <= 5e-3 * abs(grad64), grad64
 
 
 def test_gradient_is_bitwise_repeatable_and_thread_count_independent(reference):
@@ -96,18 +111,15 @@ def test_gradient_is_bitwise_repeatable_and_thread_count_independent(reference):
 
 
 def test_recovered_pressure_gradient_matches_central_differences():
-    """HydroNet's default pressure, recovered from its velocities by a PCG solve to
-    fluid.pressure_tol (1e-6): autograd (implicit differentiation of the solve) within 0.7 % of
-    the central difference (measured 0.46 %; the differences themselves spread 2 % over steps 1e-4
-    to 1e-6 here). With the former tolerance, 1e-2, the solve depended on its warm start, which the
-    implicit gradient does not see: autograd was 1.04 % off here, and 2.8x off over 100 frames at
-    full scale (README "Gradients")."""
-    cfg = load_config("optimize", [*SCALE, "fluid=hydronet", "fluid.dtype=float64"])
-    space = Space(list(cfg.params), list(cfg.params.values()))
-    pr = Problem(cfg, space, cfg.objective)
-    J = pr.evaluate(space.to_z(torch.tensor([[F0 + DELTA], [F0 - DELTA]], dtype=torch.float64))).J
-    fd = float(J[0] - J[1]) / (2 * DELTA)
-    assert abs(autograd(pr, space) - fd) <= 7e-3 * abs(fd), fd
+    """HydroNet's recovered pressure, computed from its velocities by a PCG solve to
+    fluid.pressure_tol (1e-6): autograd (implicit differentiation of the solve) within 0.5 % of
+    the central difference (measured 0.23 %; 0.4 % from the 1e-6 one). With the former tolerance,
+    1e-2, the solve depended on its warm start, which the implicit gradient does not see: autograd
+    was 1.04 % off on the 5 mm grid with the model shipped before 2026-11-26, and 2.8x off over
+    100 frames at full scale (README "Gradients")."""
+    pr, space = problem("hydronet", "float64", extra=["fluid.pressure=recovered"])
+    fd = central_differences(pr, space, (1e-5,))[0]
+    assert abs(autograd(pr, space) - fd) <= 5e-3 * abs(fd), fd
 
 
 @pytest.mark.cuda

@@ -11,7 +11,7 @@ peak-to-peak against the edge length and of the beam's errors against refinement
 (solid_convergence.png/.svg).
 
 suite=swim: the paper's frequency study (Fig. 4, ``fishsim.swim_study``): the head's displacement
-after 120 frames at 3-7 Hz for HydroNet (recovered and own pressure) and the numerical fluid at
+after 120 frames at 3-7 Hz for HydroNet (own and recovered pressure) and the numerical fluid at
 r = 1 and r = 2 (the reference), each fluid one batched rollout; Spearman rank correlation,
 argmax, mean mismatch (mm and cells) and runtimes; metrics.json, a printed table and a plot of
 displacement against frequency (swim.png/.svg).

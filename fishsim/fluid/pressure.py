@@ -1,8 +1,9 @@
 """Pressure recovered from a step's velocities: the pressure that best satisfies the momentum
-equation on the fluid faces (used for HydroNet's forces, ``HydroNetFluid(pressure="recovered")``).
+equation on the fluid faces (HydroNet's forces with ``HydroNetFluid(pressure="recovered")``).
 
-Why. HydroNet's loss constrains its pressure output only through grad p in the fluid residual, and
-the shipped network's pressure lags its own velocities: on the 5 Hz fish scene the L_p-optimal
+Why. HydroNet's physics loss constrains its pressure output only through grad p in the fluid
+residual, and a network trained on it alone (the model shipped before 2026-11-26, the
+measurements below) has a pressure that lags its own velocities: on the 5 Hz fish scene the L_p-optimal
 pressure for the network's velocities gives ~3x the thrust and ~4x the lateral force of the
 network's own pressure (close to the numerical solver's) and a 40 % lower L_p. The velocities are
 the better half of the surrogate, so the pressure is recovered from them.

@@ -1,12 +1,15 @@
-"""Ship a trained HydroNet: ``python -m fishsim.fluid.hydronet.ship RUN_DIR VALIDATE_DIR [LINEAGE.json]``.
+"""Ship a trained HydroNet:
+``python -m fishsim.fluid.hydronet.ship CHECKPOINT VALIDATE_DIR LINEAGE.json [SWIM_DIR ...]``.
 
-* ``fishsim/assets/hydronet.pt``: the weights of RUN_DIR/best.pt (``export_model``), the model
-  ``fishsim simulate fluid=hydronet`` uses by default;
+* ``fishsim/assets/hydronet.pt``: the weights of CHECKPOINT (a ckpt.pt or best.pt;
+  ``export_model``), the model ``fishsim simulate fluid=hydronet`` uses by default;
 * ``fishsim/assets/hydronet.json``: its metadata: net and training config, the commands that
   produced it (LINEAGE.json: every training command in order, with the iterations and wall time
-  of runs before RUN_DIR, which it was initialised from), iterations, wall time, the
-  final training losses (log.csv), and the evaluation against the numerical solver
-  (VALIDATE_DIR/metrics.json, written by ``fishsim validate model_file=RUN_DIR/best.pt``);
+  of runs before CHECKPOINT's, which started from their weights), iterations, wall time, the
+  final training losses (``log.csv`` beside CHECKPOINT), the evaluation against the numerical
+  solver (VALIDATE_DIR/metrics.json, written by ``fishsim validate suite=hydronet
+  model_file=CHECKPOINT``), the frequency studies (each SWIM_DIR/metrics.json, written by
+  ``fishsim validate suite=swim model_file=CHECKPOINT``) and the targets it is judged against;
 * ``training/hydronet/ckpt.pt`` + ``log.csv``: the compact checkpoint to continue training from
   in a later sitting (``compact_checkpoint``; see the metadata's "continue" entry).
 """
@@ -16,6 +19,7 @@ from __future__ import annotations
 import csv
 import json
 import platform
+import re
 import sys
 import time
 from pathlib import Path
@@ -27,52 +31,73 @@ from fishsim.fluid.factory import SHIPPED_HYDRONET
 from fishsim.fluid.hydronet.train import compact_checkpoint, export_model
 
 TRAINING = Path("training/hydronet")
-TARGETS = {"one_step_error_v": 0.05, "one_step_error_p": 0.15, "cylinder_mean_drag_error_100_steps": 0.20,
-           "forward_ms_B1": 20.0}
+TARGETS = {  # the fidelity targets of the surrogate (README, "The shipped HydroNet")
+    "frequency_study_120_frames_vs_numerical_r2": 0.10, "frequency_study_milestone": 0.25,
+    "frames_300_displacement_vs_numerical_r2": 0.15, "frames_300_lateral_drift_mm": 10.0,
+    "still_fish_max_speed_300_steps": 1e-3, "kinetic_energy_ratio_150_steps": [0.9, 1.1],
+    "one_step_error_v": 0.03, "one_step_error_p": 0.10, "mean_force_error_100_steps": 0.10,
+    "gradient_120_frames_vs_numerical": 0.20, "forward_ms_B1": 20.0, "forward_ms_per_fish_B16": 10.0,
+    "model_file_MB": 20.0,
+}
 
 
 def final_losses(log: Path, last: int = 200) -> dict:
     """Means over the last ``last`` logged iterations of the training loss terms."""
     rows = list(csv.DictReader(log.open()))[-last:]
-    mean = lambda k: float(np.mean([float(r[k]) for r in rows]))
-    return {"iterations_averaged": f"{rows[0]['iteration']}-{rows[-1]['iteration']}", "log_loss": mean("loss"),
-            "L_p": mean("L_p"), "L_b": mean("L_b"), "last_validation_log_loss": float(rows[-1]["val"]),
-            "it_per_s": mean("it_per_s"), "samples_per_s": mean("samples_per_s")}
+    mean = lambda k: float(np.mean([float(r[k]) for r in rows if r.get(k) not in (None, "")]))
+    out = {"iterations_averaged": f"{rows[0]['iteration']}-{rows[-1]['iteration']}", "log_loss": mean("loss"),
+           "L_p": mean("L_p"), "L_b": mean("L_b"), "last_validation_log_loss": float(rows[-1]["val"]),
+           "it_per_s": mean("it_per_s"), "samples_per_s": mean("samples_per_s")}
+    if rows[-1].get("L_t") not in (None, ""):
+        out["L_t"] = mean("L_t")
+    return out
 
 
-def ship(run_dir: Path, validate_dir: Path, lineage: list) -> dict:
-    ckpt = torch.load(run_dir / "ckpt.pt", map_location="cpu", weights_only=False)
-    best = torch.load(run_dir / "best.pt", map_location="cpu", weights_only=False)
-    evaluation = json.loads((validate_dir / "metrics.json").read_text())
+def continue_command(lineage: list) -> str:
+    """The last training command, resumed from the committed compact checkpoint."""
+    last = re.sub(r"out_dir=\S+", "out_dir=runs/hydronet", lineage[-1]["command"])
+    last = re.sub(r" (init_from|resume)=\S+", "", last)
+    return f"mkdir -p runs/hydronet && cp {TRAINING}/ckpt.pt runs/hydronet/ && {last} resume=true"
+
+
+def ship(checkpoint: Path, validate_dir: Path, lineage: list, swim_dirs: tuple[Path, ...] = ()) -> dict:
+    ckpt = torch.load(checkpoint, map_location="cpu", weights_only=False)
+    config = ckpt.get("config") or {}
     earlier = sum(r.get("iterations", 0) for r in lineage)
+    swims = {}
+    for d in swim_dirs:
+        metrics = json.loads((d / "metrics.json").read_text())
+        swims[f"frames_{metrics['swim']['frames']}"] = metrics
     meta = {
         "what": "HydroNet for the paper's fluid: rho = 50 kg/m^3, mu = 0.125 mPa s, dx = 2.5 mm, h = 0.01 s",
-        "net": best["net"],
-        "train_config": ckpt["config"],
+        "net": ckpt["net"],
+        "train_config": config,
         "lineage": lineage,
         "commands": [r["command"] for r in lineage],
-        "iterations": int(best["iteration"]) + earlier,
-        "iterations_this_run_at_best": int(best["iteration"]),
-        "iterations_this_run_total": int(ckpt["iteration"]),
-        "best_validation_log_loss": float(best["val"]),
-        "wall_time_s": float(ckpt["elapsed"]) + sum(r.get("wall_time_s", 0) for r in lineage),
-        "final_losses": final_losses(run_dir / "log.csv"),
-        "evaluation": evaluation,
+        "iterations": int(ckpt["iteration"]) + earlier,
+        "iterations_last_run": int(ckpt["iteration"]),
+        "wall_time_s": float(ckpt.get("elapsed", 0.0)) + sum(r.get("wall_time_s", 0) for r in lineage),
+        "final_losses": final_losses(checkpoint.parent / "log.csv"),
+        "evaluation": json.loads((validate_dir / "metrics.json").read_text()),
+        "swim_studies": swims,
         "targets": TARGETS,
         "machine": {"cpu": platform.processor() or platform.machine(), "torch": torch.__version__,
-                    "threads": ckpt["config"].get("threads")},
+                    "threads": config.get("threads")},
         "date": time.strftime("%Y-%m-%d"),
-        "continue": f"mkdir -p runs/hydronet && cp {TRAINING}/ckpt.pt runs/hydronet/ && "
-                    "fishsim train-hydronet out_dir=runs/hydronet resume=true",
-        "shipped_by": f"python -m fishsim.fluid.hydronet.ship {run_dir} {validate_dir} runs/lineage.json",
+        "continue": continue_command(lineage),
+        "shipped_by": f"python -m fishsim.fluid.hydronet.ship {checkpoint} {validate_dir} LINEAGE.json "
+                      + " ".join(str(d) for d in swim_dirs),
     }
-    export_model(run_dir / "best.pt", SHIPPED_HYDRONET, meta)
-    compact_checkpoint(run_dir / "ckpt.pt", TRAINING / "ckpt.pt")
-    (TRAINING / "log.csv").write_text((run_dir / "log.csv").read_text())
+    export_model(checkpoint, SHIPPED_HYDRONET, meta)
+    if checkpoint.resolve() != (TRAINING / "ckpt.pt").resolve():
+        compact_checkpoint(checkpoint, TRAINING / "ckpt.pt")
+        (TRAINING / "log.csv").write_text((checkpoint.parent / "log.csv").read_text())
     return meta
 
 
 if __name__ == "__main__":
     args = sys.argv[1:]
-    lineage = json.loads(Path(args[2]).read_text()) if len(args) > 2 else []
-    print(json.dumps(ship(Path(args[0]), Path(args[1]), lineage)["evaluation"]["summary"], indent=1))
+    if len(args) < 3:
+        sys.exit(__doc__)
+    meta = ship(Path(args[0]), Path(args[1]), json.loads(Path(args[2]).read_text()), tuple(Path(a) for a in args[3:]))
+    print(json.dumps(meta["evaluation"]["summary"], indent=1))

@@ -41,7 +41,7 @@ from torch.nn.utils.fusion import fuse_conv_bn_eval
 
 from fishsim.fields import Boundary, FluidParams, FluidState, Grid, rest_state
 from fishsim.fluid.grid import curl
-from fishsim.fluid.hydronet.config import PRESSURES, RECOVERED, NetConfig
+from fishsim.fluid.hydronet.config import NETWORK, PRESSURES, RECOVERED, NetConfig
 from fishsim.fluid.hydronet.scales import scales_of
 from fishsim.fluid.pressure import RecoveryConfig, recover_pressure
 
@@ -209,13 +209,14 @@ class HydroNetFluid:
     (the model must be there too). ``bf16=True`` runs the U-Net trunk under
     bfloat16 autocast (the bounded update and the unit conversions stay in float32).
 
-    ``pressure``: "recovered" (default) returns the pressure that best satisfies the momentum
-    equation for the network's velocities (``fishsim.fluid.pressure``, one PCG solve per step,
-    settings ``recovery``); "network" returns the network's own pressure output (the paper), which
-    lags its velocities (3x too little thrust on the fish, measured in ``pressure.py``).
+    ``pressure``: "network" (default) returns the network's own pressure output (the paper's
+    method); "recovered" returns the pressure that best satisfies the momentum equation for the
+    network's velocities (``fishsim.fluid.pressure``, one PCG solve per step, settings
+    ``recovery``), a repair for a network whose own pressure lags its velocities (the model
+    shipped before 2026-11-26 gave 3x too little thrust with its own pressure).
     """
 
-    def __init__(self, model: HydroNet, grid: Grid, bf16: bool = False, pressure: str = RECOVERED,
+    def __init__(self, model: HydroNet, grid: Grid, bf16: bool = False, pressure: str = NETWORK,
                  recovery: RecoveryConfig | None = None):
         if pressure not in PRESSURES:
             raise ValueError(f"pressure must be one of {PRESSURES}, got {pressure!r}")
