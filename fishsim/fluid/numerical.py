@@ -95,7 +95,7 @@ from fishsim.fluid.grid import (
     vector_to_faces,
     zero_walls,
 )
-from fishsim.fluid.pressure import WeightedPoisson
+from fishsim.fluid.pressure import SchwarzPreconditioner, WeightedPoisson
 from fishsim.fluid.residual import per_sample
 
 
@@ -265,17 +265,25 @@ IMMERSE_TOL = 1e-6      # PCG relative residual of ``immerse``: div v ~ 1e-6 of 
 IMMERSE_MAX_ITER = 200  # ~11 iterations a solve on the heaving thin ellipse (lambda = 1e4, n = 4-16)
 
 
+def immersion_weights(b: Faces, lam_dt: Tensor | float) -> Faces:
+    """c_f = 1 / (1 + lambda dt b_f), the face weights of ``immerse``'s Poisson solve."""
+    return tuple(1 / (1 + lam_dt * bc) for bc in b)
+
+
 def immerse(w: Faces, b: Faces, v_d: Faces, lam_dt: Tensor | float, dx: float,
-            start: Tensor | None = None) -> tuple[Faces, Tensor, Faces]:
+            start: Tensor | None = None,
+            precondition: SchwarzPreconditioner | None = None) -> tuple[Faces, Tensor, Faces]:
     """The rate penalisation and the projection in one implicit solve (module docstring):
     v = u - c grad phi with u = (w + lambda dt b_f v_d) / (1 + lambda dt b_f), c_f = 1 / (1 +
     lambda dt b_f) and -div(c grad phi) = -div u.  Returns (v, phi [m^2/s], the forcing's
     increment v - w + grad phi = lambda dt b_f (v_d - v) [m/s]).  Differentiable (implicit
     differentiation of the PCG solve, fishsim.fluid.pressure.WeightedPoisson); ``start``: PCG's
-    initial guess for phi (detached)."""
+    initial guess for phi (detached); ``precondition``: the SchwarzPreconditioner of c, built once
+    per step (c is fixed over a step's sub-steps; None: built for this solve)."""
     u, _ = penalize(w, b, v_d, lam_dt)
-    cx, cy = (1 / (1 + lam_dt * bc) for bc in b)
-    phi = WeightedPoisson.apply(cx, cy, -divergence(u, dx), dx, IMMERSE_TOL, IMMERSE_MAX_ITER, start)
+    cx, cy = immersion_weights(b, lam_dt)
+    phi = WeightedPoisson.apply(cx, cy, -divergence(u, dx), dx, IMMERSE_TOL, IMMERSE_MAX_ITER, start,
+                                precondition)
     gx, gy = gradient(phi, dx)
     v = (u[0] - cx * gx, u[1] - cy * gy)
     return v, phi, (v[0] - w[0] + gx, v[1] - w[1] + gy)
@@ -367,9 +375,12 @@ class NumericalFluid:
         dt = (h / n.to(v[0])).view(-1, 1, 1, 1)
         p_sum, pen_sum = 0.0, (0.0, 0.0)
         n_min, n_max = int(n.min()), int(n.max())
-        last = None
+        last, precondition = None, None
+        if self.brinkman is not None:       # one preconditioner for every solve of the step
+            weights = tuple(c.detach() for c in immersion_weights(b, self.brinkman * dt))
+            precondition = SchwarzPreconditioner(weights, self.fine.dx)
         for i in range(n_max):
-            new, phi, pen, last = self._substep(v, b, v_d, nu, dt, last)
+            new, phi, pen, last = self._substep(v, b, v_d, nu, dt, last, precondition)
             if i >= n_min:                            # samples past their own count keep their state
                 active = (i < n).to(v[0]).view(-1, 1, 1, 1)
                 new = tuple(active * c + (1 - active) * o for c, o in zip(new, v))
@@ -388,23 +399,27 @@ class NumericalFluid:
         diag = StepDiagnostics(n, tuple(q / h for q in pen_sum), dx, r, b, v_start, v, h)
         return new, diag
 
-    def _substep(self, v: Faces, b: Faces, v_d: Faces, nu: Tensor, dt: Tensor, start: Tensor | None = None):
+    def _substep(self, v: Faces, b: Faces, v_d: Faces, nu: Tensor, dt: Tensor, start: Tensor | None = None,
+                 precondition: SchwarzPreconditioner | None = None):
         """One Heun (SSP-RK2) sub-step; returns (v', pressure potential phi1/2 + phi2 [m^2/s],
         penalization increment pen1/2 + pen2 [m/s], the last stage's phi: the next solve's
-        start). ``start``: the first stage's guess for phi (rate penalisation only)."""
+        start). ``start``: the first stage's guess for phi, ``precondition``: the step's
+        preconditioner (rate penalisation only)."""
         dx, walls, scheme = self.fine.dx, self.walls, self.scheme
-        v1, phi1, pen1 = self._constrain(predict(v, nu, dt, dx, walls, scheme), b, v_d, dt, start)
+        v1, phi1, pen1 = self._constrain(predict(v, nu, dt, dx, walls, scheme), b, v_d, dt, start, precondition)
         w2 = tuple(0.5 * (c + q) for c, q in zip(v, predict(v1, nu, dt, dx, walls, scheme)))
-        v2, phi2, pen2 = self._constrain(w2, b, v_d, dt, phi1)
+        v2, phi2, pen2 = self._constrain(w2, b, v_d, dt, phi1, precondition)
         return v2, 0.5 * phi1 + phi2, tuple(0.5 * q1 + q2 for q1, q2 in zip(pen1, pen2)), phi2
 
-    def _constrain(self, w: Faces, b: Faces, v_d: Faces, dt: Tensor, start: Tensor | None = None):
+    def _constrain(self, w: Faces, b: Faces, v_d: Faces, dt: Tensor, start: Tensor | None = None,
+                   precondition: SchwarzPreconditioner | None = None):
         """The body and the incompressibility for one stage; returns (v, phi, penalisation
-        increment). With ``brinkman``: ``immerse`` (``start``: PCG's guess for phi). Else
+        increment). With ``brinkman``: ``immerse`` (``start``: PCG's guess for phi,
+        ``precondition``: the step's). Else
         project(penalize(w)), repeated ``penalization_iterations`` times (alternating projections
         onto {v = v_d in the body} and {div v = 0}), phi and the increment summed over them."""
         if self.brinkman is not None:
-            return immerse(w, b, v_d, self.brinkman * dt, self.fine.dx, start)
+            return immerse(w, b, v_d, self.brinkman * dt, self.fine.dx, start, precondition)
         inverse = self._inverse(w[0])
         phi_sum, pen_sum = 0.0, (0.0, 0.0)
         for _ in range(self.penalization_iterations):

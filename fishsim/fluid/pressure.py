@@ -138,12 +138,15 @@ class SchwarzPreconditioner:
 
 
 def solve_weighted_poisson(weights: Faces, f: Tensor, dx: float, tol: float, max_iter: int,
-                           start: Tensor | None = None) -> tuple[Tensor, int]:
+                           start: Tensor | None = None,
+                           precondition: SchwarzPreconditioner | None = None) -> tuple[Tensor, int]:
     """Mean-free p [B, 1, H, W] with -div(weights grad p) = f - mean(f), by PCG with the
     SchwarzPreconditioner of these weights, stopping at |f - A p| <= tol |f - mean(f)| per
     sample; returns (p, iterations). weights: positive face weights (x, y) [B, 1, ., .];
-    start: initial guess (None: 0)."""
-    precondition = SchwarzPreconditioner(weights, dx)
+    start: initial guess (None: 0); precondition: a SchwarzPreconditioner of the same weights,
+    shared by several solves (None: built for this one)."""
+    if precondition is None:
+        precondition = SchwarzPreconditioner(weights, dx)
 
     def A(p: Tensor) -> Tensor:
         return -divergence(tuple(w * g for w, g in zip(weights, gradient(p, dx))), dx)
@@ -173,13 +176,14 @@ def solve_weighted_poisson(weights: Faces, f: Tensor, dx: float, tol: float, max
 class WeightedPoisson(torch.autograd.Function):
     """p = A(w)^+ f with A(w) p = -div(w grad p), differentiable in w (faces) and f (module
     docstring); forward and backward are PCG solves to ``tol``, the forward started from
-    ``start`` (None: from zero), the backward from zero. Each solve builds its own
-    preconditioner, so no factors are held from the forward until the backward."""
+    ``start`` (None: from zero), the backward from zero. The forward uses ``precondition`` (a
+    SchwarzPreconditioner of these weights shared by the solves of one step) or builds its own;
+    the backward builds its own, so no factors are held from the forward until the backward."""
 
     @staticmethod
     def forward(ctx, wx: Tensor, wy: Tensor, f: Tensor, dx: float, tol: float, max_iter: int,
-                start: Tensor | None = None) -> Tensor:
-        p, _ = solve_weighted_poisson((wx, wy), f, dx, tol, max_iter, start)
+                start: Tensor | None = None, precondition: SchwarzPreconditioner | None = None) -> Tensor:
+        p, _ = solve_weighted_poisson((wx, wy), f, dx, tol, max_iter, start, precondition)
         ctx.save_for_backward(wx, wy, p)
         ctx.settings = (dx, tol, max_iter)
         return p
@@ -190,7 +194,7 @@ class WeightedPoisson(torch.autograd.Function):
         dx, tol, max_iter = ctx.settings
         lam, _ = solve_weighted_poisson((wx, wy), grad_p, dx, tol, max_iter)
         (gl_x, gl_y), (gp_x, gp_y) = gradient(lam, dx), gradient(p, dx)
-        return -gl_x * gp_x, -gl_y * gp_y, _mean_free(lam), None, None, None, None
+        return -gl_x * gp_x, -gl_y * gp_y, _mean_free(lam), None, None, None, None, None
 
 
 def recover_pressure(v_old: Faces, v_new: Faces, mask: Tensor, rho: Tensor | float, mu: Tensor | float,
