@@ -289,3 +289,34 @@ def test_an_unrolled_step_advances_its_scenes_and_follows_the_solvers_rollout(cf
     assert terms.teacher.shape == (2,) and torch.isfinite(terms.objective)
     with pytest.raises(Exception, match="unroll must be >= 1"):
         replace(cfg, unroll=0).validate()
+
+
+def test_swim_check_keeps_the_weights_that_swim_closest_to_the_numerical_fluid(cfg):
+    """swim_every=3: at iterations 3 and 6 the network (the shipped one, fine-tuned a few steps)
+    swims the frequency study (2 fish, 3 frames, the default tank and fish); swim.csv holds each
+    error max |d / d_ref - 1| against the numerical fluid's displacements (swim_reference.json,
+    computed once), best_swim.pt the weights of the lower one, and the checkpoint its value."""
+    import csv
+    import json
+    import math
+    from pathlib import Path
+
+    from fishsim.fluid.factory import SHIPPED_HYDRONET
+    from fishsim.fluid.hydronet import swim_check
+    from fishsim.fluid.hydronet.config import NetConfig
+
+    cfg = replace(cfg, net=NetConfig(hidden=16), init_from=str(SHIPPED_HYDRONET), lr=1e-4,
+                  swim_every=3, swim_frames=3, swim_frequencies=(4.0, 6.0))
+    T.run(cfg)
+    out = Path(cfg.out_dir)
+    ref = json.loads((out / "swim_reference.json").read_text())["displacement_mm"]
+    rows = list(csv.DictReader((out / "swim.csv").open()))
+    assert [int(r["iteration"]) for r in rows] == [3, 6]
+    errors = [float(r["error"]) for r in rows]
+    for r, e in zip(rows, errors):
+        d = [float(r["d_4Hz_mm"]), float(r["d_6Hz_mm"])]
+        assert e == pytest.approx(swim_check.swim_error(d, ref)) and math.isfinite(e)
+    best = torch.load(out / "best_swim.pt", weights_only=False)
+    assert best["val"] == min(errors) and best["iteration"] == [3, 6][errors.index(min(errors))]
+    assert torch.load(out / "ckpt.pt", weights_only=False)["best_swim"] == min(errors)
+    T.load_hydronet(out / "best_swim.pt")                       # a model file like best.pt

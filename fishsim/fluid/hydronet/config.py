@@ -119,6 +119,9 @@ class TrainConfig:
     compile: torch.compile the trunk (measured slower on CPU); compile_loss: torch.compile the
     loss (~80 s once; then the Koren residual's forward + backward runs 10x faster). log_every, ckpt_every (iterations), ckpt_minutes,
     val_every, val_scenes, val_steps: bookkeeping. grad_clip: max gradient norm (0: off).
+    swim_every: every this many iterations the network swims the frequency study (swim_frequencies
+    [Hz], swim_frames) against the numerical fluid, logged to swim.csv; best_swim.pt keeps the
+    closest (``swim_check``; 0: off).
     out_dir: the run's folder; null: a new outputs/train-hydronet/<time> (``fishsim.io.outdir``).
     resume: continue from ``out_dir/ckpt.pt`` exactly (its lr replaced by ``lr``); needs out_dir.
     overwrite: start a new run in an out_dir that holds one (else refused: a run is never lost).
@@ -151,6 +154,9 @@ class TrainConfig:
     val_scenes: int = 8
     val_steps: int = 40
     grad_clip: float = 0.0
+    swim_every: int = 0
+    swim_frames: int = 120
+    swim_frequencies: tuple[float, ...] = (3.0, 4.0, 5.0, 6.0, 7.0)
     resume: bool = False
     overwrite: bool = False
     init_from: str = ""
@@ -162,6 +168,9 @@ class TrainConfig:
         _check(self.lr > 0 and self.beta > 0 and self.gamma >= 0 and self.teacher >= 0,
                "lr and beta must be > 0, gamma and teacher >= 0")
         _check(self.unroll >= 1, f"unroll must be >= 1 network steps per iteration, got {self.unroll}")
+        _check(self.swim_every >= 0 and self.swim_frames >= 1 and len(self.swim_frequencies) >= 1
+               and all(f > 0 for f in self.swim_frequencies),
+               "swim_every must be >= 0 (0: off), swim_frames >= 1 and swim_frequencies positive values [Hz]")
         _check(self.advection in ("koren", "central"), f"advection must be koren or central, got {self.advection!r}")
         _check(self.device in ("cpu", "cuda") or self.device.startswith("cuda:"),
                f"device must be cpu or cuda, got {self.device!r}")

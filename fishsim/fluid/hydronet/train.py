@@ -40,6 +40,7 @@ from torch import nn
 
 from fishsim.errors import ConfigError, InputFileError, Terminated
 from fishsim.fields import Boundary, FluidParams, FluidState, rest_state
+from fishsim.fluid.hydronet import swim_check
 from fishsim.fluid.hydronet.config import RESUME_NEEDS_OUT_DIR, NetConfig, TrainConfig
 from fishsim.fluid.hydronet.loss import EPS, LossConfig, LossTerms, hydronet_loss, teacher_loss
 from fishsim.fluid.hydronet.pool import ScenePool, advance, random_scene, scene_boundaries
@@ -59,6 +60,7 @@ class Run:
     teacher: object = None          # the numerical solver giving L_t's targets (None: physics only)
     iteration: int = 0
     best_val: float = math.inf
+    best_swim: float = math.inf     # the lowest swimming error of swim_check (swim_every > 0)
     last_val: float = math.nan
     elapsed: float = 0.0
 
@@ -174,7 +176,7 @@ def save_checkpoint(run: Run, cfg: TrainConfig, out: Path, rank: int) -> None:
         atomic_save(common, out / f"ckpt_rank{rank}.pt")
         return
     atomic_save({**common, "optimizer": run.opt.state_dict(),
-                 "net": asdict(model.cfg), "config": asdict(cfg), "best_val": run.best_val,
+                 "net": asdict(model.cfg), "config": asdict(cfg), "best_val": run.best_val, "best_swim": run.best_swim,
                  "last_val": run.last_val, "elapsed": run.elapsed}, out / "ckpt.pt")
 
 
@@ -193,6 +195,7 @@ def load_checkpoint(run: Run, out: Path, rank: int, lr: float | None = None) -> 
         run.pool.load_state_dict(own["pool"])
     torch.set_rng_state(own["torch_rng"])
     run.iteration, run.best_val = main["iteration"], main["best_val"]
+    run.best_swim = main.get("best_swim", math.inf)
     run.last_val, run.elapsed = main["last_val"], main["elapsed"]
 
 
@@ -210,8 +213,7 @@ def compact_checkpoint(src: str | Path, dest: str | Path) -> Path:
 
 def save_best(model: HydroNet, run: Run, out: Path, cfg: TrainConfig) -> None:
     """best.pt: the weights, the net config and the fluid range they were trained for."""
-    atomic_save({"model": model.state_dict(), "net": asdict(model.cfg), "iteration": run.iteration,
-                 "val": run.best_val, "training_range": training_range(cfg.pool)}, out / "best.pt")
+    atomic_save(swim_check.weights(model, cfg, run.iteration, run.best_val), out / "best.pt")
 
 
 def export_model(checkpoint: str | Path, dest: str | Path, metadata: dict) -> Path:
@@ -393,6 +395,8 @@ def _after_step(run: Run, cfg: TrainConfig, out: Path, rank: int, world: int, lo
         if run.last_val < run.best_val:
             run.best_val = run.last_val
             save_best(run.model, run, out, cfg)
+    if rank == 0 and cfg.swim_every and run.iteration % cfg.swim_every == 0:
+        run.best_swim = swim_check.check(run.model, out, cfg, run.iteration, run.best_swim)
     if log is not None and run.iteration % cfg.log_every == 0:
         log.log(run, terms)
     if _due(run, cfg, last_save, world):

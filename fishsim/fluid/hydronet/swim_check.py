@@ -1,0 +1,81 @@
+"""Model selection by swimming (``fishsim train-hydronet swim_every=N``).
+
+The training loss does not single out the swimming answer: with the solver as a teacher, the
+frequency study's distances move by 10-30 % between checkpoints 50 iterations apart (README, "The
+shipped HydroNet"). So every ``swim_every`` iterations the network swims the paper's frequency
+study (``fishsim.swim_study.episode``: the default tank and fish, B = one fish per frequency in
+``swim_frequencies``, ``swim_frames`` frames, its own pressure), and its error
+
+    e = max_f |d_net(f) / d_ref(f) - 1|      (d: head x displacement; e = inf if a fish fails)
+
+against the numerical fluid's d_ref (run once per training folder, ``swim_reference.json``) is
+logged to ``swim.csv``; ``best_swim.pt`` keeps the weights of the lowest e. One check costs one
+HydroNet episode (~50 s for 5 fish x 120 frames on one CPU thread).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from dataclasses import asdict
+from pathlib import Path
+
+from torch import nn
+
+from fishsim.fluid.hydronet.config import TrainConfig
+from fishsim.fluid.hydronet.trained_range import training_range
+from fishsim.io.atomic import atomic_save, atomic_text
+
+
+def _episode(overrides: list[str], cfg: TrainConfig) -> list[float]:
+    from fishsim.swim_study import episode
+
+    device = "cuda" if cfg.device.startswith("cuda") else "cpu"
+    return episode(overrides, list(cfg.swim_frequencies), cfg.swim_frames, device)["displacement_mm"]
+
+
+def reference(out: Path, cfg: TrainConfig) -> list[float]:
+    """The numerical fluid's displacements [mm] for the check, computed once per folder."""
+    path = out / "swim_reference.json"
+    if path.exists():
+        stored = json.loads(path.read_text())
+        if stored["frequencies"] == list(cfg.swim_frequencies) and stored["frames"] == cfg.swim_frames:
+            return stored["displacement_mm"]
+    d = _episode(["fluid=numerical"], cfg)
+    atomic_text(path, json.dumps({"frequencies": list(cfg.swim_frequencies), "frames": cfg.swim_frames,
+                                  "displacement_mm": d}) + "\n")
+    return d
+
+
+def weights(model: nn.Module, cfg: TrainConfig, iteration: int, score: float) -> dict:
+    """A loadable model file's contents (as best.pt)."""
+    return {"model": model.state_dict(), "net": asdict(model.cfg), "iteration": iteration, "val": score,
+            "training_range": training_range(cfg.pool)}
+
+
+def swim_error(displacements: list[float], ref: list[float]) -> float:
+    """e = max |d / d_ref - 1| (inf when a fish failed, NaN)."""
+    errors = [abs(d / r - 1) for d, r in zip(displacements, ref)]
+    return math.inf if any(math.isnan(e) for e in errors) else max(errors)
+
+
+def check(model: nn.Module, out: Path, cfg: TrainConfig, iteration: int, best: float) -> float:
+    """Swim the study with ``model``, append a row to swim.csv, replace best_swim.pt if it beats
+    ``best``; returns the new best error."""
+    ref = reference(out, cfg)
+    current = out / "swim_model.pt"
+    atomic_save(weights(model, cfg, iteration, math.nan), current)
+    d = _episode(["fluid=hydronet", f"fluid.model_file={current}"], cfg)
+    error = swim_error(d, ref)
+    path = out / "swim.csv"
+    new = not path.exists()
+    with open(path, "a", newline="") as f:
+        w = csv.writer(f)
+        if new:
+            w.writerow(["iteration", "error", *(f"d_{x:g}Hz_mm" for x in cfg.swim_frequencies)])
+        w.writerow([iteration, error, *d])
+    if error < best:
+        atomic_save(weights(model, cfg, iteration, error), out / "best_swim.pt")
+        return error
+    return best
