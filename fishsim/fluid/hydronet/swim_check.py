@@ -18,21 +18,16 @@ from __future__ import annotations
 import csv
 import json
 import math
-from dataclasses import asdict
 from pathlib import Path
 
-from torch import nn
-
 from fishsim.fluid.hydronet.config import TrainConfig
-from fishsim.fluid.hydronet.trained_range import training_range
-from fishsim.io.atomic import atomic_save, atomic_text
+from fishsim.io.atomic import atomic_text
 
 
 def _episode(overrides: list[str], cfg: TrainConfig) -> list[float]:
     from fishsim.swim_study import episode
 
-    device = "cuda" if cfg.device.startswith("cuda") else "cpu"
-    return episode(overrides, list(cfg.swim_frequencies), cfg.swim_frames, device)["displacement_mm"]
+    return episode(overrides, list(cfg.swim_frequencies), cfg.swim_frames, cfg.device)["displacement_mm"]
 
 
 def reference(out: Path, cfg: TrainConfig) -> list[float]:
@@ -48,25 +43,17 @@ def reference(out: Path, cfg: TrainConfig) -> list[float]:
     return d
 
 
-def weights(model: nn.Module, cfg: TrainConfig, iteration: int, score: float) -> dict:
-    """A loadable model file's contents (as best.pt)."""
-    return {"model": model.state_dict(), "net": asdict(model.cfg), "iteration": iteration, "val": score,
-            "training_range": training_range(cfg.pool)}
-
-
 def swim_error(displacements: list[float], ref: list[float]) -> float:
     """e = max |d / d_ref - 1| (inf when a fish failed, NaN)."""
     errors = [abs(d / r - 1) for d, r in zip(displacements, ref)]
     return math.inf if any(math.isnan(e) for e in errors) else max(errors)
 
 
-def check(model: nn.Module, out: Path, cfg: TrainConfig, iteration: int, best: float) -> float:
-    """Swim the study with ``model``, append a row to swim.csv, replace best_swim.pt if it beats
-    ``best``; returns the new best error."""
+def check(model_file: Path, out: Path, cfg: TrainConfig, iteration: int) -> float:
+    """Swim the study with the model in ``model_file``, append a row to out/swim.csv; returns
+    its error e (the caller keeps the best weights, as for best.pt)."""
     ref = reference(out, cfg)
-    current = out / "swim_model.pt"
-    atomic_save(weights(model, cfg, iteration, math.nan), current)
-    d = _episode(["fluid=hydronet", f"fluid.model_file={current}"], cfg)
+    d = _episode(["fluid=hydronet", f"fluid.model_file={model_file}"], cfg)
     error = swim_error(d, ref)
     path = out / "swim.csv"
     new = not path.exists()
@@ -75,7 +62,4 @@ def check(model: nn.Module, out: Path, cfg: TrainConfig, iteration: int, best: f
         if new:
             w.writerow(["iteration", "error", *(f"d_{x:g}Hz_mm" for x in cfg.swim_frequencies)])
         w.writerow([iteration, error, *d])
-    if error < best:
-        atomic_save(weights(model, cfg, iteration, error), out / "best_swim.pt")
-        return error
-    return best
+    return error

@@ -211,9 +211,11 @@ def compact_checkpoint(src: str | Path, dest: str | Path) -> Path:
     return dest
 
 
-def save_best(model: HydroNet, run: Run, out: Path, cfg: TrainConfig) -> None:
-    """best.pt: the weights, the net config and the fluid range they were trained for."""
-    atomic_save(swim_check.weights(model, cfg, run.iteration, run.best_val), out / "best.pt")
+def save_weights(model: HydroNet, run: Run, path: Path, cfg: TrainConfig, score: float) -> None:
+    """A model file (best.pt, best_swim.pt): the weights, the net config, the iteration, the score
+    they were kept for and the fluid range they were trained for."""
+    atomic_save({"model": model.state_dict(), "net": asdict(model.cfg), "iteration": run.iteration,
+                 "val": score, "training_range": training_range(cfg.pool)}, path)
 
 
 def export_model(checkpoint: str | Path, dest: str | Path, metadata: dict) -> Path:
@@ -394,9 +396,13 @@ def _after_step(run: Run, cfg: TrainConfig, out: Path, rank: int, world: int, lo
         run.last_val = validate(run.model, cfg)
         if run.last_val < run.best_val:
             run.best_val = run.last_val
-            save_best(run.model, run, out, cfg)
+            save_weights(run.model, run, out / "best.pt", cfg, run.best_val)
     if rank == 0 and cfg.swim_every and run.iteration % cfg.swim_every == 0:
-        run.best_swim = swim_check.check(run.model, out, cfg, run.iteration, run.best_swim)
+        save_weights(run.model, run, out / "swim_model.pt", cfg, math.nan)
+        error = swim_check.check(out / "swim_model.pt", out, cfg, run.iteration)
+        if error < run.best_swim:
+            run.best_swim = error
+            save_weights(run.model, run, out / "best_swim.pt", cfg, error)
     if log is not None and run.iteration % cfg.log_every == 0:
         log.log(run, terms)
     if _due(run, cfg, last_save, world):

@@ -3,7 +3,7 @@
 A HydroNet learns one fluid (or a range of them with ``net.condition``), on one cell size and
 one time step: outside them its steps are extrapolated and can be far off (the shipped model at
 rho = 1000, mu = 1e-3: a 34 % one-step error) without any sign in the output. So every model
-file carries its ``training_range`` (rho and mu ranges, dx, h; written by ``save_best`` and
+file carries its ``training_range`` (rho and mu ranges, dx, h; written by ``save_weights`` and
 ``export_model``, or for an older file in the ``.json`` metadata beside it), and a run outside
 it warns in one line, or is refused when the config asks for that (``fluid.strict_range``).
 """
