@@ -53,12 +53,8 @@ def check(fluid: str, objective: str, frames: int, param: str, points, deltas, o
         t0 = time.perf_counter()
         J0, autograd = autograd_at(problem, space, x0)
         t_ad = time.perf_counter() - t0
-        steps = [d * abs(x0) for d in deltas]
-        xs = torch.tensor([[x0 + s] for s in steps] + [[x0 - s] for s in steps], dtype=torch.float64)
-        J = problem.evaluate(space.to_z(xs)).J
-        n = len(steps)
-        fd = [float(J[i] - J[n + i]) / (2 * s) for i, s in enumerate(steps)]
-        mid = fd[n // 2]
+        fd = central_differences(problem, space, x0, deltas)
+        mid = fd[len(fd) // 2]
         spread = (max(fd) - min(fd)) / abs(mid) if mid else float("inf")
         rows.append({"fluid": fluid, "objective": objective, "frames": frames, "h": cfg.h, "param": param, "x": x0,
                      "J": J0, "autograd": autograd, "deltas": list(deltas), "central": fd,
@@ -74,6 +70,16 @@ def autograd_at(problem, space, x0: float) -> tuple[float, float]:
     ev = problem.evaluate(space.to_z(torch.tensor([[x0]], dtype=torch.float64)), gradient=True, isolate=False)
     spec = space.specs[0]
     return float(ev.J[0]), float(ev.grad_z[0, 0]) / (spec.upper - spec.lower)
+
+
+def central_differences(problem, space, x0: float, deltas) -> list[float]:
+    """(J(x0 + d) - J(x0 - d)) / 2d for each relative step (d = delta |x0|), one batched
+    evaluation of 2 len(deltas) samples."""
+    steps = [d * abs(x0) for d in deltas]
+    xs = torch.tensor([[x0 + s] for s in steps] + [[x0 - s] for s in steps], dtype=torch.float64)
+    J = problem.evaluate(space.to_z(xs)).J
+    n = len(steps)
+    return [float(J[i] - J[n + i]) / (2 * s) for i, s in enumerate(steps)]
 
 
 def growth_rates(rows: list[dict]) -> list[dict]:

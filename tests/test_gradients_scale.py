@@ -15,6 +15,7 @@ derivative of the converged map.
 import pytest
 import torch
 
+from benchmarks.gradcheck import autograd_at, central_differences
 from fishsim.config import load_config
 from fishsim.optimize.problem import Problem, Space
 
@@ -22,8 +23,8 @@ COMMON = ["frames=60", "params.frequency.lower=0.5", "params.frequency.upper=20"
 FLUIDS = {"numerical": ["fluid=numerical", "fluid.H=48", "fluid.W=144", "fluid.dx=5e-3", "origin=[0.2,0.12]",
                         "coupling.sigma=2e-6", "coupling.xi=2e-6", "coupling.tau=2e-6", "coupling.sigma_prime=2.5e-5"],
           "hydronet": ["fluid=hydronet", "fluid.H=48", "fluid.W=144", "origin=[0.1,0.06]"]}
-F0, DELTA = 5.0, 1e-5 * 5.0   # Hz: the frequency and the central-difference step (1e-5 relative: the
-                              # episode's J is curved enough that 1e-4 is 0.16 % off, 1e-3 0.9 %)
+F0 = 5.0                      # Hz; central differences at a 1e-5 relative step (the episode's J is
+                              # curved enough that 1e-4 is 0.16 % off, 1e-3 0.9 %)
 STEPS = (1e-4, 1e-5, 1e-6)    # HydroNet's relative steps (its central differences scatter, below)
 
 
@@ -34,17 +35,7 @@ def problem(fluid: str, dtype: str, device: str = "cpu", extra=()) -> tuple[Prob
 
 
 def autograd(pr: Problem, space: Space) -> float:
-    ev = pr.evaluate(space.to_z(torch.tensor([[F0]], dtype=torch.float64)), gradient=True, isolate=False)
-    lo, hi = space.specs[0].lower, space.specs[0].upper
-    return float(ev.grad_z[0, 0]) / (hi - lo)
-
-
-def central_differences(pr: Problem, space: Space, steps) -> list[float]:
-    """(J(F0 + d) - J(F0 - d)) / 2d for each relative step, one batched evaluation."""
-    ds = [s * F0 for s in steps]
-    f = torch.tensor([[F0 + sign * d] for d in ds for sign in (1, -1)], dtype=torch.float64)
-    J = pr.evaluate(space.to_z(f)).J
-    return [float(J[2 * k] - J[2 * k + 1]) / (2 * d) for k, d in enumerate(ds)]
+    return autograd_at(pr, space, F0)[1]
 
 
 @pytest.fixture(scope="module", params=list(FLUIDS))
@@ -55,7 +46,7 @@ def reference(request):
     import numba
 
     pr, space = problem(request.param, "float64")
-    fd = central_differences(pr, space, (1e-5,) if request.param == "numerical" else STEPS)
+    fd = central_differences(pr, space, F0, (1e-5,) if request.param == "numerical" else STEPS)
     before = torch.get_num_threads(), numba.get_num_threads()
     torch.set_num_threads(1)
     numba.set_num_threads(1)
@@ -118,7 +109,7 @@ def test_recovered_pressure_gradient_matches_central_differences():
     was 1.04 % off on the 5 mm grid with the model shipped before 2026-11-26, and 2.8x off over
     100 frames at full scale (README "Gradients")."""
     pr, space = problem("hydronet", "float64", extra=["fluid.pressure=recovered"])
-    fd = central_differences(pr, space, (1e-5,))[0]
+    fd = central_differences(pr, space, F0, (1e-5,))[0]
     assert abs(autograd(pr, space) - fd) <= 5e-3 * abs(fd), fd
 
 
