@@ -4,6 +4,8 @@ import os
 import subprocess
 import sys
 
+import pytest
+
 PROBE = """
 import fishsim, numba, numpy as np, torch
 
@@ -26,3 +28,33 @@ def test_omp_num_threads_also_limits_numba_and_so_torch():
     env["OMP_NUM_THREADS"] = "1"
     out = subprocess.run([sys.executable, "-c", PROBE], env=env, capture_output=True, text=True, check=True)
     assert out.stdout.strip().splitlines()[-1] == "1"
+
+
+LATE_IMPORT = """
+import sys, numba
+if sys.argv[1] == "launched":
+    numba.get_num_threads()             # numba's threads launched before fishsim is imported
+import fishsim
+
+@numba.njit
+def one(x):
+    return x + 1
+
+print(one(1), numba.get_num_threads())  # a compilation re-reads numba's environment
+"""
+
+
+@pytest.mark.parametrize("numba_state", ["idle", "launched"])
+def test_importing_fishsim_after_numba_leaves_numba_working(numba_state, tmp_path):
+    """numba imported first (a test's conftest, a user's own numba code) has read its thread count:
+    idle, it must take OMP_NUM_THREADS; with its threads running, setting NUMBA_NUM_THREADS makes its
+    next compilation raise, so fishsim must leave it be. A fresh cache makes the compilation happen."""
+    env = {k: v for k, v in os.environ.items() if k != "NUMBA_NUM_THREADS"}
+    env.update(OMP_NUM_THREADS="1", NUMBA_CACHE_DIR=str(tmp_path))
+    out = subprocess.run([sys.executable, "-c", LATE_IMPORT, numba_state], check=False, env=env,
+                         capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr.strip().splitlines()[-1]
+    result, threads = out.stdout.split()
+    assert result == "2"
+    if numba_state == "idle":
+        assert threads == "1"
