@@ -12,7 +12,7 @@ from fishsim.errors import ConfigError
 
 SEGMENT, NODE = "segment", "node"                     # distance (band.py, mask.py)
 HARMONIC, ARITHMETIC = "harmonic", "arithmetic"       # mean (mask.py)
-FLUID, BODY, NONE = "fluid", "body", "none"           # ibm_weight (ibm.py)
+FLUID, OUTSIDE, BODY, NONE = "fluid", "outside", "body", "none"  # ibm_weight (ibm.py)
 MEAN, LINEAR = "mean", "linear"                       # ibm_fit (ibm.py)
 CHORD, PAPER = "chord", "paper"                       # ibm_area (ibm.py)
 PER_NODE, AVERAGE = "per_node", "average"             # force_mode (forces.py)
@@ -20,7 +20,7 @@ PER_NODE, AVERAGE = "per_node", "average"             # force_mode (forces.py)
 _CHOICES = {
     "distance": (SEGMENT, NODE),
     "mean": (HARMONIC, ARITHMETIC),
-    "ibm_weight": (FLUID, BODY, NONE),
+    "ibm_weight": (FLUID, OUTSIDE, BODY, NONE),
     "ibm_fit": (LINEAR, MEAN),
     "ibm_area": (CHORD, PAPER),
     "force_mode": (PER_NODE, AVERAGE),
@@ -39,7 +39,8 @@ class CouplingConfig:
     sigma_prime: IBM Gaussian variance, m^2 (dx^2 = 6.25e-6: one-cell standard deviation).
     distance: "segment" (exact distance to the polyline, no scallops) | "node" (paper).
     mean: soft-min of the squared distances, "harmonic" (0 on the surface) | "arithmetic" (paper).
-    ibm_weight: cells sampled for the pressure, "fluid" (1 - b) | "body" (b, paper) | "none".
+    ibm_weight: cells sampled for the pressure, "outside" (beyond the mask's band, on each node's
+        own side) | "fluid" (1 - b, the former default) | "body" (b, paper) | "none".
     ibm_fit: "linear" (plane fit evaluated at the node) | "mean" (paper's weighted mean).
     ibm_area: "chord" (area vectors summing to 0) | "paper" (l_k n_k).
     force: "pressure" (the IBM-sampled pressure, the paper's; any fluid) | "exchange" (the
@@ -68,7 +69,7 @@ class CouplingConfig:
     sigma_prime: float = 6.25e-6
     distance: str = SEGMENT
     mean: str = HARMONIC
-    ibm_weight: str = FLUID
+    ibm_weight: str = OUTSIDE
     ibm_fit: str = LINEAR
     ibm_area: str = CHORD
     force: str = "pressure"
