@@ -150,7 +150,7 @@ def test_averaged_forces_leave_a_held_fish_its_heading():
 
 @pytest.mark.slow
 def test_averaged_forces_stabilise_the_free_heave():
-    """Averaged forces, free in y, numerical fluid (heave added mass 7.4 M > M): the
+    """Averaged forces, free in y, numerical fluid (heave added mass 8.75 M > M): the
     stabilisation on the rigid translation keeps the centroid within 1 mm over 60 frames at 5 Hz;
     without it (ratio 0) the explicit coupling throws the fish out of the tank within 20 frames."""
     base = ["fluid.H=64", "fluid.W=128", "origin=[0.05,0.08]", "hold_x=true", "coupling.force_mode=average",
@@ -283,9 +283,9 @@ def _added_mass(overrides, axis, amplitude=5e-3, frequency=2.5, frames=120):
 @pytest.mark.parametrize("fluid", ["numerical", "hydronet"])
 def test_added_mass_of_the_fish_lies_in_the_stable_window(fluid):
     """The default M^ = 5 M is stable for (M_a - M) / 2 <= M^ <= M + M_a (added_mass.py),
-    i.e. 4 M <= M_a <= 11 M: the measured heave added mass (numerical 7.4 M, HydroNet with its
-    recovered pressure 5.7 M) is far above the plain explicit scheme's limit M and inside that
-    window, and the surge added mass (0.08 M, 0.06 M) is small."""
+    i.e. 4 M <= M_a <= 11 M: the measured heave added mass (numerical 8.75 M, the shipped HydroNet
+    with its own pressure 10.2 M) is far above the plain explicit scheme's limit M and inside that
+    window, and the surge added mass (0.08 M, 0.03 M) is small."""
     ratio = CouplingConfig().added_mass_ratio
     heave = _added_mass([f"fluid={fluid}"], axis=1)
     surge = _added_mass([f"fluid={fluid}"], axis=0)

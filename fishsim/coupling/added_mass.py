@@ -10,11 +10,11 @@ which grows by M_a / M every frame when M_a > M: the classic added-mass instabil
 bodies.  Measured on the default fish (M = 0.23 kg/m, rho_s = 100 kg/m^3) in rho_f = 50 kg/m^3
 (a rigid 2.5 Hz, 5 mm oscillation, least-squares fit F = -M_a a - c v of the IBM force;
 tests/test_rollout.py::test_added_mass_of_the_fish_lies_in_the_stable_window): heave
-M_a = 7.4 M with the numerical fluid at its defaults (2 penalisation passes x 8 sub-steps; 5.4 M
-with 1 x 4, whose leaky penalisation lets the pressure jump through the body; a 2D plate of the
-fish's length has rho_f pi (L/2)^2 = 6.8 M), 5.7 M with the physics-only HydroNet (shipped
-before 2026-11-26) and its recovered pressure (fishsim/fluid/pressure.py); surge 0.08 M and
-0.06 M.  Unstabilised, the lateral force
+M_a = 8.75 M with the numerical fluid at its defaults (2 penalisation passes x 8 sub-steps; a 2D
+plate of the fish's length has rho_f pi (L/2)^2 = 6.8 M in unbounded fluid), 10.2 M with the
+shipped HydroNet and its own pressure; surge 0.08 M and 0.03 M (2026-11-26, the pressure sampled
+beyond the mask's band; with the former weight 1 - b: 7.8 M and 9.3 M; with 1 x 4 stepping, whose
+leaky penalisation lets the pressure jump through the body, 5.4 M).  Unstabilised, the lateral force
 alternates sign every frame and the run blows up.
 
 The fix (an artificial added mass): the integrator gets an extra mass M^ and the part of the
