@@ -254,7 +254,7 @@ class SimulateConfig:
     batch: BatchConfig = field(default_factory=BatchConfig)
     fluid: FluidConfig = field(default_factory=FluidConfig)
     coupling: CouplingConfig = field(default_factory=CouplingConfig)
-    frames: int = 300
+    frames: int = 200
     h: float = 0.01
     origin: list[float] = field(default_factory=lambda: [0.06, 0.125])
     hold_x: bool = False

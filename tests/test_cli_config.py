@@ -161,7 +161,7 @@ def test_simulate_help_lists_every_config_group():
     """The help's config list, built from the parts' config modules: every group, nested groups
     included, with its keys and defaults."""
     out = runner.invoke(app, ["simulate", "--help"], terminal_width=400).output
-    assert "top level: frames=300" in out
+    assert "top level: frames=200" in out
     for group in ("fish", "solid", "controller", "batch", "fluid", "coupling"):
         assert f"{group}: {group}." in out, group
     for key in ("solid.material.youngs_modulus=600000.0", "solid.pd.preconditioner=lagged_newton",

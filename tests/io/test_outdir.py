@@ -76,7 +76,7 @@ def test_a_run_too_large_for_memory_is_refused_up_front(tmp_path, override):
 
 
 def test_a_run_longer_than_its_slurm_job_is_refused_up_front(tmp_path, monkeypatch):
-    """Inside a SLURM job the estimated run time is checked against the job's end: a 300-frame
+    """Inside a SLURM job the estimated run time is checked against the job's end: a default (200-frame)
     paper-scale run in a job with one second left is refused in one line, nothing written;
     check_resources=false lets a (tiny) run go ahead."""
     monkeypatch.setenv("SLURM_JOB_END_TIME", str(int(time.time()) + 1))
