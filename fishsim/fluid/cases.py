@@ -9,7 +9,7 @@ returning the measured numbers:
 
 and the helpers they and the rigid-body tests use: ``disc_mask``, ``moving`` (rigid translation
 velocity), ``disc_polyline`` (the disc's ccw surface for the IBM), ``control_volume_force``
-(momentum balance of a box of fluid), ``mask_pressure_force`` (pressure force on a soft body).
+(momentum balance of a box of fluid).
 """
 
 from __future__ import annotations
@@ -90,16 +90,6 @@ def control_volume_force(v0, v1, p, rho, mu, h, dx, rows, cols) -> Tensor:
         un = (vs * nn).sum(1, keepdim=True)
         flux = flux + ((rho * vs * un + ps[:, None] * nn - mu * (vo - vi) / dx) * dx).sum(-1)
     return -(M[1] - M[0]) / h - flux
-
-
-def mask_pressure_force(p: Tensor, mask: Tensor, dx: float) -> Tensor:
-    """Pressure force on the soft body ``mask`` [B, 1, H, W], [B, 2] N/m (per unit depth):
-    F_p = -sum_faces b_f (grad p)_f dx^2, with the solver's face gradient (``grid.gradient``) and
-    face masks (``grid.face_masks``); by the divergence theorem the integral of -p n over the
-    body's surface, smeared over its one-cell ramp.  p: [B, 1, H, W] Pa; dx: m."""
-    gx, gy = G.gradient(p, dx)
-    bx, by = G.face_masks(mask.to(p.dtype))
-    return -torch.stack([(bx * gx).sum((-3, -2, -1)), (by * gy).sum((-3, -2, -1))], -1) * dx**2
 
 
 # ----------------------------------------------------------------------------------------------
