@@ -33,7 +33,7 @@ from fishsim.coupling.added_mass import mass_centroid, stabilise_translation, st
 from fishsim.coupling.config import AVERAGE
 from fishsim.errors import ConfigError, SimulationBlowUp
 from fishsim.fields import Boundary, FluidModel, FluidParams, FluidState, RefinedState
-from fishsim.fluid.grid import union
+from fishsim.fluid.grid import curl, faces_to_centres, union
 from fishsim.mesh.triangulate import element_areas
 from fishsim.solid import SolidModel, pd_step, predicted_start
 from fishsim.solid.controller import WaveController
@@ -239,8 +239,12 @@ class Swimmer:
             f_ext = exchange_to_solid(state.q, diag.cell_forces(params.fluid.rho, share), self.surface,
                                       self.fluid.grid, self.coupling, step=t + 1, mass=mass)
         else:
+            viscous = None
+            if self.coupling.viscous:
+                v = faces_to_centres(curl(fluid.a, self.fluid.grid.dx))
+                viscous = (state.qdot, v, params.fluid.mu)
             f_ext = fluid_to_solid(state.q, fluid.p, boundary, self.surface, self.fluid.grid,
-                                   self.coupling, step=t + 1, mass=mass)
+                                   self.coupling, step=t + 1, mass=mass, viscous=viscous)
         self.timer.add("coupling", t0, dev)
         return fluid, f_ext
 

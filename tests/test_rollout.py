@@ -56,12 +56,14 @@ def head_distance(sw, cfg, ep, omega, C, E, frames):
     return m["head_x"][-1].sum() - m["head_x"][0].sum()
 
 
-@pytest.mark.parametrize("fluid", ["none", "numerical", "numerical-exchange", "hydronet"])
+@pytest.mark.parametrize("fluid", ["none", "numerical", "numerical-exchange", "numerical-viscous", "hydronet"])
 def test_distance_gradient_matches_finite_differences(fluid, tiny_model):
     # HydroNet's recovered pressure: solved tightly, so its implicit gradient is the exact one
     extra = [f"fluid.model_file={tiny_model}", "fluid.pressure_tol=1e-12"] if fluid == "hydronet" else []
     if fluid == "numerical-exchange":   # the momentum-exchange force (coupling.force=exchange)
         fluid, extra = "numerical", ["coupling.force=exchange"]
+    if fluid == "numerical-viscous":    # pressure + viscous traction (coupling.viscous=true)
+        fluid, extra = "numerical", ["coupling.viscous=true"]
     cfg, sw, ep = small_swimmer([f"fluid={fluid}", *extra])
     x0 = {"omega": 2 * math.pi * 5.0, "C": 6.0, "E": 6e5}
     frames = 5

@@ -43,6 +43,9 @@ class CouplingConfig:
         own side) | "fluid" (1 - b, the former default) | "body" (b, paper) | "none".
     ibm_fit: "linear" (plane fit evaluated at the node) | "mean" (paper's weighted mean).
     ibm_area: "chord" (area vectors summing to 0) | "paper" (l_k n_k).
+    viscous: add the viscous traction mu (grad v + grad v^T) n, fitted on the same cells as the
+        pressure from the node's velocity (no slip) outwards (ibm.ibm_force); the paper
+        neglects it.  Needs ibm_weight "outside" and force "pressure".
     force: "pressure" (the IBM-sampled pressure, the paper's; any fluid) | "exchange" (the
         momentum the numerical fluid's penalization exchanges with the body, viscous stress
         included; fishsim.coupling.exchange).
@@ -72,6 +75,7 @@ class CouplingConfig:
     ibm_weight: str = OUTSIDE
     ibm_fit: str = LINEAR
     ibm_area: str = CHORD
+    viscous: bool = False
     force: str = "pressure"
     sigma_spread: float = 1.40625e-5
     force_mode: str = PER_NODE
@@ -87,6 +91,9 @@ class CouplingConfig:
         for name, allowed in _CHOICES.items():
             if getattr(self, name) not in allowed:
                 raise ConfigError(f"coupling.{name} must be one of {allowed}, got {getattr(self, name)!r}")
+        if self.viscous and (self.ibm_weight != OUTSIDE or self.force != "pressure"):
+            raise ConfigError("coupling.viscous=true needs coupling.ibm_weight=outside and coupling.force=pressure "
+                              f"(got {self.ibm_weight!r}, {self.force!r}): the exchanged force already holds the viscous stress")
         if not self.added_mass_ratio >= 0:
             raise ConfigError(f"coupling.added_mass_ratio must be >= 0, got {self.added_mass_ratio}")
         if self.n_burn_in < 0 or self.k_nearest < 1:

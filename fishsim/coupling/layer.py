@@ -57,17 +57,23 @@ def solid_to_fluid(q: Tensor, qdot: Tensor, surface, grid: Grid, cfg: CouplingCo
 
 
 def fluid_to_solid(q: Tensor, p: Tensor, boundary: Boundary, surface, grid: Grid,
-                   cfg: CouplingConfig, step: int | None = None, mass: Tensor | None = None) -> Tensor:
+                   cfg: CouplingConfig, step: int | None = None, mass: Tensor | None = None,
+                   viscous: tuple[Tensor, Tensor, Tensor] | None = None) -> Tensor:
     """External hydrodynamic force on every mesh node, f_ext [B, N, 2] N (per unit depth).
 
     q: node positions [B, N, 2] (m); p: pressure [B, 1, H, W] (Pa); boundary: the mask used to
     weight the IBM samples; step: time-step index t for the burn-in (None: no burn-in);
-    mass: lumped node masses [N], how ``force_mode=average`` shares the total (None: equally).
-    Result in q.dtype; differentiable in q, p and boundary.mask.
+    mass: lumped node masses [N], how ``force_mode=average`` shares the total (None: equally);
+    viscous: with ``cfg.viscous``, (qdot [B, N, 2] m/s, the fluid velocity at the cell centres
+    [B, 2, H, W] m/s, mu [B] Pa s) for the viscous traction (ibm.ibm_force).
+    Result in q.dtype; differentiable in q, p, boundary.mask and the viscous inputs.
     """
     idx = surface_index(surface, q.device)
+    if cfg.viscous:
+        qdot, v, mu = viscous
+        viscous = (qdot[:, idx], v, mu)
     f = ibm_force(q[:, idx], p, boundary.mask, grid, cfg.sigma_prime, cfg.ibm_weight,
-                  cfg.ibm_fit, cfg.ibm_area)
+                  cfg.ibm_fit, cfg.ibm_area, viscous if cfg.viscous else None)
     scale = 1.0 if step is None else burn_in_scale(step, cfg.n_burn_in)
     return fext_from_surface(f, idx, q.shape[1], cfg.force_mode, cfg.fix_lateral, scale, mass)
 
