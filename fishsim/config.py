@@ -168,6 +168,11 @@ class FluidConfig:
     refinement: numerical solver only, internal grid dx / r and sub-steps h / r.
     substeps: numerical solver only, sub-steps per frame on the r = 1 grid (r times more on the
         refined one); a floor that the CFL safety net raises per fish only for runaway speeds.
+    cfl: numerical solver only, the safety net's largest advective Courant number max|v| dt / dx
+        per sub-step. 0.8 keeps 8 sub-steps up to 1.6 m/s on the 2.5 mm grid: the frequency
+        study's 7 Hz fish peaks at 1.14 m/s, which at 0.5 raised it to 9 sub-steps on 20 of 100
+        frames, each change a jump of the frame map; the scheme stays stable beyond it (that fish
+        ran 120 frames at 4 sub-steps, Courant number 1.04).
     penalization_iterations: numerical solver only, penalize -> project passes per stage (K) of
         the split scheme.
     brinkman: numerical solver only, lambda (1/s) of the rate penalisation solved jointly with the
@@ -199,6 +204,7 @@ class FluidConfig:
     inflow: float = 0.0
     refinement: int = 1
     substeps: int = 8
+    cfl: float = 0.8
     penalization_iterations: int = 2
     brinkman: float | None = None
     scheme: str = "koren"
@@ -219,6 +225,7 @@ class FluidConfig:
                  "fluid.wall_y / fluid.wall_x must be >= 0 and leave room for the fluid")
         _require(self.refinement in (1, 2, 4), f"fluid.refinement must be 1, 2 or 4 (got {self.refinement})")
         _require(1 <= self.substeps <= 64, f"fluid.substeps must be in [1, 64] (got {self.substeps})")
+        _require(0 < self.cfl <= 1.5, f"fluid.cfl must be in (0, 1.5] (got {self.cfl})")
         _require(self.scheme in ("koren", "albada"), f"fluid.scheme must be koren or albada (got '{self.scheme}')")
         _require(1 <= self.penalization_iterations <= 16,
                  f"fluid.penalization_iterations must be in [1, 16] (got {self.penalization_iterations})")

@@ -33,7 +33,7 @@ def make_fluid(cfg, device=None) -> FluidModel | None:
     if cfg.model == "numerical":
         from fishsim.fluid.numerical import NumericalFluid
 
-        return NumericalFluid(make_grid(cfg), refinement=cfg.refinement, substeps=cfg.substeps,
+        return NumericalFluid(make_grid(cfg), refinement=cfg.refinement, substeps=cfg.substeps, cfl=cfg.cfl,
                               penalization_iterations=cfg.penalization_iterations, scheme=cfg.scheme,
                               brinkman=cfg.brinkman)
     if cfg.model == "hydronet":
