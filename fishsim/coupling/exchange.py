@@ -51,11 +51,10 @@ def spread_to_surface(qs: Tensor, cell_force: Tensor, grid: Grid,
     """
     sigma_s = SPREAD_CELLS2 * grid.dx**2 if sigma_s is None else sigma_s
     radius = math.ceil(KERNEL_RADIUS * math.sqrt(sigma_s) / grid.dx)
-    flat, valid, offset = kernel_cells(qs, grid, radius)
+    flat, valid, ox, oy = kernel_cells(qs, grid, radius)
     B, S, M = flat.shape
     dtype = cell_force.dtype
-    ones = torch.ones(B, S, M, dtype=dtype, device=qs.device)
-    g = sample_weights(offset.to(dtype), ones, valid, sigma_s, NONE, grid.dx, radius)   # [B, S, M]
+    g = sample_weights(ox.to(dtype), oy.to(dtype), None, valid, sigma_s, NONE, grid.dx, radius)   # [B, S, M]
     Z = torch.zeros(B, grid.H * grid.W, dtype=dtype, device=qs.device).scatter_add(1, flat.reshape(B, -1),
                                                                                   g.reshape(B, -1))
     fish = cell_force                                                                     # [B, 2, H, W]

@@ -81,9 +81,10 @@ KERNEL_RADIUS = 4.0  # in standard deviations sqrt(sigma')
 OUTSIDE_MASK = 0.05  # "outside" samples cells with b below this: the rate penalisation's support (numerical.py)
 
 
-def kernel_cells(qs: Tensor, grid: Grid, radius: int) -> tuple[Tensor, Tensor, Tensor]:
+def kernel_cells(qs: Tensor, grid: Grid, radius: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """The (2r+1)^2 cells around each node: flat index [B, S, M] (clamped into the grid),
-    validity [B, S, M] bool and offsets x_ij - q^k [B, S, M, 2] (m, dtype of qs)."""
+    validity [B, S, M] bool and the offsets x_ij - q^k as two contiguous [B, S, M] tensors
+    (x and y components, m, dtype of qs)."""
     centre = torch.floor(qs.detach() / grid.dx).long()  # (j, i) of the cell holding q^k
     step = torch.arange(-radius, radius + 1, device=qs.device)
     di, dj = torch.meshgrid(step, step, indexing="ij")
@@ -91,8 +92,9 @@ def kernel_cells(qs: Tensor, grid: Grid, radius: int) -> tuple[Tensor, Tensor, T
     i = centre[..., 1, None] + di.flatten()
     valid = (i >= 0) & (i < grid.H) & (j >= 0) & (j < grid.W)
     flat = i.clamp(0, grid.H - 1) * grid.W + j.clamp(0, grid.W - 1)
-    x = torch.stack([(j + 0.5) * grid.dx, (i + 0.5) * grid.dx], dim=-1).to(qs.dtype)
-    return flat, valid, x - qs.unsqueeze(2)
+    ox = ((j + 0.5) * grid.dx).to(qs.dtype) - qs[..., 0, None]
+    oy = ((i + 0.5) * grid.dx).to(qs.dtype) - qs[..., 1, None]
+    return flat, valid, ox, oy
 
 
 def gather_cells(field: Tensor, flat: Tensor) -> Tensor:
@@ -107,84 +109,100 @@ def taper(u: Tensor, inner: float, outer: float) -> Tensor:
     return s * s * s * (10.0 - 15.0 * s + 6.0 * s * s)
 
 
-def side_weight(offset: Tensor, normal: Tensor, dx: float) -> Tensor:
+def side_weight(ox: Tensor, oy: Tensor, normal: Tensor, dx: float) -> Tensor:
     """0 -> 1 as a cell's height above the node's tangent line, n_k.(x_ij - q^k), goes 0 -> dx
     (C^2 smoothstep): the cells on the outer side of the node's own surface [B, S, M]."""
-    h = (offset * normal.unsqueeze(-2)).sum(-1)
+    h = ox * normal[..., 0, None] + oy * normal[..., 1, None]
     return taper((h - dx).clamp(max=0.0), 0.0, dx)
 
 
-def sample_weights(offset: Tensor, b: Tensor, valid: Tensor, sigma_prime: float,
+def sample_weights(ox: Tensor, oy: Tensor, b: Tensor, valid: Tensor, sigma_prime: float,
                    weight: str, dx: float | None = None, radius: int | None = None,
                    normal: Tensor | None = None) -> Tensor:
-    """g_ij w_ij [B, S, M]: Gaussian kernel times the cell weight (module doc; "outside" needs the
-    nodes' unit outward normals [B, S, 2]); with dx and the window radius r (cells), the kernel is
-    tapered to 0 at the window's edge."""
-    g = torch.exp(-(offset ** 2).sum(-1) / (2.0 * sigma_prime))
+    """g_ij w_ij [B, S, M]: Gaussian kernel times the cell weight (module doc; offsets ox, oy
+    [B, S, M]; "outside" needs the nodes' unit outward normals [B, S, 2]); with dx and the window
+    radius r (cells), the kernel is tapered to 0 at the window's edge."""
+    g = torch.exp((ox * ox + oy * oy) * (-0.5 / sigma_prime))
     if radius is not None:
         inner, outer = (radius - 1) * dx, (radius + 0.5) * dx
-        g = g * taper(offset[..., 0], inner, outer) * taper(offset[..., 1], inner, outer)
+        g = g * (taper(ox, inner, outer) * taper(oy, inner, outer))
     if weight == FLUID:
         w = 1.0 - b
     elif weight == OUTSIDE:
-        w = taper(b, 0.0, OUTSIDE_MASK) * side_weight(offset, normal, dx)
+        w = taper(b, 0.0, OUTSIDE_MASK) * side_weight(ox, oy, normal, dx)
     elif weight == BODY:
         w = b
     elif weight == NONE:
-        w = torch.ones_like(b)
+        return g * valid
     else:
-        raise ValueError(f"weight must be 'fluid', 'body' or 'none', got {weight!r}")
+        raise ValueError(f"weight must be 'outside', 'fluid', 'body' or 'none', got {weight!r}")
     return g * w * valid
 
 
-def weighted_mean(p: Tensor, w: Tensor) -> Tensor:
-    """p_k = sum_ij w_ij p_ij / sum_ij w_ij over the last dim."""
-    return (w * p).sum(-1) / w.sum(-1).clamp_min(torch.finfo(w.dtype).tiny)
+def normalised(w: Tensor) -> Tensor:
+    """w_ij / sum_ij w_ij over the last dim (weights summing to 1; 0 where all vanish)."""
+    return w / w.sum(-1, keepdim=True).clamp_min(torch.finfo(w.dtype).tiny)
 
 
-def linear_fit_at_node(p: Tensor, w: Tensor, offset: Tensor, sigma_prime: float) -> Tensor:
-    """Value at the node (offset 0) of the weighted least-squares plane p ~ c + g.offset.
+def linear_fit_coefficients(wn: Tensor, ox: Tensor, oy: Tensor, sigma_prime: float) -> Tensor:
+    """c_ij [B, S, M] with sum_ij c_ij p_ij the value at the node (offset 0) of the weighted
+    least-squares plane p ~ c + g.(x - q^k) (normalised weights wn):
 
-    c = pbar - g.rbar, g = C^-1 cov(r, p), with the weighted means pbar, rbar, covariance C
-    (2 x 2, inverted in closed form, regularised by 1e-6 sigma').  Exact for linear p.
-    """
-    p_bar = weighted_mean(p, w)
-    r_bar = torch.stack([weighted_mean(offset[..., a], w) for a in range(2)], dim=-1)
-    r = offset - r_bar.unsqueeze(-2)
-    dp = p - p_bar.unsqueeze(-1)
-    c_xx, c_yy = weighted_mean(r[..., 0] ** 2, w), weighted_mean(r[..., 1] ** 2, w)
-    c_xy = weighted_mean(r[..., 0] * r[..., 1], w)
-    s_x, s_y = weighted_mean(r[..., 0] * dp, w), weighted_mean(r[..., 1] * dp, w)
-    c_xx, c_yy = c_xx + 1e-6 * sigma_prime, c_yy + 1e-6 * sigma_prime
-    det = c_xx * c_yy - c_xy ** 2
-    g_x = (c_yy * s_x - c_xy * s_y) / det
-    g_y = (c_xx * s_y - c_xy * s_x) / det
-    return p_bar - g_x * r_bar[..., 0] - g_y * r_bar[..., 1]
+        c + g.0 = pbar - g.rbar,  g = C^-1 sum wn (r - rbar) p   ->   c_ij = wn_ij (1 - rbar^T C^-1 (r_ij - rbar))
+
+    with the weighted means rbar of the offsets and their covariance C (2 x 2, inverted in closed
+    form, regularised by 1e-6 sigma').  Exact for linear p."""
+    rx, ry = (wn * ox).sum(-1, keepdim=True), (wn * oy).sum(-1, keepdim=True)
+    dx_, dy_ = ox - rx, oy - ry
+    wdx, wdy = wn * dx_, wn * dy_
+    c_xx = (wdx * dx_).sum(-1, keepdim=True) + 1e-6 * sigma_prime
+    c_yy = (wdy * dy_).sum(-1, keepdim=True) + 1e-6 * sigma_prime
+    c_xy = (wdx * dy_).sum(-1, keepdim=True)
+    det = c_xx * c_yy - c_xy * c_xy
+    ux, uy = (c_yy * rx - c_xy * ry) / det, (c_xx * ry - c_xy * rx) / det   # C^-1 rbar
+    return wn - ux * wdx - uy * wdy
+
+
+def gradient_coefficients(wn: Tensor, ox: Tensor, oy: Tensor, sigma_prime: float) -> tuple[Tensor, Tensor]:
+    """(k_x, k_y) [B, S, M] with sum_ij k_b,ij dv_ij = d(dv)/dx_b at the node for the weighted
+    least-squares fit dv ~ G (x - q^k) through the node (no intercept):
+
+        G = (sum wn dv r^T) (sum wn r r^T)^-1   ->   k_ij = wn_ij C0^-1 r_ij
+
+    (C0 the offsets' second moments, 2 x 2, inverted in closed form, regularised by 1e-6 sigma').
+    Exact for a linear dv that vanishes at the node."""
+    wox, woy = wn * ox, wn * oy
+    c_xx = (wox * ox).sum(-1, keepdim=True) + 1e-6 * sigma_prime
+    c_yy = (woy * oy).sum(-1, keepdim=True) + 1e-6 * sigma_prime
+    c_xy = (wox * oy).sum(-1, keepdim=True)
+    det = c_xx * c_yy - c_xy * c_xy
+    return (c_yy * wox - c_xy * woy) / det, (c_xx * woy - c_xy * wox) / det
 
 
 def surface_samples(qs: Tensor, mask: Tensor, grid: Grid, sigma_prime: float, weight: str,
-                    dtype: torch.dtype, a: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
-    """The cells each surface node samples: flat indices [B, S, M], offsets x_ij - q^k [B, S, M, 2]
-    (m) and weights g_ij w_ij [B, S, M], in ``dtype`` (the offsets are formed in qs.dtype).
-    a: the nodes' area vectors [B, S, 2] if already computed ("outside" needs their normals)."""
+                    dtype: torch.dtype, a: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The cells each surface node samples: flat indices [B, S, M], offsets x_ij - q^k (x and y,
+    [B, S, M] each, m) and the normalised weights g_ij w_ij / Z_k [B, S, M], in ``dtype`` (the
+    offsets are formed in qs.dtype).  a: the nodes' area vectors [B, S, 2] if already computed
+    ("outside" needs their normals)."""
     radius = math.ceil(KERNEL_RADIUS * math.sqrt(sigma_prime) / grid.dx)
-    flat, valid, offset = kernel_cells(qs, grid, radius)
-    offset = offset.to(dtype)
+    flat, valid, ox, oy = kernel_cells(qs, grid, radius)
+    ox, oy = ox.to(dtype), oy.to(dtype)
     normal = None
     if weight == OUTSIDE:
         a = (area_vectors(qs) if a is None else a).to(dtype)
         normal = a / a.norm(dim=-1, keepdim=True)
-    w = sample_weights(offset, gather_cells(mask, flat).to(dtype), valid, sigma_prime, weight, grid.dx, radius,
+    w = sample_weights(ox, oy, gather_cells(mask, flat).to(dtype), valid, sigma_prime, weight, grid.dx, radius,
                        normal)
-    return flat, offset, w
+    return flat, ox, oy, normalised(w)
 
 
-def fit_pressure(p_cells: Tensor, w: Tensor, offset: Tensor, sigma_prime: float, fit: str) -> Tensor:
-    """p_k [B, S] from the sampled cells' pressures [B, S, M] (module docstring, ``fit``)."""
+def fit_coefficients(wn: Tensor, ox: Tensor, oy: Tensor, sigma_prime: float, fit: str) -> Tensor:
+    """The coefficients c_ij [B, S, M] of p_k = sum_ij c_ij p_ij (module docstring, ``fit``)."""
     if fit == MEAN:
-        return weighted_mean(p_cells, w)
+        return wn
     if fit == LINEAR:
-        return linear_fit_at_node(p_cells, w, offset, sigma_prime)
+        return linear_fit_coefficients(wn, ox, oy, sigma_prime)
     raise ValueError(f"fit must be 'mean' or 'linear', got {fit!r}")
 
 
@@ -193,39 +211,28 @@ def surface_pressure(qs: Tensor, p: Tensor, mask: Tensor, grid: Grid, sigma_prim
     """Pressure p_k sampled around every surface node, [B, S] Pa, in p.dtype.
 
     The offsets x_ij - q^k are formed in qs.dtype, then everything runs in the fluid's dtype."""
-    flat, offset, w = surface_samples(qs, mask, grid, sigma_prime, weight, p.dtype)
-    return fit_pressure(gather_cells(p, flat), w, offset, sigma_prime, fit)
+    flat, ox, oy, wn = surface_samples(qs, mask, grid, sigma_prime, weight, p.dtype)
+    return (fit_coefficients(wn, ox, oy, sigma_prime, fit) * gather_cells(p, flat)).sum(-1)
 
 
-def velocity_gradient_at_node(dv: Tensor, w: Tensor, offset: Tensor, sigma_prime: float) -> Tensor:
-    """grad v at the node, [B, S, 2, 2] (G_ab = dv_a / dx_b, 1/s), from the weighted least-squares
-    fit v ~ u_k + G (x - q^k) through the node's own velocity u_k (no slip):
-
-        G = (sum w dv r^T) (sum w r r^T)^-1,    dv_ij = v_ij - u_k,  r_ij = x_ij - q^k,
-
-    dv [B, S, M, 2]; the 2 x 2 moment matrix is inverted in closed form, regularised by
-    1e-6 sigma'.  Exact for a linear velocity field that meets u_k at the node."""
-    c_xx = weighted_mean(offset[..., 0] ** 2, w) + 1e-6 * sigma_prime
-    c_yy = weighted_mean(offset[..., 1] ** 2, w) + 1e-6 * sigma_prime
-    c_xy = weighted_mean(offset[..., 0] * offset[..., 1], w)
-    det = c_xx * c_yy - c_xy ** 2
-    rows = []
-    for a in range(2):
-        s_x, s_y = weighted_mean(dv[..., a] * offset[..., 0], w), weighted_mean(dv[..., a] * offset[..., 1], w)
-        rows.append(torch.stack([(c_yy * s_x - c_xy * s_y) / det, (c_xx * s_y - c_xy * s_x) / det], dim=-1))
-    return torch.stack(rows, dim=-2)
-
-
-def viscous_traction(flat: Tensor, offset: Tensor, w: Tensor, qdots: Tensor, v: Tensor, mu: Tensor,
+def viscous_traction(flat: Tensor, ox: Tensor, oy: Tensor, wn: Tensor, qdots: Tensor, v: Tensor, mu: Tensor,
                      elements: Tensor, sigma_prime: float) -> Tensor:
     """f_k^visc = mu (G_k + G_k^T) e_k [B, S, 2] (N per unit depth, in v.dtype) on the sampled
-    cells (``surface_samples``): G_k = ``velocity_gradient_at_node`` of the fluid velocity v
-    [B, 2, H, W] (cell centres, m/s) relative to the node velocities qdots [B, S, 2]; e_k the
-    surface elements [B, S, 2] (m); mu [B] or scalar (Pa s)."""
-    v_cells = torch.stack([gather_cells(v[:, c : c + 1], flat) for c in range(2)], dim=-1)
-    grad = velocity_gradient_at_node(v_cells - qdots.to(v.dtype).unsqueeze(2), w, offset, sigma_prime)
-    mu = torch.as_tensor(mu, dtype=v.dtype, device=v.device).reshape(-1, 1, 1)
-    return mu * ((grad + grad.transpose(-1, -2)) @ elements.to(v.dtype).unsqueeze(-1)).squeeze(-1)
+    cells (``surface_samples``): G_k (G_ab = dv_a / dx_b) the fit of the fluid velocity v
+    [B, 2, H, W] (cell centres, m/s) relative to the node velocities qdots [B, S, 2] through the
+    node (``gradient_coefficients``); e_k the surface elements [B, S, 2] (m); mu [B] or scalar
+    (Pa s)."""
+    kx, ky = gradient_coefficients(wn, ox, oy, sigma_prime)
+    u = qdots.to(v.dtype)
+    grad = [[None, None], [None, None]]
+    for a in range(2):
+        dv = gather_cells(v[:, a : a + 1], flat) - u[..., a, None]
+        grad[a] = [(kx * dv).sum(-1), (ky * dv).sum(-1)]
+    e = elements.to(v.dtype)
+    shear = grad[0][1] + grad[1][0]
+    f = torch.stack([2 * grad[0][0] * e[..., 0] + shear * e[..., 1],
+                     shear * e[..., 0] + 2 * grad[1][1] * e[..., 1]], dim=-1)
+    return torch.as_tensor(mu, dtype=v.dtype, device=v.device).reshape(-1, 1, 1) * f
 
 
 def surface_elements(qs: Tensor, area: str = CHORD) -> Tensor:
@@ -255,10 +262,11 @@ def ibm_force(qs: Tensor, p: Tensor, mask: Tensor, grid: Grid, sigma_prime: floa
     if viscous is not None and weight != OUTSIDE:
         raise ValueError(f"the viscous traction samples the cells beyond the band: weight 'outside', got {weight!r}")
     elements = surface_elements(qs, area)
-    flat, offset, w = surface_samples(qs, mask, grid, sigma_prime, weight, p.dtype,
-                                      elements if area == CHORD else None)
-    f = -fit_pressure(gather_cells(p, flat), w, offset, sigma_prime, fit).unsqueeze(-1) * elements.to(p.dtype)
+    flat, ox, oy, wn = surface_samples(qs, mask, grid, sigma_prime, weight, p.dtype,
+                                       elements if area == CHORD else None)
+    p_k = (fit_coefficients(wn, ox, oy, sigma_prime, fit) * gather_cells(p, flat)).sum(-1)
+    f = -p_k.unsqueeze(-1) * elements.to(p.dtype)
     if viscous is not None:
         qdots, v, mu = viscous
-        f = f + viscous_traction(flat, offset, w, qdots, v.to(p.dtype), mu, elements, sigma_prime)
+        f = f + viscous_traction(flat, ox, oy, wn, qdots, v.to(p.dtype), mu, elements, sigma_prime)
     return f.to(qs.dtype)
