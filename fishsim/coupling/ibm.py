@@ -144,14 +144,16 @@ def normalised(w: Tensor) -> Tensor:
     return w / w.sum(-1, keepdim=True).clamp_min(torch.finfo(w.dtype).tiny)
 
 
-def linear_fit_coefficients(wn: Tensor, ox: Tensor, oy: Tensor, sigma_prime: float) -> Tensor:
-    """c_ij [B, S, M] with sum_ij c_ij p_ij the value at the node (offset 0) of the weighted
-    least-squares plane p ~ c + g.(x - q^k) (normalised weights wn):
+def linear_fit_correction(wn: Tensor, ox: Tensor, oy: Tensor, sigma_prime: float) -> Tensor:
+    """d_ij [B, S, M] with p_k = pbar + sum_ij d_ij (p_ij - pbar) the value at the node (offset 0)
+    of the weighted least-squares plane p ~ c + g.(x - q^k) (normalised weights wn, pbar the
+    weighted mean):
 
-        c + g.0 = pbar - g.rbar,  g = C^-1 sum wn (r - rbar) p   ->   c_ij = wn_ij (1 - rbar^T C^-1 (r_ij - rbar))
+        c = pbar - g.rbar,  g = C^-1 sum wn (r - rbar)(p - pbar)   ->   d_ij = -wn_ij rbar^T C^-1 (r_ij - rbar)
 
     with the weighted means rbar of the offsets and their covariance C (2 x 2, inverted in closed
-    form, regularised by 1e-6 sigma').  Exact for linear p."""
+    form, regularised by 1e-6 sigma').  Exact for linear p; the samples enter relative to pbar,
+    which keeps float32 round-off at the scale of the pressure's variation around the node."""
     rx, ry = (wn * ox).sum(-1, keepdim=True), (wn * oy).sum(-1, keepdim=True)
     dx_, dy_ = ox - rx, oy - ry
     wdx, wdy = wn * dx_, wn * dy_
@@ -160,7 +162,7 @@ def linear_fit_coefficients(wn: Tensor, ox: Tensor, oy: Tensor, sigma_prime: flo
     c_xy = (wdx * dy_).sum(-1, keepdim=True)
     det = c_xx * c_yy - c_xy * c_xy
     ux, uy = (c_yy * rx - c_xy * ry) / det, (c_xx * ry - c_xy * rx) / det   # C^-1 rbar
-    return wn - ux * wdx - uy * wdy
+    return -(ux * wdx + uy * wdy)
 
 
 def gradient_coefficients(wn: Tensor, ox: Tensor, oy: Tensor, sigma_prime: float) -> tuple[Tensor, Tensor]:
@@ -197,12 +199,14 @@ def surface_samples(qs: Tensor, mask: Tensor, grid: Grid, sigma_prime: float, we
     return flat, ox, oy, normalised(w)
 
 
-def fit_coefficients(wn: Tensor, ox: Tensor, oy: Tensor, sigma_prime: float, fit: str) -> Tensor:
-    """The coefficients c_ij [B, S, M] of p_k = sum_ij c_ij p_ij (module docstring, ``fit``)."""
+def fit_at_node(p_cells: Tensor, wn: Tensor, ox: Tensor, oy: Tensor, sigma_prime: float, fit: str) -> Tensor:
+    """p_k [B, S] from the sampled cells' values [B, S, M] (module docstring, ``fit``)."""
+    p_bar = (wn * p_cells).sum(-1, keepdim=True)
     if fit == MEAN:
-        return wn
+        return p_bar.squeeze(-1)
     if fit == LINEAR:
-        return linear_fit_coefficients(wn, ox, oy, sigma_prime)
+        d = linear_fit_correction(wn, ox, oy, sigma_prime)
+        return (p_bar + (d * (p_cells - p_bar)).sum(-1, keepdim=True)).squeeze(-1)
     raise ValueError(f"fit must be 'mean' or 'linear', got {fit!r}")
 
 
@@ -212,7 +216,7 @@ def surface_pressure(qs: Tensor, p: Tensor, mask: Tensor, grid: Grid, sigma_prim
 
     The offsets x_ij - q^k are formed in qs.dtype, then everything runs in the fluid's dtype."""
     flat, ox, oy, wn = surface_samples(qs, mask, grid, sigma_prime, weight, p.dtype)
-    return (fit_coefficients(wn, ox, oy, sigma_prime, fit) * gather_cells(p, flat)).sum(-1)
+    return fit_at_node(gather_cells(p, flat), wn, ox, oy, sigma_prime, fit)
 
 
 def viscous_traction(flat: Tensor, ox: Tensor, oy: Tensor, wn: Tensor, qdots: Tensor, v: Tensor, mu: Tensor,
@@ -264,7 +268,7 @@ def ibm_force(qs: Tensor, p: Tensor, mask: Tensor, grid: Grid, sigma_prime: floa
     elements = surface_elements(qs, area)
     flat, ox, oy, wn = surface_samples(qs, mask, grid, sigma_prime, weight, p.dtype,
                                        elements if area == CHORD else None)
-    p_k = (fit_coefficients(wn, ox, oy, sigma_prime, fit) * gather_cells(p, flat)).sum(-1)
+    p_k = fit_at_node(gather_cells(p, flat), wn, ox, oy, sigma_prime, fit)
     f = -p_k.unsqueeze(-1) * elements.to(p.dtype)
     if viscous is not None:
         qdots, v, mu = viscous
