@@ -28,6 +28,10 @@ from fishsim.rollout import SwimParams, rollout
 
 FRAMES = int(os.environ.get("FISHSIM_BENCH_FRAMES", "300"))
 FRAMES_B16 = int(os.environ.get("FISHSIM_BENCH_FRAMES_B16", "30"))  # B = 16: per-fish cost per frame
+# Checkpoint segment lengths [frames]. At B = 16 the numerical fluid's backward tapes 8 sub-steps x 2
+# passes a frame: a 5-frame segment peaked at 12.4 GB (2026-11-26) and a 10-frame one ran out of
+# this machine's 24 GB, so B = 16 recomputes 3-frame segments.
+SEGMENT, SEGMENT_B16 = 10, 3
 FRAMES_LONG = int(os.environ.get("FISHSIM_BENCH_FRAMES_LONG", "500"))  # peak memory of a long episode
 FLUIDS = ["hydronet", "numerical"]
 
@@ -69,7 +73,8 @@ def _differentiable(params: SwimParams) -> tuple[SwimParams, torch.Tensor]:
 
 def episode_timing(fluid: str, batch: int, frames: int) -> dict:
     """Warm-up (build mesh, solid factorisation, fluid model; first frame), forward (split),
-    backward of d(head x)/d(omega), peak RSS."""
+    backward of d(head x)/d(omega), peak RSS; checkpointed every SEGMENT frames (SEGMENT_B16 at
+    B > 1)."""
     t0 = time.perf_counter()
     ep = _episode(fluid, batch)
     sw = ep.swimmer
@@ -81,14 +86,15 @@ def episode_timing(fluid: str, batch: int, frames: int) -> dict:
     sw.timer.seconds = dict.fromkeys(sw.timer.seconds, 0.0)
     _reset_peak()
     t0 = time.perf_counter()
-    _, metrics = rollout(sw, state, params, frames, segment=10)
+    _, metrics = rollout(sw, state, params, frames, segment=SEGMENT if batch == 1 else SEGMENT_B16)
     forward = time.perf_counter() - t0
     split = dict(sw.timer.seconds)
     t0 = time.perf_counter()
     metrics["head_x"][-1].sum().backward()
     backward = time.perf_counter() - t0
     tail = metrics["tail_y"][-20:, 0].detach()  # the last 0.2 s of fish 0
-    return {"frames": frames, "batch": batch, "warmup_s": warmup, "forward_s": forward,
+    return {"frames": frames, "batch": batch, "segment": SEGMENT if batch == 1 else SEGMENT_B16,
+            "warmup_s": warmup, "forward_s": forward,
             "tail_peak_to_peak_m": float(tail.max() - tail.min()),
             "forward_solid_s": split["solid"], "forward_fluid_s": split["fluid"],
             "forward_coupling_s": split["coupling"], "backward_s": backward,
