@@ -64,16 +64,17 @@ def fluid_to_solid(q: Tensor, p: Tensor, boundary: Boundary, surface, grid: Grid
     q: node positions [B, N, 2] (m); p: pressure [B, 1, H, W] (Pa); boundary: the mask used to
     weight the IBM samples; step: time-step index t for the burn-in (None: no burn-in);
     mass: lumped node masses [N], how ``force_mode=average`` shares the total (None: equally);
-    viscous: with ``cfg.viscous``, (qdot [B, N, 2] m/s, the fluid velocity at the cell centres
-    [B, 2, H, W] m/s, mu [B] Pa s) for the viscous traction (ibm.ibm_force).
+    viscous: (qdot [B, N, 2] m/s, the fluid velocity at the cell centres [B, 2, H, W] m/s,
+    mu [B] Pa s) to add the viscous traction (ibm.ibm_force; the caller passes it with
+    ``cfg.viscous``), None for the pressure alone.
     Result in q.dtype; differentiable in q, p, boundary.mask and the viscous inputs.
     """
     idx = surface_index(surface, q.device)
-    if cfg.viscous:
+    if viscous is not None:
         qdot, v, mu = viscous
         viscous = (qdot[:, idx], v, mu)
     f = ibm_force(q[:, idx], p, boundary.mask, grid, cfg.sigma_prime, cfg.ibm_weight,
-                  cfg.ibm_fit, cfg.ibm_area, viscous if cfg.viscous else None)
+                  cfg.ibm_fit, cfg.ibm_area, viscous)
     scale = 1.0 if step is None else burn_in_scale(step, cfg.n_burn_in)
     return fext_from_surface(f, idx, q.shape[1], cfg.force_mode, cfg.fix_lateral, scale, mass)
 
