@@ -100,6 +100,7 @@ from fishsim.fluid.grid import (
     vector_to_faces,
     zero_walls,
 )
+from fishsim.fluid.kernels import Constrain, Predict
 from fishsim.fluid.pressure import SchwarzPreconditioner, WeightedPoisson
 from fishsim.fluid.residual import per_sample
 
@@ -214,7 +215,10 @@ def _mean_free(q: Tensor) -> Tensor:
 
 def predict(v: Faces, nu: Tensor, dt: Tensor | float, dx: float, walls: WallBC, scheme: str) -> Faces:
     """Explicit momentum update without pressure: w = v + dt [ -(v.grad)v + nu lap v ].
-    Wall faces keep their (prescribed) normal velocity."""
+    Wall faces keep their (prescribed) normal velocity. On the CPU with the Koren scheme the same
+    formula runs compiled, with its hand-written adjoint (``kernels.Predict``)."""
+    if scheme == "koren" and v[0].device.type == "cpu":
+        return Predict.apply(v[0], v[1], nu, dt, dx, walls)
     adv = advection(v, dx, walls, scheme)
     lap = zero_walls(laplacian_faces(v, dx, walls))
     return tuple(c + dt * (nu * L - A) for c, A, L in zip(v, adv, lap))
@@ -422,10 +426,14 @@ class NumericalFluid:
         increment). With ``brinkman``: ``immerse`` (``start``: PCG's guess for phi,
         ``precondition``: the step's). Else
         project(penalize(w)), repeated ``penalization_iterations`` times (alternating projections
-        onto {v = v_d in the body} and {div v = 0}), phi and the increment summed over them."""
+        onto {v = v_d in the body} and {div v = 0}), phi and the increment summed over them
+        (compiled on the CPU: ``kernels.Constrain``)."""
         if self.brinkman is not None:
             return immerse(w, b, v_d, self.brinkman * dt, self.fine.dx, start, precondition)
         inverse = self._inverse(w[0])
+        if w[0].device.type == "cpu":                 # the same passes, compiled
+            vx, vy, phi, px, py = Constrain.apply(*w, *b, *v_d, inverse, self.fine.dx, self.penalization_iterations)
+            return (vx, vy), phi, (px, py)
         phi_sum, pen_sum = 0.0, (0.0, 0.0)
         for _ in range(self.penalization_iterations):
             u, pen = penalize(w, b, v_d)

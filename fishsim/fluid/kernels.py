@@ -1,0 +1,502 @@
+"""Compiled (numba) loops of the numerical fluid's split stage on the CPU, with their hand-written
+adjoints: ``Predict`` computes ``numerical.predict`` (ghost values, Koren advection, 5-point
+diffusion, the explicit update) in one call, ``Constrain`` the K penalise -> project passes of
+``NumericalFluid._constrain``. Other devices, schemes and the rate penalisation use the torch
+formulas, which stay the reference (tests/fluid/test_kernels.py).
+
+Why: the torch formula tapes ~100 small full-grid temporaries per stage (the ghost layers'
+concatenations, the limiter's minima, maxima and selections, the slices) and its backward replays
+them. On the 100 x 300 grid, one thread, a stage cost 4.8 ms forward and ~50 ms forward + backward,
+16 stages a frame: the numerical fluid's backward was mostly this.
+
+    w = v + dt (nu lap v - (v.grad) v)     on the interior faces; w = v on the box-wall faces
+
+with ``grid``'s stencils: ghost values of two layers (``grid.pad_faces``: the normal velocity
+continued by odd reflection about the wall face, the tangential one mirrored about the wall half a
+cell away, 2 u_wall - u or u with slip), the flux-form advection of ``grid.advection``
+
+    F = U q_f,  U = (a + b)/2 the transporting velocity,
+    q_f = koren(q[k-1], q[k], q[k+1]) if U >= 0 else koren(q[k+2], q[k+1], q[k]),
+    (v.grad v)_x = (F_x[j+1] - F_x[j] + G_x[i+1] - G_x[i]) / dx, the y-component likewise,
+
+and the 5-point Laplacian. koren(u, c, d) = median(c, (5c + 2d - u)/6, median(c, d, 3c - 2u)) is
+piecewise linear: its derivative is that of the candidate selected (ties: the first in the order c,
+(5c + 2d - u)/6, d, 3c - 2u; torch splits a tie between minima or maxima evenly, so the adjoints
+can differ where the limiter's branches meet exactly; in water at rest U = 0 makes both vanish).
+
+P, Q are vx, vy with their ghost layers ([H+4, W+5], [H+5, W+4] per sample) and PT, QT their
+transposes, so that every flux family runs along the rows of one array. Each sample's loops are
+serial and in a fixed order (its result does not depend on its batch); the predictor runs the samples
+of a batch in parallel over numba's threads, a single sample in the calling thread (a parallel
+region's start costs more than one sample's passes, and its spinning threads slow a busy machine).
+Grids need at least 3 cells a side.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+import torch
+from numba import prange
+from torch import Tensor
+
+from fishsim.fluid.dct import apply_inverse
+
+
+@numba.njit(cache=True, inline="always")
+def _median(a, b, c):
+    return max(min(a, b), min(max(a, b), c))
+
+
+@numba.njit(cache=True, inline="always")
+def _koren(u, c, d):
+    return _median(c, (5.0 * c + 2.0 * d - u) / 6.0, _median(c, d, 3.0 * c - 2.0 * u))
+
+
+@numba.njit(cache=True, inline="always")
+def _koren_grad(u, c, d):
+    """(koren(u, c, d), d/du, d/dc, d/dd): the derivative of the candidate selected, c first on
+    ties, then t = (5c + 2d - u)/6, d, 3c - 2u (selects, no branches: the loop vectorises)."""
+    t = (5.0 * c + 2.0 * d - u) / 6.0
+    v = _median(c, t, _median(c, d, 3.0 * c - 2.0 * u))
+    is_c = v == c
+    is_t = (v == t) and not is_c
+    is_d = (v == d) and not (is_c or is_t)
+    is_e = not (is_c or is_t or is_d)
+    return (v, -1.0 / 6.0 * is_t - 2.0 * is_e, 1.0 * is_c + 5.0 / 6.0 * is_t + 3.0 * is_e,
+            1.0 / 3.0 * is_t + 1.0 * is_d)
+
+
+@numba.njit(cache=True)
+def _family_forward(q, T, tr0, tc0, tr1, tc1, F):
+    """One flux family along rows: F[a, k] = U upwind(q[a+2, k .. k+3], U), U = (T[a+tr0, k+tc0]
+    + T[a+tr1, k+tc1]) / 2, the face value between q[a+2, k+1] and q[a+2, k+2]."""
+    for a in range(F.shape[0]):
+        r = a + 2
+        for k in range(F.shape[1]):
+            U = 0.5 * (T[a + tr0, k + tc0] + T[a + tr1, k + tc1])
+            if U >= 0:
+                F[a, k] = U * _koren(q[r, k], q[r, k + 1], q[r, k + 2])
+            else:
+                F[a, k] = U * _koren(q[r, k + 3], q[r, k + 2], q[r, k + 1])
+
+
+@numba.njit(cache=True)
+def _family_backward(q, T, tr0, tc0, tr1, tc1, g, gq, gT):
+    """Adjoint of ``_family_forward`` for dL/dF = g: adds dL/dq into gq and dL/dT into gT (they may
+    be one array). Per row: the weights dL/dq[k + s] of every flux (a vectorised loop), then their
+    sum per q entry (a gather: no flux waits for its neighbour's store)."""
+    n0, n1 = g.shape
+    w = np.zeros((5, n1 + 6), dtype=q.dtype)      # flux k's weights at column k + 3
+    for a in range(n0):
+        r = a + 2
+        for k in range(n1):
+            U = 0.5 * (T[a + tr0, k + tc0] + T[a + tr1, k + tc1])
+            pos = U >= 0
+            v, du, dc, dd = _koren_grad(q[r, k] if pos else q[r, k + 3], q[r, k + 1] if pos else q[r, k + 2],
+                                        q[r, k + 2] if pos else q[r, k + 1])
+            gv = g[a, k] * U
+            w[0, k + 3] = gv * (du if pos else 0.0)
+            w[1, k + 3] = gv * (dc if pos else dd)
+            w[2, k + 3] = gv * (dd if pos else dc)
+            w[3, k + 3] = gv * (0.0 if pos else du)
+            w[4, k + 3] = 0.5 * g[a, k] * v
+        for m in range(n1 + 3):
+            gq[r, m] += w[0, m + 3] + w[1, m + 2] + w[2, m + 1] + w[3, m]
+        for k in range(n1):
+            gT[a + tr0, k + tc0] += w[4, k + 3]
+        for k in range(n1):
+            gT[a + tr1, k + tc1] += w[4, k + 3]
+
+
+
+@numba.njit(cache=True)
+def _pad(v, slip, lo, hi):
+    """v [n, m] -> [n+4, m+4] with two ghost layers: along the rows' direction (columns) the odd
+    reflection about the first and last entries (normal velocity), along the columns' (rows) the
+    mirror about walls half a cell beyond (tangential velocity; wall speeds lo, hi; slip)."""
+    n, m = v.shape
+    P = np.empty((n + 4, m + 4), v.dtype)
+    for i in range(n):
+        r = i + 2
+        for j in range(m):
+            P[r, j + 2] = v[i, j]
+        P[r, 0] = 2 * v[i, 0] - v[i, 2]
+        P[r, 1] = 2 * v[i, 0] - v[i, 1]
+        P[r, m + 2] = 2 * v[i, m - 1] - v[i, m - 2]
+        P[r, m + 3] = 2 * v[i, m - 1] - v[i, m - 3]
+    s, c_lo, c_hi = (1.0, 0.0, 0.0) if slip else (-1.0, 2 * lo, 2 * hi)
+    for j in range(m + 4):
+        P[0, j] = c_lo + s * P[3, j]
+        P[1, j] = c_lo + s * P[2, j]
+        P[n + 2, j] = c_hi + s * P[n + 1, j]
+        P[n + 3, j] = c_hi + s * P[n, j]
+    return P
+
+
+@numba.njit(cache=True)
+def _pad_adjoint(gP, slip, gv):
+    """Adds the adjoint of ``_pad`` applied to gP [n+4, m+4] into gv [n, m] (gP is consumed)."""
+    n, m = gv.shape
+    s = 1.0 if slip else -1.0
+    for j in range(m + 4):
+        gP[3, j] += s * gP[0, j]
+        gP[2, j] += s * gP[1, j]
+        gP[n + 1, j] += s * gP[n + 2, j]
+        gP[n, j] += s * gP[n + 3, j]
+    for i in range(n):
+        r = i + 2
+        for j in range(m):
+            gv[i, j] += gP[r, j + 2]
+        gv[i, 0] += 2 * (gP[r, 0] + gP[r, 1])
+        gv[i, 2] -= gP[r, 0]
+        gv[i, 1] -= gP[r, 1]
+        gv[i, m - 1] += 2 * (gP[r, m + 2] + gP[r, m + 3])
+        gv[i, m - 2] -= gP[r, m + 2]
+        gv[i, m - 3] -= gP[r, m + 3]
+
+
+@numba.njit(cache=True, inline="always")
+def _lap(P, r, c, inv_dx2):
+    return (P[r, c - 1] + P[r, c + 1] + P[r - 1, c] + P[r + 1, c] - 4 * P[r, c]) * inv_dx2
+
+
+# The four flux families, (q, T, tr0, tc0, tr1, tc1) of ``_family_forward``:
+#   F_x [H, W+2]     P,  P,  2, 1, 2, 2    U at the cell centres, from the x-faces
+#   G_x^T [W+1, H+1] PT, QT, 1, 2, 2, 2    V at the vertices, from the y-faces
+#   F_y^T [W, H+2]   QT, QT, 2, 1, 2, 2    V at the cell centres, from the y-faces
+#   G_y [H+1, W+1]   Q,  P,  1, 2, 2, 2    U at the vertices, from the x-faces
+
+
+@numba.njit(cache=True)
+def _padded(vx, vy, walls):
+    slip, u_bottom, u_top, v_left, v_right = walls
+    P, QT = _pad(vx, slip, u_bottom, u_top), _pad(vy.T, slip, v_left, v_right)
+    return P, QT, np.ascontiguousarray(P.T), np.ascontiguousarray(QT.T)
+
+
+@numba.njit(cache=True)
+def _fluxes(P, QT, PT, Q):
+    """(F_x, G_x^T, F_y^T, G_y) of the padded faces."""
+    H, W = P.shape[0] - 4, Q.shape[1] - 4
+    Fx, GxT = np.empty((H, W + 2), P.dtype), np.empty((W + 1, H + 1), P.dtype)
+    FyT, Gy = np.empty((W, H + 2), P.dtype), np.empty((H + 1, W + 1), P.dtype)
+    _family_forward(P, P, 2, 1, 2, 2, Fx)
+    _family_forward(PT, QT, 1, 2, 2, 2, GxT)
+    _family_forward(QT, QT, 2, 1, 2, 2, FyT)
+    _family_forward(Q, P, 1, 2, 2, 2, Gy)
+    return Fx, GxT, FyT, Gy
+
+
+@numba.njit(cache=True)
+def _sample_forward(vx, vy, nu, dt, inv_dx, walls, wx, wy):
+    H, W = vx.shape[0], vy.shape[1]
+    P, QT, PT, Q = _padded(vx, vy, walls)
+    Fx, GxT, FyT, Gy = _fluxes(P, QT, PT, Q)
+    inv_dx2 = inv_dx * inv_dx
+    wx[:, :] = vx
+    wy[:, :] = vy
+    for i in range(H):
+        for j in range(1, W):
+            adv = (Fx[i, j + 1] - Fx[i, j] + GxT[j, i + 1] - GxT[j, i]) * inv_dx
+            wx[i, j] += dt * (nu * _lap(P, i + 2, j + 2, inv_dx2) - adv)
+    for i in range(1, H):
+        for j in range(W):
+            adv = (FyT[j, i + 1] - FyT[j, i] + Gy[i, j + 1] - Gy[i, j]) * inv_dx
+            wy[i, j] += dt * (nu * _lap(Q, i + 2, j + 2, inv_dx2) - adv)
+
+
+@numba.njit(cache=True)
+def _sample_backward(vx, vy, nu, dt, inv_dx, walls, gwx, gwy, gvx, gvy, need_dt):
+    """Adds dL/dv into gvx, gvy; returns (dL/dnu, dL/dt) (dL/dt 0 unless need_dt: it recomputes
+    the fluxes)."""
+    H, W = vx.shape[0], vy.shape[1]
+    P, QT, PT, Q = _padded(vx, vy, walls)
+    if need_dt:
+        Fx, GxT, FyT, Gy = _fluxes(P, QT, PT, Q)
+    inv_dx2 = inv_dx * inv_dx
+    gP, gQ = np.zeros_like(P), np.zeros_like(Q)
+    gFx, gGxT = np.zeros((H, W + 2), vx.dtype), np.zeros((W + 1, H + 1), vx.dtype)
+    gFyT, gGy = np.zeros((W, H + 2), vx.dtype), np.zeros((H + 1, W + 1), vx.dtype)
+    g_nu, g_dt = 0.0, 0.0
+    for i in range(H):                      # w_x: v (all faces), + dt (nu lap - adv) (interior)
+        r = i + 2
+        for j in range(W + 1):
+            gvx[i, j] += gwx[i, j]
+        for j in range(1, W):
+            c, g = j + 2, gwx[i, j]
+            lap = _lap(P, r, c, inv_dx2)
+            g_nu += g * dt * lap
+            g_dt += g * nu * lap
+            if need_dt:
+                g_dt -= g * (Fx[i, j + 1] - Fx[i, j] + GxT[j, i + 1] - GxT[j, i]) * inv_dx
+            gl = g * dt * nu * inv_dx2
+            gP[r, c - 1] += gl
+            gP[r, c + 1] += gl
+            gP[r - 1, c] += gl
+            gP[r + 1, c] += gl
+            gP[r, c] -= 4 * gl
+            ga = g * dt * inv_dx    # a flux enters the face after it with + and the one before with -
+            gFx[i, j + 1] -= ga
+            gFx[i, j] += ga
+            gGxT[j, i + 1] -= ga
+            gGxT[j, i] += ga
+    for i in range(H + 1):
+        r = i + 2
+        for j in range(W):
+            gvy[i, j] += gwy[i, j]
+        if i == 0 or i == H:
+            continue
+        for j in range(W):
+            c, g = j + 2, gwy[i, j]
+            lap = _lap(Q, r, c, inv_dx2)
+            g_nu += g * dt * lap
+            g_dt += g * nu * lap
+            if need_dt:
+                g_dt -= g * (FyT[j, i + 1] - FyT[j, i] + Gy[i, j + 1] - Gy[i, j]) * inv_dx
+            gl = g * dt * nu * inv_dx2
+            gQ[r, c - 1] += gl
+            gQ[r, c + 1] += gl
+            gQ[r - 1, c] += gl
+            gQ[r + 1, c] += gl
+            gQ[r, c] -= 4 * gl
+            ga = g * dt * inv_dx
+            gFyT[j, i + 1] -= ga
+            gFyT[j, i] += ga
+            gGy[i, j + 1] -= ga
+            gGy[i, j] += ga
+    gPT, gQT = np.zeros_like(PT), np.zeros_like(QT)
+    _family_backward(P, P, 2, 1, 2, 2, gFx, gP, gP)
+    _family_backward(PT, QT, 1, 2, 2, 2, gGxT, gPT, gQT)
+    _family_backward(QT, QT, 2, 1, 2, 2, gFyT, gQT, gQT)
+    _family_backward(Q, P, 1, 2, 2, 2, gGy, gQ, gP)
+    gP += gPT.T
+    gQT += gQ.T
+    _pad_adjoint(gP, walls[0], gvx)
+    _pad_adjoint(gQT, walls[0], gvy.T)
+    return g_nu, g_dt
+
+
+@numba.njit(cache=True, parallel=True)
+def _forward_parallel(vx, vy, nu, dt, inv_dx, walls, wx, wy):
+    for n in prange(vx.shape[0]):
+        _sample_forward(vx[n], vy[n], nu[n], dt[n], inv_dx, walls, wx[n], wy[n])
+
+
+@numba.njit(cache=True, parallel=True)
+def _backward_parallel(vx, vy, nu, dt, inv_dx, walls, gwx, gwy, gvx, gvy, g_nu, g_dt, need_dt):
+    for n in prange(vx.shape[0]):
+        g_nu[n], g_dt[n] = _sample_backward(vx[n], vy[n], nu[n], dt[n], inv_dx, walls, gwx[n], gwy[n],
+                                            gvx[n], gvy[n], need_dt)
+
+
+def _forward(vx, vy, nu, dt, inv_dx, walls, wx, wy):
+    if vx.shape[0] == 1:        # one sample: no parallel region (its start costs more than it saves)
+        _sample_forward(vx[0], vy[0], nu[0], dt[0], inv_dx, walls, wx[0], wy[0])
+    else:
+        _forward_parallel(vx, vy, nu, dt, inv_dx, walls, wx, wy)
+
+
+def _backward(vx, vy, nu, dt, inv_dx, walls, gwx, gwy, gvx, gvy, g_nu, g_dt, need_dt):
+    if vx.shape[0] == 1:
+        g_nu[0], g_dt[0] = _sample_backward(vx[0], vy[0], nu[0], dt[0], inv_dx, walls, gwx[0], gwy[0], gvx[0],
+                                            gvy[0], need_dt)
+    else:
+        _backward_parallel(vx, vy, nu, dt, inv_dx, walls, gwx, gwy, gvx, gvy, g_nu, g_dt, need_dt)
+
+
+def _flat(t: Tensor) -> np.ndarray:
+    """[..., rows, cols] -> a C-contiguous numpy view [N, rows, cols] (a copy if t is not contiguous)."""
+    return t.detach().reshape(-1, *t.shape[-2:]).contiguous().numpy()
+
+
+def _per_sample(x: Tensor | float, like: Tensor) -> np.ndarray:
+    """A scalar or [B, 1, 1, 1] tensor as one float64 per sample [B * C]."""
+    x = torch.as_tensor(x, dtype=torch.float64).detach()
+    return torch.broadcast_to(x.reshape(-1, 1) if x.dim() else x, like.shape[:2]).reshape(-1).contiguous().numpy()
+
+
+class Predict(torch.autograd.Function):
+    """(w_x, w_y) = ``numerical.predict``'s momentum update of the faces v = (v_x [B, C, H, W+1],
+    v_y [B, C, H+1, W]) in m/s, with nu [m^2/s] and dt [s] scalars or [B, 1, 1, 1], cell size dx
+    [m], ``walls`` a grid.WallBC; the Koren scheme, CPU tensors. Differentiable in v, nu and dt."""
+
+    @staticmethod
+    def forward(ctx, vx: Tensor, vy: Tensor, nu, dt, dx: float, walls):
+        wall_args = (bool(walls.slip), float(walls.u_bottom), float(walls.u_top), float(walls.v_left),
+                     float(walls.v_right))
+        nu_n, dt_n = _per_sample(nu, vx), _per_sample(dt, vx)
+        wx, wy = torch.empty_like(vx, memory_format=torch.contiguous_format), torch.empty_like(
+            vy, memory_format=torch.contiguous_format)
+        _forward(_flat(vx), _flat(vy), nu_n, dt_n, 1.0 / dx, wall_args, _flat(wx), _flat(wy))
+        ctx.save_for_backward(vx, vy)
+        ctx.args = (nu_n, dt_n, 1.0 / dx, wall_args)
+        ctx.shapes = [(torch.as_tensor(x).shape, isinstance(x, Tensor)) for x in (nu, dt)]
+        return wx, wy
+
+    @staticmethod
+    def backward(ctx, gwx: Tensor, gwy: Tensor):
+        vx, vy = ctx.saved_tensors
+        nu_n, dt_n, inv_dx, wall_args = ctx.args
+        gvx, gvy = torch.zeros(vx.shape, dtype=vx.dtype), torch.zeros(vy.shape, dtype=vy.dtype)
+        g = np.zeros((2, nu_n.shape[0]))
+        _backward(_flat(vx), _flat(vy), nu_n, dt_n, inv_dx, wall_args, _flat(gwx), _flat(gwy), _flat(gvx),
+                  _flat(gvy), g[0], g[1], bool(ctx.needs_input_grad[3]))
+        g_params = []
+        for (shape, is_tensor), gs, need in zip(ctx.shapes, g, ctx.needs_input_grad[2:4]):
+            if not (is_tensor and need):
+                g_params.append(None)
+                continue
+            per_sample = torch.from_numpy(gs).to(vx.dtype).reshape(*vx.shape[:2], 1, 1)
+            g_params.append(per_sample.sum_to_size(shape) if len(shape) else per_sample.sum())
+        return gvx, gvy, *g_params, None, None
+
+
+# --------------------------------------------------------------------------------------------
+# The penalise -> project passes: u = w + b (v_d - w) (u = b v_d on the box-wall faces),
+# phi = L^+ div u, w' = u - grad phi (grad phi = 0 on the wall faces)
+# --------------------------------------------------------------------------------------------
+
+
+@numba.njit(cache=True)
+def _penalize_divergence(wx, wy, bx, by, dx_, dy_, inv_dx, ux, uy, div):
+    """u = w + b (v_d - w) on the interior faces, b v_d on the wall faces; div = div u."""
+    N, H, W = div.shape
+    for n in range(N):
+        for i in range(H):
+            for j in range(W + 1):
+                wall = j == 0 or j == W
+                ux[n, i, j] = bx[n, i, j] * dx_[n, i, j] if wall else wx[n, i, j] + bx[n, i, j] * (
+                    dx_[n, i, j] - wx[n, i, j])
+        for i in range(H + 1):
+            for j in range(W):
+                wall = i == 0 or i == H
+                uy[n, i, j] = by[n, i, j] * dy_[n, i, j] if wall else wy[n, i, j] + by[n, i, j] * (
+                    dy_[n, i, j] - wy[n, i, j])
+        for i in range(H):
+            for j in range(W):
+                div[n, i, j] = (ux[n, i, j + 1] - ux[n, i, j] + uy[n, i + 1, j] - uy[n, i, j]) * inv_dx
+
+
+@numba.njit(cache=True)
+def _subtract_gradient(ux, uy, phi, inv_dx, vx, vy):
+    """v = u - grad phi on the interior faces, u on the wall faces."""
+    N, H, W = phi.shape
+    for n in range(N):
+        for i in range(H):
+            vx[n, i, 0], vx[n, i, W] = ux[n, i, 0], ux[n, i, W]
+            for j in range(1, W):
+                vx[n, i, j] = ux[n, i, j] - (phi[n, i, j] - phi[n, i, j - 1]) * inv_dx
+        for j in range(W):
+            vy[n, 0, j], vy[n, H, j] = uy[n, 0, j], uy[n, H, j]
+        for i in range(1, H):
+            for j in range(W):
+                vy[n, i, j] = uy[n, i, j] - (phi[n, i, j] - phi[n, i - 1, j]) * inv_dx
+
+
+@numba.njit(cache=True)
+def _gradient_adjoint(gx, gy, inv_dx, out):
+    """out += -grad^T g = div of g with its wall faces zeroed (the adjoint of - grad phi)."""
+    N, H, W = out.shape
+    for n in range(N):
+        for i in range(H):
+            for j in range(W):
+                s = 0.0
+                if j >= 1:
+                    s -= gx[n, i, j]
+                if j + 1 <= W - 1:
+                    s += gx[n, i, j + 1]
+                if i >= 1:
+                    s -= gy[n, i, j]
+                if i + 1 <= H - 1:
+                    s += gy[n, i + 1, j]
+                out[n, i, j] += s * inv_dx
+
+
+@numba.njit(cache=True)
+def _penalize_divergence_adjoint(gux, guy, gdiv, wx, wy, bx, by, dx_, dy_, inv_dx, gwx, gwy, gbx, gby, gdx, gdy):
+    """Given dL/du (gux, guy, consumed) and dL/ddiv: writes dL/dw, adds dL/db and dL/dv_d."""
+    N, H, W = gdiv.shape
+    for n in range(N):
+        for i in range(H):
+            for j in range(W + 1):
+                g = gux[n, i, j] + ((gdiv[n, i, j - 1] if j >= 1 else 0.0)
+                                    - (gdiv[n, i, j] if j < W else 0.0)) * inv_dx
+                gdx[n, i, j] += g * bx[n, i, j]
+                if j == 0 or j == W:
+                    gwx[n, i, j] = 0.0
+                    gbx[n, i, j] += g * dx_[n, i, j]
+                else:
+                    gwx[n, i, j] = g * (1 - bx[n, i, j])
+                    gbx[n, i, j] += g * (dx_[n, i, j] - wx[n, i, j])
+        for i in range(H + 1):
+            for j in range(W):
+                g = guy[n, i, j] + ((gdiv[n, i - 1, j] if i >= 1 else 0.0)
+                                    - (gdiv[n, i, j] if i < H else 0.0)) * inv_dx
+                gdy[n, i, j] += g * by[n, i, j]
+                if i == 0 or i == H:
+                    gwy[n, i, j] = 0.0
+                    gby[n, i, j] += g * dy_[n, i, j]
+                else:
+                    gwy[n, i, j] = g * (1 - by[n, i, j])
+                    gby[n, i, j] += g * (dy_[n, i, j] - wy[n, i, j])
+
+
+def _empty(*like: Tensor) -> list[Tensor]:
+    return [torch.empty(t.shape, dtype=t.dtype) for t in like]
+
+
+def _zeros(*like: Tensor) -> list[Tensor]:
+    return [torch.zeros(t.shape, dtype=t.dtype) for t in like]
+
+
+class Constrain(torch.autograd.Function):
+    """K passes of u = penalize(w), (w, phi) = project(u) (``numerical.penalize`` with lambda ->
+    infinity, ``numerical.project``) from w = (w_x, w_y) with the face masks b and body velocities
+    v_d (faces, broadcast to w's shape), ``inverse`` (``dct.neumann_inverse``, w's dtype), cell
+    size dx [m]; returns (v_x, v_y, sum of phi [m^2/s], sum of u - w over the passes (x, y) [m/s]).
+    CPU tensors; differentiable in w, b and v_d."""
+
+    @staticmethod
+    def forward(ctx, wx, wy, bx, by, dx_, dy_, inverse, dx: float, passes: int):
+        b, d = [t.expand_as(w).contiguous() for t, w in ((bx, wx), (by, wy))], [
+            t.expand_as(w).contiguous() for t, w in ((dx_, wx), (dy_, wy))]
+        ws, inv_dx = [(wx.contiguous(), wy.contiguous())], 1.0 / dx
+        phi_sum, pen = 0.0, (0.0, 0.0)
+        for _ in range(passes):
+            w = ws[-1]
+            ux, uy = _empty(*w)
+            div = torch.empty(*wx.shape[:-1], wx.shape[-1] - 1, dtype=wx.dtype)
+            _penalize_divergence(*(_flat(t) for t in (*w, *b, *d)), inv_dx, _flat(ux), _flat(uy), _flat(div))
+            phi = apply_inverse(div, inverse)
+            vx, vy = _empty(*w)
+            _subtract_gradient(_flat(ux), _flat(uy), _flat(phi), inv_dx, _flat(vx), _flat(vy))
+            phi_sum = phi_sum + phi
+            pen = (pen[0] + (ux - w[0]), pen[1] + (uy - w[1]))
+            ws.append((vx, vy))
+        ctx.save_for_backward(*[c for w in ws[:-1] for c in w], *b, *d)
+        ctx.inverse, ctx.dx, ctx.passes, ctx.shapes = inverse, dx, passes, [t.shape for t in (bx, by, dx_, dy_)]
+        return ws[-1][0], ws[-1][1], phi_sum, pen[0], pen[1]
+
+    @staticmethod
+    def backward(ctx, gvx, gvy, gphi, gpx, gpy):
+        saved, K = ctx.saved_tensors, ctx.passes
+        ws = [saved[2 * k: 2 * k + 2] for k in range(K)]
+        bx, by, dx_, dy_ = saved[2 * K:]
+        inverse = ctx.inverse
+        inv_dx = 1.0 / ctx.dx
+        gp = [g.contiguous() for g in (gpx, gpy)]
+        gw = [g.contiguous() for g in (gvx, gvy)]
+        gb, gd = _zeros(bx, by), _zeros(dx_, dy_)
+        for k in reversed(range(K)):
+            g_phi = gphi.clone().contiguous()
+            _gradient_adjoint(_flat(gw[0]), _flat(gw[1]), inv_dx, _flat(g_phi))
+            g_div = apply_inverse(g_phi, inverse)
+            gu = [a + c for a, c in zip(gw, gp)]              # pen_k = u_k - w_k
+            new = _empty(*ws[k])
+            _penalize_divergence_adjoint(*(_flat(t) for t in (*gu, g_div, *ws[k], bx, by, dx_, dy_)), inv_dx,
+                                         *(_flat(t) for t in (*new, *gb, *gd)))
+            gw = [a - c for a, c in zip(new, gp)]
+        grads = [g.sum_to_size(shape) for g, shape in zip((*gb, *gd), ctx.shapes)]
+        return gw[0], gw[1], *grads, None, None, None
+

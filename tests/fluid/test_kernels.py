@@ -1,0 +1,98 @@
+"""The compiled stage of the numerical fluid (fishsim.fluid.kernels: Predict, Constrain) against the
+torch formulas they replace on the CPU: values, vector-Jacobian products, central differences,
+batch independence."""
+
+import pytest
+import torch
+
+from fishsim.fluid.dct import neumann_inverse
+from fishsim.fluid.grid import FREE_SLIP, NO_SLIP, WallBC, advection, laplacian_faces, zero_walls
+from fishsim.fluid.kernels import Constrain, Predict
+from fishsim.fluid.numerical import penalize, project
+
+WALLS = {"no-slip": NO_SLIP, "slip": FREE_SLIP, "moving": WallBC(u_bottom=-0.2, u_top=0.3, v_left=-0.1, v_right=0.4)}
+
+
+def _field(B, H, W, dtype, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return (torch.randn(B, 1, H, W + 1, generator=g, dtype=dtype),
+            torch.randn(B, 1, H + 1, W, generator=g, dtype=dtype))
+
+
+def _torch_predict(vx, vy, nu, dt, dx, walls):
+    """numerical.predict's formula, written with grid's torch stencils."""
+    adv = advection((vx, vy), dx, walls, "koren")
+    lap = zero_walls(laplacian_faces((vx, vy), dx, walls))
+    return tuple(c + dt * (nu * L - A) for c, A, L in zip((vx, vy), adv, lap))
+
+
+def _vjp(fn, v, nu, dt, walls, weights):
+    x = [c.clone().requires_grad_() for c in v]
+    nu, dt = nu.clone().requires_grad_(), dt.clone().requires_grad_()
+    w = fn(x[0], x[1], nu, dt, 0.1, walls)
+    sum((g * c).sum() for g, c in zip(weights, w)).backward()
+    return list(w) + [x[0].grad, x[1].grad, nu.grad, dt.grad]
+
+
+@pytest.mark.parametrize("walls", WALLS.values(), ids=WALLS.keys())
+@pytest.mark.parametrize("dtype, tol", [(torch.float64, 1e-13), (torch.float32, 3e-6)])
+def test_kernel_matches_the_torch_formula_and_its_adjoint(walls, dtype, tol):
+    """Random fields (every limiter branch, both upwind directions), 7 x 9 cells, two samples with
+    their own nu and dt: outputs and d<weights, w>/d(v, nu, dt)."""
+    v, weights = _field(2, 7, 9, dtype), _field(2, 7, 9, dtype, seed=1)
+    nu = torch.tensor([0.3, 0.05], dtype=dtype).view(2, 1, 1, 1)
+    dt = torch.tensor([0.01, 0.02], dtype=dtype).view(2, 1, 1, 1)
+    got = _vjp(Predict.apply, v, nu, dt, walls, weights)
+    want = _vjp(_torch_predict, v, nu, dt, walls, weights)
+    for name, x, y in zip(["wx", "wy", "dvx", "dvy", "dnu", "ddt"], got, want):
+        assert (x - y).abs().max() <= tol * y.abs().max(), name
+
+
+def test_kernel_gradient_against_central_differences():
+    """float64 gradcheck in v (limiter kinks are not met within the difference step)."""
+    v = tuple(c.requires_grad_() for c in _field(1, 5, 6, torch.float64, seed=3))
+    assert torch.autograd.gradcheck(lambda vx, vy: Predict.apply(vx, vy, 0.05, 0.01, 0.2, NO_SLIP), v,
+                                    eps=1e-7, atol=1e-6, rtol=1e-5)
+
+
+def test_a_sample_does_not_depend_on_its_batch():
+    """The samples run in parallel: sample 2 of a batch of 5 equals the same field alone, bit for bit."""
+    vx, vy = _field(5, 12, 20, torch.float32, seed=4)
+    batch = Predict.apply(vx, vy, 1e-3, 0.01, 0.05, NO_SLIP)
+    alone = Predict.apply(vx[2:3], vy[2:3], 1e-3, 0.01, 0.05, NO_SLIP)
+    assert torch.equal(batch[0][2:3], alone[0]) and torch.equal(batch[1][2:3], alone[1])
+
+
+def _torch_constrain(wx, wy, bx, by, dx_, dy_, inverse, dx, passes):
+    """NumericalFluid._constrain's split passes, written with numerical's torch functions."""
+    w, phi_sum, pen_sum = (wx, wy), 0.0, (0.0, 0.0)
+    for _ in range(passes):
+        u, pen = penalize(w, (bx, by), (dx_, dy_))
+        w, phi = project(u, dx, inverse)
+        phi_sum = phi_sum + phi
+        pen_sum = tuple(s + q for s, q in zip(pen_sum, pen))
+    return (*w, phi_sum, *pen_sum)
+
+
+@pytest.mark.parametrize("passes", [1, 3])
+@pytest.mark.parametrize("dtype, tol", [(torch.float64, 1e-12), (torch.float32, 2e-5)])
+def test_constrain_matches_the_torch_passes_and_their_adjoint(passes, dtype, tol):
+    """Random w, masks in [0, 1] and body velocities (broadcast from one sample, as the rollout's
+    are not), 6 x 8 cells, two samples: outputs and d<weights, outputs>/d(w, b, v_d)."""
+    H, W, dx = 6, 8, 0.1
+    w = _field(2, H, W, dtype)
+    g = torch.Generator().manual_seed(5)
+    b = tuple(torch.rand(c.shape, generator=g, dtype=dtype) for c in w)
+    v_d = tuple(torch.randn(1, *c.shape[1:], generator=g, dtype=dtype) for c in w)
+    inverse = neumann_inverse(H, W, dx, dtype=dtype)
+    outs = []
+    for fn in (Constrain.apply, _torch_constrain):
+        x = [c.clone().requires_grad_() for c in (*w, *b, *v_d)]
+        y = fn(*x, inverse, dx, passes)
+        weights = [torch.randn(c.shape, generator=torch.Generator().manual_seed(k), dtype=dtype)
+                   for k, c in enumerate(y)]
+        sum((q * c).sum() for q, c in zip(weights, y)).backward()
+        outs.append(list(y) + [c.grad for c in x])
+    names = ["vx", "vy", "phi", "pen_x", "pen_y", "dwx", "dwy", "dbx", "dby", "dvdx", "dvdy"]
+    for name, x, y in zip(names, *outs):
+        assert x.shape == y.shape and (x - y).abs().max() <= tol * y.abs().max(), name
