@@ -1,11 +1,12 @@
 """The paper's Table 1 on this machine: a 300-frame episode on the 100 x 300 grid with the default
-mesh, B = 1 (warm-up, forward with its solid / fluid / coupling split, backward, peak memory) and
-B = 16 (time per fish and frame, over ``FISHSIM_BENCH_FRAMES_B16`` = 30 frames), for each fluid
-model; plus the distance travelled in 1.2 s at 3-7 Hz (the paper's Fig. 4 in preview), and the
-peak memory of a ``FISHSIM_BENCH_FRAMES_LONG`` = 500-frame HydroNet episode (checkpointed every 10
-frames), the HydroNet B = 1 episode with its bfloat16 trunk (``fluid.bf16=true``), and with the
-recovered pressure instead of the network's own (``fluid.pressure=recovered``: timing and
-distances).
+mesh in the swim tunnel (``tunnel=true``: the fish held in x, the water past it at its own speed;
+free, the 5 Hz fish leaves the paper's 0.75 m tank after ~230 frames), B = 1 (warm-up, forward
+with its solid / fluid / coupling split, backward, peak memory) and B = 16 (time per fish and
+frame, over ``FISHSIM_BENCH_FRAMES_B16`` = 30 frames), for each fluid model; plus the distance
+travelled in 1.2 s at 3-7 Hz (the paper's Fig. 4 in preview, free swimming), and the peak memory of
+a ``FISHSIM_BENCH_FRAMES_LONG`` = 500-frame HydroNet episode (checkpointed every 10 frames), the
+HydroNet B = 1 episode with its bfloat16 trunk (``fluid.bf16=true``), and with the recovered
+pressure instead of the network's own (``fluid.pressure=recovered``: timing and distances).
 ``FISHSIM_BENCH_FRAMES`` shortens the episode for a quick look.
 
 Each measurement runs in a fresh process: memory freed by an earlier one stays resident in the
@@ -56,8 +57,8 @@ VARIANTS = {"hydronet-bf16": ["fluid=hydronet", "fluid.bf16=true"],
             "hydronet-recovered-pressure": ["fluid=hydronet", "fluid.pressure=recovered"]}
 
 
-def _episode(fluid: str, batch: int, frequencies=None):
-    overrides = list(VARIANTS.get(fluid, [f"fluid={fluid}"]))
+def _episode(fluid: str, batch: int, frequencies=None, tunnel: bool = False):
+    overrides = list(VARIANTS.get(fluid, [f"fluid={fluid}"])) + ["tunnel=true"] * tunnel
     if frequencies is not None:
         overrides.append("batch.frequency=[" + ",".join(str(f) for f in frequencies) + "]")
     elif batch > 1:
@@ -73,10 +74,10 @@ def _differentiable(params: SwimParams) -> tuple[SwimParams, torch.Tensor]:
 
 def episode_timing(fluid: str, batch: int, frames: int) -> dict:
     """Warm-up (build mesh, solid factorisation, fluid model; first frame), forward (split),
-    backward of d(head x)/d(omega), peak RSS; checkpointed every SEGMENT frames (SEGMENT_B16 at
-    B > 1)."""
+    backward of the distance swum through the water (head x + h sum U) w.r.t. omega, peak RSS;
+    checkpointed every SEGMENT frames (SEGMENT_B16 at B > 1); in the swim tunnel."""
     t0 = time.perf_counter()
-    ep = _episode(fluid, batch)
+    ep = _episode(fluid, batch, tunnel=True)
     sw = ep.swimmer
     params, omega = _differentiable(ep.params)
     state = sw.initial_state(params, ep.origin)
@@ -90,7 +91,7 @@ def episode_timing(fluid: str, batch: int, frames: int) -> dict:
     forward = time.perf_counter() - t0
     split = dict(sw.timer.seconds)
     t0 = time.perf_counter()
-    metrics["head_x"][-1].sum().backward()
+    (metrics["head_x"][-1] + sw.h * metrics["tunnel_u"].sum(0)).sum().backward()
     backward = time.perf_counter() - t0
     tail = metrics["tail_y"][-20:, 0].detach()  # the last 0.2 s of fish 0
     return {"frames": frames, "batch": batch, "segment": SEGMENT if batch == 1 else SEGMENT_B16,
@@ -101,7 +102,7 @@ def episode_timing(fluid: str, batch: int, frames: int) -> dict:
             "forward_per_fish_s": forward / batch, "backward_per_fish_s": backward / batch,
             "forward_ms_per_frame_per_fish": 1e3 * forward / (frames * batch),
             "backward_ms_per_frame_per_fish": 1e3 * backward / (frames * batch),
-            "peak_rss_mib": _peak_mib(), "dhead_domega": float(omega.grad[0])}
+            "peak_rss_mib": _peak_mib(), "ddistance_domega": float(omega.grad[0])}
 
 
 def distance_sweep(fluid: str, frequencies=(3.0, 4.0, 5.0, 6.0, 7.0), frames: int = 120) -> dict:
