@@ -161,6 +161,16 @@ def _lap(P, r, c, inv_dx2):
     return (P[r, c - 1] + P[r, c + 1] + P[r - 1, c] + P[r + 1, c] - 4 * P[r, c]) * inv_dx2
 
 
+@numba.njit(cache=True, inline="always")
+def _lap_adjoint(gP, r, c, g):
+    """Adds g d(_lap(P, r, c, 1))/dP into gP."""
+    gP[r, c - 1] += g
+    gP[r, c + 1] += g
+    gP[r - 1, c] += g
+    gP[r + 1, c] += g
+    gP[r, c] -= 4 * g
+
+
 # The four flux families, (q, T, tr0, tc0, tr1, tc1) of ``_family_forward``:
 #   F_x [H, W+2]     P,  P,  2, 1, 2, 2    U at the cell centres, from the x-faces
 #   G_x^T [W+1, H+1] PT, QT, 1, 2, 2, 2    V at the vertices, from the y-faces
@@ -230,12 +240,7 @@ def _sample_backward(vx, vy, nu, dt, inv_dx, walls, gwx, gwy, gvx, gvy, need_dt)
             g_dt += g * nu * lap
             if need_dt:
                 g_dt -= g * (Fx[i, j + 1] - Fx[i, j] + GxT[j, i + 1] - GxT[j, i]) * inv_dx
-            gl = g * dt * nu * inv_dx2
-            gP[r, c - 1] += gl
-            gP[r, c + 1] += gl
-            gP[r - 1, c] += gl
-            gP[r + 1, c] += gl
-            gP[r, c] -= 4 * gl
+            _lap_adjoint(gP, r, c, g * dt * nu * inv_dx2)
             ga = g * dt * inv_dx    # a flux enters the face after it with + and the one before with -
             gFx[i, j + 1] -= ga
             gFx[i, j] += ga
@@ -254,12 +259,7 @@ def _sample_backward(vx, vy, nu, dt, inv_dx, walls, gwx, gwy, gvx, gvy, need_dt)
             g_dt += g * nu * lap
             if need_dt:
                 g_dt -= g * (FyT[j, i + 1] - FyT[j, i] + Gy[i, j + 1] - Gy[i, j]) * inv_dx
-            gl = g * dt * nu * inv_dx2
-            gQ[r, c - 1] += gl
-            gQ[r, c + 1] += gl
-            gQ[r - 1, c] += gl
-            gQ[r + 1, c] += gl
-            gQ[r, c] -= 4 * gl
+            _lap_adjoint(gQ, r, c, g * dt * nu * inv_dx2)
             ga = g * dt * inv_dx
             gFyT[j, i + 1] -= ga
             gFyT[j, i] += ga
