@@ -171,6 +171,16 @@ def _lap_adjoint(gP, r, c, g):
     gP[r, c] -= 4 * g
 
 
+@numba.njit(cache=True, inline="always")
+def _divergence_adjoint(gF, a, b, gG, c, d, g):
+    """Adds the adjoint of (F[a, b+1] - F[a, b] + G[c, d+1] - G[c, d]) for its gradient g (the
+    advection of one face from its two flux families, dx folded into g)."""
+    gF[a, b + 1] += g
+    gF[a, b] -= g
+    gG[c, d + 1] += g
+    gG[c, d] -= g
+
+
 # The four flux families, (q, T, tr0, tc0, tr1, tc1) of ``_family_forward``:
 #   F_x [H, W+2]     P,  P,  2, 1, 2, 2    U at the cell centres, from the x-faces
 #   G_x^T [W+1, H+1] PT, QT, 1, 2, 2, 2    V at the vertices, from the y-faces
@@ -241,11 +251,7 @@ def _sample_backward(vx, vy, nu, dt, inv_dx, walls, gwx, gwy, gvx, gvy, need_dt)
             if need_dt:
                 g_dt -= g * (Fx[i, j + 1] - Fx[i, j] + GxT[j, i + 1] - GxT[j, i]) * inv_dx
             _lap_adjoint(gP, r, c, g * dt * nu * inv_dx2)
-            ga = g * dt * inv_dx    # a flux enters the face after it with + and the one before with -
-            gFx[i, j + 1] -= ga
-            gFx[i, j] += ga
-            gGxT[j, i + 1] -= ga
-            gGxT[j, i] += ga
+            _divergence_adjoint(gFx, i, j, gGxT, j, i, -g * dt * inv_dx)
     for i in range(H + 1):
         r = i + 2
         for j in range(W):
@@ -260,11 +266,7 @@ def _sample_backward(vx, vy, nu, dt, inv_dx, walls, gwx, gwy, gvx, gvy, need_dt)
             if need_dt:
                 g_dt -= g * (FyT[j, i + 1] - FyT[j, i] + Gy[i, j + 1] - Gy[i, j]) * inv_dx
             _lap_adjoint(gQ, r, c, g * dt * nu * inv_dx2)
-            ga = g * dt * inv_dx
-            gFyT[j, i + 1] -= ga
-            gFyT[j, i] += ga
-            gGy[i, j + 1] -= ga
-            gGy[i, j] += ga
+            _divergence_adjoint(gFyT, j, i, gGy, i, j, -g * dt * inv_dx)
     gPT, gQT = np.zeros_like(PT), np.zeros_like(QT)
     _family_backward(P, P, 2, 1, 2, 2, gFx, gP, gP)
     _family_backward(PT, QT, 1, 2, 2, 2, gGxT, gPT, gQT)
@@ -413,6 +415,14 @@ def _gradient_adjoint(gx, gy, inv_dx, out):
                 out[n, i, j] += s * inv_dx
 
 
+@numba.njit(cache=True, inline="always")
+def _blend_adjoint(g, wall, w, b, d):
+    """(dL/dw, dL/db, dL/dv_d) of u = b v_d (a wall face) or w + b (v_d - w) for dL/du = g."""
+    if wall:
+        return 0.0, g * d, g * b
+    return g * (1 - b), g * (d - w), g * b
+
+
 @numba.njit(cache=True)
 def _penalize_divergence_adjoint(gux, guy, gdiv, wx, wy, bx, by, dx_, dy_, inv_dx, gwx, gwy, gbx, gby, gdx, gdy):
     """Given dL/du (gux, guy, consumed) and dL/ddiv: writes dL/dw, adds dL/db and dL/dv_d."""
@@ -422,24 +432,16 @@ def _penalize_divergence_adjoint(gux, guy, gdiv, wx, wy, bx, by, dx_, dy_, inv_d
             for j in range(W + 1):
                 g = gux[n, i, j] + ((gdiv[n, i, j - 1] if j >= 1 else 0.0)
                                     - (gdiv[n, i, j] if j < W else 0.0)) * inv_dx
-                gdx[n, i, j] += g * bx[n, i, j]
-                if j == 0 or j == W:
-                    gwx[n, i, j] = 0.0
-                    gbx[n, i, j] += g * dx_[n, i, j]
-                else:
-                    gwx[n, i, j] = g * (1 - bx[n, i, j])
-                    gbx[n, i, j] += g * (dx_[n, i, j] - wx[n, i, j])
+                gwx[n, i, j], gb, gd = _blend_adjoint(g, j == 0 or j == W, wx[n, i, j], bx[n, i, j], dx_[n, i, j])
+                gbx[n, i, j] += gb
+                gdx[n, i, j] += gd
         for i in range(H + 1):
             for j in range(W):
                 g = guy[n, i, j] + ((gdiv[n, i - 1, j] if i >= 1 else 0.0)
                                     - (gdiv[n, i, j] if i < H else 0.0)) * inv_dx
-                gdy[n, i, j] += g * by[n, i, j]
-                if i == 0 or i == H:
-                    gwy[n, i, j] = 0.0
-                    gby[n, i, j] += g * dy_[n, i, j]
-                else:
-                    gwy[n, i, j] = g * (1 - by[n, i, j])
-                    gby[n, i, j] += g * (dy_[n, i, j] - wy[n, i, j])
+                gwy[n, i, j], gb, gd = _blend_adjoint(g, i == 0 or i == H, wy[n, i, j], by[n, i, j], dy_[n, i, j])
+                gby[n, i, j] += gb
+                gdy[n, i, j] += gd
 
 
 def _empty(*like: Tensor) -> list[Tensor]:
