@@ -70,8 +70,8 @@ class NeumannInverse:
 
     inv [H, W]: 1 / eigenvalue of every DCT-II mode, 0 for the constant one (the 2D transform
         solve, any device).
-    pivots [H, W] (numpy, float64): the CPU solve's Thomas factors (``_tridiagonal``), computed in
-        float64 and cast to inv's dtype by the solve."""
+    pivots [H, W] (numpy, inv's dtype): the CPU solve's Thomas factors (``_tridiagonal``),
+        computed in float64."""
 
     inv: Tensor
     pivots: np.ndarray
@@ -82,7 +82,8 @@ def neumann_inverse(H: int, W: int, dx: float, device=None, dtype=torch.float64)
     """L^+ of ``grid.laplacian_centres`` (``NeumannInverse``) in ``dtype`` on ``device``."""
     lam = neumann_eigenvalues(H, W, dx, device, dtype)
     inv = torch.where(lam < 0, 1 / torch.where(lam < 0, lam, -torch.ones_like(lam)), torch.zeros_like(lam))
-    return NeumannInverse(inv, _thomas_pivots(H, W, dx), dx)
+    pivots = _thomas_pivots(H, W, dx).astype(torch.empty(0, dtype=dtype).numpy().dtype)
+    return NeumannInverse(inv, pivots, dx)
 
 
 def _thomas_pivots(H: int, W: int, dx: float) -> np.ndarray:
@@ -165,7 +166,7 @@ def apply_inverse(f: Tensor, inverse: NeumannInverse) -> Tensor:
     if f.device.type == "cpu":
         x = f.detach().reshape(-1, *f.shape[-2:]).numpy()
         F = sfft.dct(x, type=2, axis=-1, workers=torch.get_num_threads())
-        _tridiagonal(F, inverse.pivots.astype(F.dtype, copy=False), inverse.dx)
+        _tridiagonal(F, inverse.pivots, inverse.dx)
         y = sfft.idct(F, type=2, axis=-1, workers=torch.get_num_threads())
         return torch.from_numpy(np.ascontiguousarray(y, dtype=x.dtype)).reshape(f.shape)
     inv = inverse.inv
