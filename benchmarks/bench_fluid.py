@@ -117,7 +117,7 @@ CYLINDER_LARGE = {"cells_per_d": 20, "length": 24.0, "width": 32.0, "x_centre": 
 
 def _cylinder(kw: dict) -> dict:
     t0 = time.perf_counter()
-    st, cd, cl = cases.cylinder_wake(**kw)
+    st, cd, cl, _ = cases.cylinder_wake(**kw)
     n = kw["cells_per_d"]
     return {
         "resolution": f"{n} cells/D, {kw['length']:g} D x {kw['width']:g} D "

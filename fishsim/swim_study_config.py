@@ -71,7 +71,7 @@ class Knob:
 
 def _knobs() -> dict[str, Knob]:
     return {"substeps": Knob("fluid.substeps", [4, 8, 16], 8),
-            "penalization": Knob("fluid.penalization_iterations", [1, 2, 4], 2),
+            "penalization": Knob("fluid.penalization_iterations", [1, 3, 9], 3),
             "kernel": Knob("coupling.sigma_prime", [2.5e-5, 1.25e-5, 6.25e-6], 6.25e-6, finer="down"),
             "grid": Knob("fluid.refinement", [1, 2], 1),
             "grid_short": Knob("fluid.refinement", [1, 2, 4], 1, frames=30)}

@@ -15,6 +15,7 @@ velocity), ``disc_polyline`` (the disc's ccw surface for the IBM), ``control_vol
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import NamedTuple
 
 import numpy as np
@@ -176,6 +177,7 @@ class CylinderWake(NamedTuple):
     strouhal: float  # f D / U
     drag: float  # mean C_D = F_x / (rho U^2 D / 2)
     lift_amplitude: float  # (max C_L - min C_L) / 2
+    probe: tuple[float, ...] = ()  # the window's mean of each of ``probe``'s values, / (rho U^2 D / 2)
 
 
 # The CI-sized cylinder (tests/fluid/test_validation.py, bench_fluid.validation): 16 cells per D on
@@ -185,7 +187,8 @@ CYLINDER_CI = {"cells_per_d": 16, "length": 24.0, "width": 32.0, "x_centre": 6.0
 
 
 def cylinder_wake(
-    cells_per_d=20, length=20.0, width=16.0, x_centre=5.0, t_end=180.0, window=60.0, h=0.05, dtype=torch.float32
+    cells_per_d=20, length=20.0, width=16.0, x_centre=5.0, t_end=180.0, window=60.0, h=0.05, dtype=torch.float32,
+    stepping: dict | None = None, probe: Callable[[Grid, FluidState, Boundary], Tensor] | None = None,
 ) -> CylinderWake:
     """Flow past a fixed circular cylinder at Re = U D / nu = 100 (U = D = 1, nu = 0.01, rho = 1).
 
@@ -196,6 +199,9 @@ def cylinder_wake(
     Force: the penalization force (``StepDiagnostics.force``) summed over the cells within 1.5 D
     of the centre, per unit depth, made dimensionless by rho U^2 D / 2.  Returns (St, mean C_D,
     C_L amplitude) over the last ``window`` time units; St from upward zero crossings of C_L.
+    stepping: ``NumericalFluid`` keywords (default ``BENCHMARK_STEPPING``); probe: forces [k] of
+    each step's state and fixed-cylinder boundary (e.g. the coupling's IBM force summed over the
+    surface), averaged over the window into ``CylinderWake.probe``.
     """
     U, Dc, nu = 1.0, 1.0, 0.01
     dx = Dc / cells_per_d
@@ -208,20 +214,23 @@ def cylinder_wake(
     spin = torch.stack([-(c[..., 1] - yc), c[..., 0] - xc])[None].to(dtype) * body * 0.5
     inflow = G.channel(g, U, thickness_y=0, thickness_x=4, dtype=dtype)
     spinning, fixed = G.union(inflow, Boundary(body, spin)), G.union(inflow, Boundary(body, 0 * spin))
-    m = NumericalFluid(g, walls=G.FREE_SLIP, **BENCHMARK_STEPPING)
+    m = NumericalFluid(g, walls=G.FREE_SLIP, **(BENCHMARK_STEPPING if stepping is None else stepping))
     y = (torch.arange(g.H + 1, dtype=dtype) * dx)[None, None, :, None]
     a0 = (U * y).expand(1, 1, g.H + 1, g.W + 1)
     s = FluidState(a0 - a0.mean(), torch.zeros(1, 1, g.H, g.W, dtype=dtype))
     pr = FluidParams(torch.tensor([1.0], dtype=dtype), torch.tensor([nu], dtype=dtype), h)
-    t, cl, cd = [], [], []
+    t, cl, cd, probed = [], [], [], []
     for k in range(round(t_end / h)):
         s, diag = m.step_with_diagnostics(s, spinning if k * h < 3.0 else fixed, pr)
         f = diag.force(1.0, region)[0] / (0.5 * U**2 * Dc)
         t.append((k + 1) * h), cd.append(f[0].item()), cl.append(f[1].item())
+        if probe is not None and (k + 1) * h > t_end - window:
+            probed.append(probe(g, s, fixed).double().numpy() / (0.5 * U**2 * Dc))
     t, cd, cl = np.array(t), np.array(cd), np.array(cl)
     keep = t > t_end - window
     t, cd, cl = t[keep], cd[keep], cl[keep] - cl[keep].mean()
     up = np.where((cl[:-1] < 0) & (cl[1:] >= 0))[0]
     t_up = t[up] - cl[up] * h / (cl[up + 1] - cl[up])
     st = (len(t_up) - 1) / (t_up[-1] - t_up[0]) * Dc / U
-    return CylinderWake(float(st), float(cd.mean()), float((cl.max() - cl.min()) / 2))
+    mean_probe = tuple(float(x) for x in np.mean(probed, 0)) if probed else ()
+    return CylinderWake(float(st), float(cd.mean()), float((cl.max() - cl.min()) / 2), mean_probe)

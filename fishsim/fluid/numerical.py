@@ -16,21 +16,17 @@ two stages are the same three phases (Chorin projection with Brinkman penalizati
 
 Convergence. One penalize -> project pass leaves a slip inside the body (the projection's
 pressure gradient acts there too), which the next pass removes; the body is enforced K n times a
-frame, and the answer depends on the product K n alone (K = 1, n = 16 and K = 2, n = 8 agree to
-5 digits), like a Brinkman penalisation of strength ~ K n / h.  On the swimming fish (120 frames,
-3 / 5 / 7 Hz, head displacement) K n = 2 / 4 / 8 / 16 / 32 give 22.7 / 25.5 / 26.2 / 25.9 / 24.6,
-51.7 / 64.7 / 70.5 / 73.0 / 73.4 and 79 / 113 / 131 / 134 / 152 mm: K n = 16 is within 1 % of
-K n = 12-32 at 5 Hz, 4 % at 3 Hz.  There is no limit to converge to: in the soft band of the
-mask (0 < b < 1) each pass pushes the velocity to v_d and the projection pushes part of it back,
-so the pressure there grows in proportion to K n (a heaving ellipse's pressure force: 0.10 /
-0.43 / 0.89 / 1.81 at K n = 4 / 16 / 32 / 64) and the body thickens towards the band's outer
-edge.  A converged penalisation also gives the fish its full added mass (7.4 M in heave at
-K n = 16, against 5.4 M at K n = 4), which the coupling's added-mass stabilisation must match
-(``coupling.added_mass_ratio``).  Defaults K = 2, n = 8 (``penalization_iterations``,
-``substeps``).  The swimming numbers above read the fish's force with the coupling's former IBM
-weight 1 - b, which sampled the band's own pressure; the default now samples beyond the band
-(fishsim/coupling/ibm.py), and the study then moves by <= 1.7 % from n = 8 to 16 and by <= 3.7 %
-between this scheme and the rate penalisation below (README, "Which pressure the fish feels").
+frame, and the answer depends mostly on the product K n, like a Brinkman penalisation of strength
+~ K n / h.  There is no limit to converge to: in the soft band of the mask (0 < b < 1) each pass
+pushes the velocity to v_d and the projection pushes part of it back, so the pressure there grows
+in proportion to K n and the body thickens slowly towards the band's outer edge (the swimming
+study drifts by a few per cent from K n = 24 to 256).  The coupling therefore reads the fish's
+pressure beyond the band (fishsim/coupling/ibm.py), and a converged penalisation gives the fish
+its full added mass, which the coupling's added-mass stabilisation must match
+(``coupling.added_mass_ratio``).  Defaults K = 3, n = 8 (``penalization_iterations``,
+``substeps``): on the frequency study one sub-step more or less moves a fish by <= 0.5 % and
+every K >= 3 from n = 7 on lies on the same plateau (docs/validation.md, "Convergence of the
+numerical reference on the swimming task").
 
 Rate penalisation (``brinkman`` = lambda, ``fluid.brinkman``): the body forcing is a rate,
 dv/dt = ... + lambda chi(b) (v_d - v), taken implicitly together with the projection, so that the
@@ -335,7 +331,7 @@ class NumericalFluid:
         brinkman: float | None = None,
         substeps: int = 8,
         max_substeps: int = 400,
-        penalization_iterations: int = 2,
+        penalization_iterations: int = 3,
     ):
         if refinement < 1:
             raise ValueError(f"refinement must be a positive integer, got {refinement}")

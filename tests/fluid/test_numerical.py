@@ -250,14 +250,15 @@ def test_rate_penalisation_converges_in_substeps():
     """The rate penalisation solved with the projection (``brinkman``) is one PDE discretised in
     time: the thin ellipse's added mass (sampled pressure) moves by < 0.3 % from 4 to 8 sub-steps
     (measured 1.1934 / 1.1944 / 1.1949 at n = 4 / 8 / 16, lambda = 1e4), where the split scheme's
-    keeps growing (1.087 / 1.169 / 1.219 / 1.257 at n = 4 / 8 / 16 / 32; with the former IBM weight
+    keeps growing (2 passes: 1.087 / 1.169 / 1.219 / 1.257 at n = 4 / 8 / 16 / 32; 3 passes, the
+    default: 1.140 / 1.200 at n = 4 / 8, within 0.5 % of the rate scheme's limit; with the former IBM weight
     1 - b, which also read the band's pressure: 0.816 / 0.906 / 1.007 / 1.166, and the rate
     scheme's 1.1353 / 1.1361 / 1.1365); the body's cells move with it (slip < 10 % in an impulsive
     start)."""
     g = Grid(40, 80, 2.5e-3)
     rate = [_thin_ellipse_added_mass(NumericalFluid(g, substeps=n, brinkman=1e4), g) for n in (4, 8)]
     assert abs(rate[1] - rate[0]) < 3e-3 * rate[1], rate
-    split = [_thin_ellipse_added_mass(NumericalFluid(g, substeps=n), g) for n in (4, 8)]
+    split = [_thin_ellipse_added_mass(NumericalFluid(g, substeps=n, penalization_iterations=2), g) for n in (4, 8)]
     assert split[1] - split[0] > 0.05 * split[1], split           # the check can fail: the split does
     m = NumericalFluid(g, substeps=4, brinkman=1e4)
     c = g.cell_centres()

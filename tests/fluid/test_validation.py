@@ -72,14 +72,14 @@ def test_cylinder_re100_strouhal_and_drag_in_published_bands():
     14: 1.50, 16: 1.48, 20: 1.46; St 0.167, 0.169, 0.170, 0.171, 0.173); on 16 D x 8 D
     (blockage 1/8) 10 cells/D gave St 0.177, C_D 1.67.  The force is the penalization force
     summed within 1.5 D of the centre (``cylinder_wake``)."""
-    st, cd, cl = cylinder_wake(**CYLINDER_CI)
+    st, cd, cl, _ = cylinder_wake(**CYLINDER_CI)
     assert 0.155 <= st <= 0.175
     assert 1.25 <= cd <= 1.50
     assert 0.2 <= cl <= 0.5
 
 
 STEPPINGS = {"benchmark": BENCHMARK_STEPPING,                   # 1 sub-step, 1 penalisation pass
-             "fish": {},                                         # the fish's defaults: 8 sub-steps x 2 passes
+             "fish": {},                                         # the fish's defaults: 8 sub-steps x 3 passes
              "rate": {"brinkman": 1e4}}                          # the rate penalisation, 8 sub-steps
 
 
@@ -125,19 +125,21 @@ def test_towed_disc_ibm_pressure_drag_vs_penalization(stepping):
     above (Re = 100, radius 4 cells, from rest, steps 10-29) against the total (pressure + viscous)
     drag the penalization exchanges with the fluid (the momentum balance of the test above).
 
-    Measured (float64), IBM / total: 0.79 (benchmark stepping), 0.80 (fish), 0.67 (rate; total C_D
-    1.38 / 0.95 / 1.01): the pressure share of a cylinder's drag at Re = 100 is ~0.7-0.8.  With the
-    viscous traction (``ibm_force(viscous=...)``, C_D 0.33 at every stepping, about the skin-friction drag of
-    a cylinder at Re = 100): 1.025 / 1.143 / 0.986.  The former default weight, 1 - b, also sampled
-    the band, whose pressure is the penalization's and grows with its stiffness: 1.25 / 12.3 / 36
-    (the fish's sampled force was its pressure).
-    Tolerances: pressure [0.6, 0.9], pressure + traction [0.9, 1.2]; the former weight at the fish's
-    stepping > 5."""
+    Measured (float64), IBM / total: 0.79 (benchmark stepping), 0.85 (fish, 8 sub-steps x 3
+    passes; 0.80 at 2 passes, 0.89 at 4), 0.67 (rate; total C_D 1.38 / 0.93 / 1.01): the pressure
+    share of a cylinder's drag at Re = 100 is ~0.7-0.8.  With the viscous traction
+    (``ibm_force(viscous=...)``, C_D 0.33 at every stepping, about the skin-friction drag of a
+    cylinder at Re = 100): 1.025 / 1.200 / 0.986 (1.143 at 2 passes, 1.243 at 4: the band stiffens
+    with every pass, the pressure beyond it rises and the exchanged total falls).  The former
+    default weight, 1 - b, also sampled the band, whose pressure is the penalization's and grows
+    with its stiffness: 1.25 / 18.6 / 36 (the fish's sampled force was its pressure).
+    Tolerances: pressure [0.6, 0.9], pressure + traction [0.9, 1.25]; the former weight at the
+    fish's stepping > 5."""
     pen, _, ibm, visc = _rigid_disc_forces(U=0.1, amp_y=0.0, freq=0.0, steps=30, stepping=STEPPINGS[stepping])
     drag_pen, drag_ibm, drag_visc = -pen[10:, 0].mean(), -ibm[10:, 0].mean(), -visc[10:, 0].mean()
     assert drag_pen > 0 and drag_ibm > 0 and drag_visc > 0  # all oppose the motion
     assert 0.6 <= drag_ibm / drag_pen <= 0.9
-    assert 0.9 <= (drag_ibm + drag_visc) / drag_pen <= 1.2
+    assert 0.9 <= (drag_ibm + drag_visc) / drag_pen <= 1.25
     if stepping == "fish":
         pen, _, ibm, _ = _rigid_disc_forces(U=0.1, amp_y=0.0, freq=0.0, steps=30, stepping={}, weight="fluid")
         assert ibm[10:, 0].mean() / pen[10:, 0].mean() > 5
@@ -149,13 +151,13 @@ def test_oscillating_disc_ibm_pressure_force_is_its_added_mass(stepping):
     rest; Stokes number f D^2 / nu = 40, KC = 2 pi A / D = 1.6): a force dominated by added mass,
     i.e. by pressure.  Over steps 25-99 (1.5 periods), y components.
 
-    Measured (float64), benchmark / fish / rate stepping: IBM amplitude 0.0116 / 0.0126 / 0.0127
+    Measured (float64), benchmark / fish / rate stepping: IBM amplitude 0.0116 / 0.0127 / 0.0127
     N/m against rho pi R^2 A w^2 = 0.0124 N/m, the potential-flow added-mass force in unbounded
-    fluid (-6.5 / +1.6 / +2.4 %); IBM / hydrodynamic force from the penalization (its force plus
-    rho V dv_d/dt, the momentum given to the fluid inside the disc; amplitude 0.0139 / 0.0154 /
-    0.0157): least-squares ratio 0.81 / 0.80 / 0.81 (the rest is viscous; with the viscous
+    fluid (-6.5 / +2.6 / +2.4 %); IBM / hydrodynamic force from the penalization (its force plus
+    rho V dv_d/dt, the momentum given to the fluid inside the disc; amplitude 0.0139 / 0.0155 /
+    0.0157): least-squares ratio 0.81 / 0.81 / 0.81 (the rest is viscous; with the viscous
     traction 0.87 / 0.84 / 0.83: the oscillating Stokes layer, sqrt(2 nu / w) = 1.8 mm, is under a
-    cell).  The former weight 1 - b: amplitude 0.0120 / 0.0412 / 0.118.  Tolerances: amplitude
+    cell).  The former weight 1 - b: amplitude 0.0120 / 0.0591 / 0.118.  Tolerances: amplitude
     within 10 %, ratio in [0.7, 0.9], and larger with the traction (at most 0.95)."""
     _, hyd, ibm, visc = _rigid_disc_forces(U=0.0, amp_y=0.005, freq=2.0, steps=100, stepping=STEPPINGS[stepping])
     f_hyd, f_ibm, f_visc = hyd[25:, 1], ibm[25:, 1], visc[25:, 1]
