@@ -12,7 +12,8 @@ amplitude (through mask velocity) after one step.
 ``validation()`` (part of ``run()``, also callable alone) re-measures the validation figures of
 tests/fluid (fishsim.fluid.cases) at stated resolutions, with their wall times: the Taylor-Green
 decay-rate error, the lid-driven cavity vs Ghia et al. (64 x 64), and the Re = 100 cylinder
-(Strouhal number, mean C_D, C_L amplitude) at the CI-reduced size and at a larger one.
+(Strouhal number, mean C_D, C_L amplitude) at the CI-reduced size and at a larger one, and on the
+fish's grid and stepping with the coupling's IBM drag beside the momentum exchange.
 """
 
 
@@ -25,7 +26,8 @@ from contextlib import contextmanager
 
 import torch
 
-from fishsim.fields import Boundary, FluidParams, Grid
+from fishsim.coupling.ibm import ibm_force
+from fishsim.fields import Boundary, FluidParams, FluidState, Grid
 from fishsim.fluid import cases
 from fishsim.fluid import grid as G
 from fishsim.fluid.numerical import NumericalFluid
@@ -115,11 +117,31 @@ CYLINDER_LARGE = {"cells_per_d": 20, "length": 24.0, "width": 32.0, "x_centre": 
                   "h": 0.05}
 
 
-def _cylinder(kw: dict) -> dict:
+# The same cylinder on the fish's grid and stepping: D = 2 cm in 2.5 mm cells (8 cells per D), h = 0.01 s at
+# U = 0.1 m/s (0.05 D/U), the fish's sub-steps and passes (NumericalFluid's defaults), float64.
+CYLINDER_FISH_GRID = {"cells_per_d": 8, "length": 24.0, "width": 32.0, "x_centre": 6.0, "t_end": 120.0, "window": 40.0,
+                      "h": 0.05, "dtype": torch.float64, "stepping": {}}
+
+
+def coupling_drag(g: Grid, s: FluidState, bd: Boundary) -> torch.Tensor:
+    """x forces on CYLINDER_FISH_GRID's cylinder as the coupling reads them: [IBM pressure, IBM
+    viscous traction], summed over 31 surface nodes (kernel std one cell, sigma' = dx^2; the
+    fluid's units: rho = U = D = 1, mu = 0.01)."""
+    kw = CYLINDER_FISH_GRID
+    qs = cases.disc_polyline(kw["x_centre"], kw["width"] / 2, 0.5, 31)
+    v = G.faces_to_centres(G.curl(s.a, g.dx))
+    pressure = ibm_force(qs, s.p, bd.mask, g, sigma_prime=g.dx**2).sum(1)[0]
+    traction = ibm_force(qs, torch.zeros_like(s.p), bd.mask, g, sigma_prime=g.dx**2,
+                         viscous=(torch.zeros_like(qs), v, 0.01)).sum(1)[0]
+    return torch.stack([pressure[0], traction[0]])
+
+
+def _cylinder(kw: dict, probe=None) -> dict:
     t0 = time.perf_counter()
-    st, cd, cl, _ = cases.cylinder_wake(**kw)
+    st, cd, cl, probed = cases.cylinder_wake(**kw, probe=probe)
     n = kw["cells_per_d"]
-    return {
+    extra = {"cd_ibm_pressure": probed[0], "cd_ibm_traction": probed[1]} if probed else {}
+    return {**extra,
         "resolution": f"{n} cells/D, {kw['length']:g} D x {kw['width']:g} D "
         f"({round(kw['width'] * n)}x{round(kw['length'] * n)}), h = {kw['h']:g} D/U, "
         f"t = {kw['t_end']:g} D/U, last {kw['window']:g}",
@@ -140,7 +162,8 @@ def validation(large: bool = True) -> dict:
       = 0.6 and 314: energy decay rate and its relative error vs the discrete-Laplacian rate.
     * Lid-driven cavity Re = 100, 64 x 64, t = 12: max |u - u_Ghia| (lid-speed units).
     * Cylinder Re = 100: St, mean C_D, C_L amplitude (penalization force within 1.5 D) at the
-      CI-reduced size and, with ``large``, at ``CYLINDER_LARGE``.
+      CI-reduced size, on the fish's grid and stepping (``CYLINDER_FISH_GRID``, with the coupling's
+      IBM pressure and traction drag coefficients) and, with ``large``, at ``CYLINDER_LARGE``.
     """
     out = {"threads": 1}
     with _threads(1):
@@ -158,6 +181,7 @@ def validation(large: bool = True) -> dict:
         out["ghia_re100"] = {"resolution": "64x64, h = 0.01, t = 12", "max_abs_error": err,
                              "wall_s": time.perf_counter() - t0}
         out["cylinder_re100_ci"] = _cylinder(CYLINDER_CI)
+        out["cylinder_re100_fish_grid"] = _cylinder(CYLINDER_FISH_GRID, coupling_drag)
         if large:
             out["cylinder_re100_large"] = _cylinder(CYLINDER_LARGE)
     return out
