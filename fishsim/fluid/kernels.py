@@ -308,8 +308,12 @@ def _backward(vx, vy, nu, dt, inv_dx, walls, gwx, gwy, gvx, gvy, g_nu, g_dt, nee
 
 
 def _flat(t: Tensor) -> np.ndarray:
-    """[..., rows, cols] -> a C-contiguous numpy view [N, rows, cols] (a copy if t is not contiguous)."""
-    return t.detach().reshape(-1, *t.shape[-2:]).contiguous().numpy()
+    """[..., rows, cols] -> a C-contiguous numpy view [N, rows, cols] (a copy if t is not contiguous;
+    reshaped in numpy, half the cost of torch's reshape + contiguous: ~1700 calls a step)."""
+    a = t.detach().numpy()
+    if not a.flags.c_contiguous:
+        a = np.ascontiguousarray(a)
+    return a.reshape(-1, *a.shape[-2:])
 
 
 def _per_sample(x: Tensor | float, like: Tensor) -> np.ndarray:
