@@ -19,13 +19,18 @@ import os
 import time
 import warnings
 from concurrent.futures import ProcessPoolExecutor
+from contextlib import contextmanager
 
 import torch
 
 from fishsim.config import load_config
 from fishsim.episode import build_episode
 from fishsim.errors import SimulationBlowUp
+from fishsim.fluid.dct import NeumannPoisson
+from fishsim.fluid.kernels import Constrain, Predict
+from fishsim.fluid.pressure import WeightedPoisson
 from fishsim.rollout import SwimParams, rollout
+from fishsim.solid.step import PDStepFunction
 
 FRAMES = int(os.environ.get("FISHSIM_BENCH_FRAMES", "300"))
 FRAMES_B16 = int(os.environ.get("FISHSIM_BENCH_FRAMES_B16", "30"))  # B = 16: per-fish cost per frame
@@ -72,10 +77,51 @@ def _differentiable(params: SwimParams) -> tuple[SwimParams, torch.Tensor]:
     return SwimParams(ctrl, params.E, params.fluid), omega
 
 
+@contextmanager
+def adjoint_clock(fluid_model):
+    """Wall time [s] a backward spends in the solid's adjoint (``PDStepFunction.backward``) and in
+    the fluid's own adjoints (the numerical fluid's compiled stage and Poisson solves, HydroNet's
+    network between its module backward hooks, the pressure recovery's solve), summed into the
+    yielded dict {"solid", "fluid"}; the rest of a backward is torch's taped ops (the coupling,
+    the fluid's glue around its kernels) and the recomputation of checkpointed segments. Enter it
+    before the forward: module backward hooks act only on calls made after they are registered."""
+    seconds, restore = {"solid": 0.0, "fluid": 0.0}, []
+
+    def timed(cls, phase):
+        original = cls.backward
+
+        def backward(ctx, *grads):
+            t0 = time.perf_counter()
+            try:
+                return original(ctx, *grads)
+            finally:
+                seconds[phase] += time.perf_counter() - t0
+        cls.backward = staticmethod(backward)
+        restore.append(lambda: setattr(cls, "backward", staticmethod(original)))
+
+    timed(PDStepFunction, "solid")
+    for cls in (Predict, Constrain, NeumannPoisson, WeightedPoisson):
+        timed(cls, "fluid")
+    net = getattr(fluid_model, "model", None)
+    if net is not None:
+        started = []
+        pre = net.register_full_backward_pre_hook(lambda *_: started.append(time.perf_counter()))
+        post = net.register_full_backward_hook(
+            lambda *_: seconds.__setitem__("fluid", seconds["fluid"] + time.perf_counter() - started.pop()))
+        restore += [pre.remove, post.remove]
+    try:
+        yield seconds
+    finally:
+        for undo in restore:
+            undo()
+
+
 def episode_timing(fluid: str, batch: int, frames: int) -> dict:
-    """Warm-up (build mesh, solid factorisation, fluid model; first frame), forward (split),
-    backward of the distance swum through the water (head x + h sum U) w.r.t. omega, peak RSS;
-    checkpointed every SEGMENT frames (SEGMENT_B16 at B > 1); in the swim tunnel."""
+    """Warm-up (build mesh, solid factorisation, fluid model; first frame), forward (split
+    solid / fluid / coupling), backward of the distance swum through the water (head x + h sum U)
+    w.r.t. omega (split: the checkpointed segments' recomputation, by phase; the solid's and the
+    fluid's own adjoints, ``adjoint_clock``; the rest), peak RSS; checkpointed every SEGMENT
+    frames (SEGMENT_B16 at B > 1); in the swim tunnel."""
     t0 = time.perf_counter()
     ep = _episode(fluid, batch, tunnel=True)
     sw = ep.swimmer
@@ -86,19 +132,25 @@ def episode_timing(fluid: str, batch: int, frames: int) -> dict:
     warmup = time.perf_counter() - t0
     sw.timer.seconds = dict.fromkeys(sw.timer.seconds, 0.0)
     _reset_peak()
-    t0 = time.perf_counter()
-    _, metrics = rollout(sw, state, params, frames, segment=SEGMENT if batch == 1 else SEGMENT_B16)
-    forward = time.perf_counter() - t0
-    split = dict(sw.timer.seconds)
-    t0 = time.perf_counter()
-    (metrics["head_x"][-1] + sw.h * metrics["tunnel_u"].sum(0)).sum().backward()
-    backward = time.perf_counter() - t0
+    with adjoint_clock(sw.fluid) as adjoint:    # its module hooks must be in place for the forward
+        t0 = time.perf_counter()
+        _, metrics = rollout(sw, state, params, frames, segment=SEGMENT if batch == 1 else SEGMENT_B16)
+        forward = time.perf_counter() - t0
+        split = dict(sw.timer.seconds)
+        sw.timer.seconds = dict.fromkeys(sw.timer.seconds, 0.0)
+        t0 = time.perf_counter()
+        (metrics["head_x"][-1] + sw.h * metrics["tunnel_u"].sum(0)).sum().backward()
+        backward = time.perf_counter() - t0
+    recompute = dict(sw.timer.seconds)
     tail = metrics["tail_y"][-20:, 0].detach()  # the last 0.2 s of fish 0
     return {"frames": frames, "batch": batch, "segment": SEGMENT if batch == 1 else SEGMENT_B16,
             "warmup_s": warmup, "forward_s": forward,
             "tail_peak_to_peak_m": float(tail.max() - tail.min()),
             "forward_solid_s": split["solid"], "forward_fluid_s": split["fluid"],
             "forward_coupling_s": split["coupling"], "backward_s": backward,
+            "backward_recompute_s": sum(recompute.values()), "backward_recompute_split_s": recompute,
+            "backward_solid_adjoint_s": adjoint["solid"], "backward_fluid_adjoint_s": adjoint["fluid"],
+            "backward_rest_s": backward - sum(recompute.values()) - adjoint["solid"] - adjoint["fluid"],
             "forward_per_fish_s": forward / batch, "backward_per_fish_s": backward / batch,
             "forward_ms_per_frame_per_fish": 1e3 * forward / (frames * batch),
             "backward_ms_per_frame_per_fish": 1e3 * backward / (frames * batch),
