@@ -162,8 +162,9 @@ def plot_solid_convergence(rows: Sequence[Mapping], beam_rows: Sequence[Mapping]
 
 def plot_convergence(results: Mapping[str, Mapping], frequencies: Sequence[float], path: str | Path) -> list[Path]:
     """One panel per numerical knob: the head's displacement against the knob's setting (log
-    axis), one line per frequency, the Richardson estimate dashed and the default dotted.
-    results: fishsim.swim_study.convergence_study's output."""
+    axis) as a change in % from the default setting's (from the finest where the default is not
+    among the settings), one line per frequency, the Richardson estimate dashed, the default
+    dotted and a +-2 % band shaded. results: fishsim.swim_study.convergence_study's output."""
     names = list(results)
     fig = Figure(figsize=(5.0 * min(len(names), 3), 3.4 * math.ceil(len(names) / 3)), layout="constrained")
     FigureCanvasAgg(fig)
@@ -171,15 +172,19 @@ def plot_convergence(results: Mapping[str, Mapping], frequencies: Sequence[float
         r = results[name]
         ax = fig.add_subplot(math.ceil(len(names) / 3), min(len(names), 3), k + 1)
         d = np.asarray(r["displacement_mm"], float)
+        values = list(r["values"])
+        base = d[values.index(r["default"])] if r["default"] in values else d[-1]
+        ax.axhspan(-2.0, 2.0, color="0.9", label="+-2 %")
         for j, f in enumerate(frequencies):
-            line = ax.plot(r["values"], d[:, j], marker=MARKERS[j % len(MARKERS)], label=f"{f:g} Hz")[0]
+            line = ax.plot(values, 100 * (d[:, j] / base[j] - 1), marker=MARKERS[j % len(MARKERS)],
+                           label=f"{f:g} Hz ({base[j]:.3g} mm)")[0]
             rich = r["displacement"]["richardson"][j]
             if np.isfinite(rich):
-                ax.axhline(rich, color=line.get_color(), linestyle="--", linewidth=0.8)
+                ax.axhline(100 * (rich / base[j] - 1), color=line.get_color(), linestyle="--", linewidth=0.8)
         ax.axvline(r["default"], color="0.5", linestyle=":", label="default")
         ax.set_xscale("log")
         ax.set_xlabel(f"{r['key']} ({r['frames']} frames)")
-        ax.set_ylabel("head x displacement [mm]")
+        ax.set_ylabel("head x displacement vs default [%]")
         ax.set_title(name)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
