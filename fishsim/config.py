@@ -175,7 +175,8 @@ class FluidConfig:
         ran 120 frames at 4 sub-steps, Courant number 1.04).
     penalization_iterations: numerical solver only, penalize -> project passes per stage (K) of
         the split scheme. 3 with 8 sub-steps: one sub-step more or less moves the frequency study
-        by <= 0.5 % (2 passes: 0.76 %), at 1.18x the cost of 2.
+        by <= 0.5 % (2 passes: 0.76 %), for ~1.2x a coupled frame's forward time (1.3-1.4x the
+        fluid step's).
     brinkman: numerical solver only, lambda (1/s) of the rate penalisation solved jointly with the
         projection, which converges in sub-steps (fishsim/fluid/numerical.py); null: the split
         scheme.
