@@ -35,9 +35,11 @@ def machine() -> dict:
 
 
 def to_markdown(results: dict) -> str:
-    lines = [f"# fishsim benchmarks\n\nMachine: {results['machine']}\n"]
+    lines = ["# fishsim benchmarks\n"]
+    machines = results.get("machines", {})
     for suite, rows in results["suites"].items():
-        lines += [f"## {suite}\n", "| quantity | value |", "|---|---|"]
+        lines += [f"## {suite}\n", f"Machine: {machines.get(suite, results.get('machine'))}\n",
+                  "| quantity | value |", "|---|---|"]
         for key, value in _flatten(rows):
             lines.append(f"| {key} | {value:.4g} |" if isinstance(value, float) else f"| {key} | {value} |")
         lines.append("")
@@ -54,18 +56,21 @@ def _flatten(d: dict, prefix: str = ""):
 
 def main(names: list[str]) -> None:
     """Run the named suites (default: all). Naming suites updates just those in an existing
-    results.json. Every suite starts at the machine's default torch thread count (one suite
+    results.json (each suite records the machine and threads it ran with). Every suite starts at the machine's default torch thread count (one suite
     changing it does not leak into the next)."""
     path = HERE / "results.json"
-    results = {"machine": machine(), "suites": {}}
-    if names and path.exists():
-        results["suites"] = json.loads(path.read_text())["suites"]
+    results = {"machines": {}, "suites": {}}
+    if names and path.exists():           # the other suites keep their numbers and the machine they ran on
+        earlier = json.loads(path.read_text())
+        results["suites"] = earlier["suites"]
+        results["machines"] = earlier.get("machines") or dict.fromkeys(earlier["suites"], earlier.get("machine"))
     threads = torch.get_num_threads()
     for name in names or SUITES:
         module = importlib.import_module(f"benchmarks.{name}")
         print(f"== {name}", flush=True)
         torch.set_num_threads(threads)
         t0 = time.perf_counter()
+        results["machines"][name] = machine()
         results["suites"][name] = module.run()
         print(json.dumps(results["suites"][name], indent=1), f"({time.perf_counter() - t0:.0f} s)", flush=True)
         path.write_text(json.dumps(results, indent=1))  # after every suite: a later failure keeps these
