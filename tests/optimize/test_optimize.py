@@ -208,11 +208,13 @@ def swept():
 
 
 def test_adam_reaches_the_optimum_of_the_dense_sweep(swept, tmp_path):
+    """Adam from 9 Hz (lr 0.1) reaches 95 % of the sweep's best distance within 10 iterations
+    (6 sufficed with 2 penalisation passes; with 3 the 6th iterate was at 92 %)."""
     over, f, J = swept
     k = int(torch.argmax(J))
     assert 0 < k < len(f) - 1                              # an interior optimum
     cfg = load_config("optimize", [*SMALL, *over, "params.frequency.init=9", "optimizer.lr=0.1",
-                                   "optimizer.iterations=6", f"out_dir={tmp_path}"])
+                                   "optimizer.iterations=10", f"out_dir={tmp_path}"])
     summary = run(cfg)["adam"]
     assert summary["best_J"] >= 0.95 * float(J[k])
     near = f[J >= 0.85 * J[k]]
