@@ -14,6 +14,7 @@ allocator, so a shared process would report the largest earlier peak instead of 
 
 from __future__ import annotations
 
+import dataclasses
 import multiprocessing
 import os
 import time
@@ -74,7 +75,7 @@ def _episode(fluid: str, batch: int, frequencies=None, tunnel: bool = False):
 def _differentiable(params: SwimParams) -> tuple[SwimParams, torch.Tensor]:
     omega = params.controller.omega.clone().requires_grad_(True)
     ctrl = type(params.controller)(params.controller.C, omega, params.controller.gamma, params.controller.t_a)
-    return SwimParams(ctrl, params.E, params.fluid), omega
+    return dataclasses.replace(params, controller=ctrl), omega   # the other parameters (muscles) kept
 
 
 @contextmanager
