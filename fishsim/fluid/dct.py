@@ -13,11 +13,12 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 import scipy.fft as sfft
 import torch
 from torch import Tensor
+
+from fishsim.compiled import jit
 
 
 def _phase(N: int, sign: float, like: Tensor) -> Tensor:
@@ -102,7 +103,7 @@ def _thomas_pivots(H: int, W: int, dx: float) -> np.ndarray:
     return inv_pivot
 
 
-@numba.njit(cache=True)
+@jit
 def _tridiagonal(F, inv_pivot, dx):
     """Solves, in place, A_l phi_l = F[:, :, l] for every sample and x-mode l ([N, H, W], the
     x-DCT of the right-hand side): Thomas' sweeps over the rows, vectorised over l >= 1; l = 0

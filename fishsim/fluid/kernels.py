@@ -34,26 +34,26 @@ Grids need at least 3 cells a side.
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 import torch
 from numba import prange
 from torch import Tensor
 
+from fishsim.compiled import jit
 from fishsim.fluid.dct import apply_inverse
 
 
-@numba.njit(cache=True, inline="always")
+@jit(inline="always")
 def _median(a, b, c):
     return max(min(a, b), min(max(a, b), c))
 
 
-@numba.njit(cache=True, inline="always")
+@jit(inline="always")
 def _koren(u, c, d):
     return _median(c, (5.0 * c + 2.0 * d - u) / 6.0, _median(c, d, 3.0 * c - 2.0 * u))
 
 
-@numba.njit(cache=True, inline="always")
+@jit(inline="always")
 def _koren_grad(u, c, d):
     """(koren(u, c, d), d/du, d/dc, d/dd): the derivative of the candidate selected, c first on
     ties, then t = (5c + 2d - u)/6, d, 3c - 2u (selects, no branches: the loop vectorises)."""
@@ -67,7 +67,7 @@ def _koren_grad(u, c, d):
             1.0 / 3.0 * is_t + 1.0 * is_d)
 
 
-@numba.njit(cache=True)
+@jit
 def _family_forward(q, T, tr0, tc0, tr1, tc1, F):
     """One flux family along rows: F[a, k] = U upwind(q[a+2, k .. k+3], U), U = (T[a+tr0, k+tc0]
     + T[a+tr1, k+tc1]) / 2, the face value between q[a+2, k+1] and q[a+2, k+2]."""
@@ -81,7 +81,7 @@ def _family_forward(q, T, tr0, tc0, tr1, tc1, F):
                 F[a, k] = U * _koren(q[r, k + 3], q[r, k + 2], q[r, k + 1])
 
 
-@numba.njit(cache=True)
+@jit
 def _family_backward(q, T, tr0, tc0, tr1, tc1, g, gq, gT):
     """Adjoint of ``_family_forward`` for dL/dF = g: adds dL/dq into gq and dL/dT into gT (they may
     be one array). Per row: the weights dL/dq[k + s] of every flux (a vectorised loop), then their
@@ -110,7 +110,7 @@ def _family_backward(q, T, tr0, tc0, tr1, tc1, g, gq, gT):
 
 
 
-@numba.njit(cache=True)
+@jit
 def _pad(v, slip, lo, hi):
     """v [n, m] -> [n+4, m+4] with two ghost layers: along the rows' direction (columns) the odd
     reflection about the first and last entries (normal velocity), along the columns' (rows) the
@@ -134,7 +134,7 @@ def _pad(v, slip, lo, hi):
     return P
 
 
-@numba.njit(cache=True)
+@jit
 def _pad_adjoint(gP, slip, gv):
     """Adds the adjoint of ``_pad`` applied to gP [n+4, m+4] into gv [n, m] (gP is consumed)."""
     n, m = gv.shape
@@ -156,12 +156,12 @@ def _pad_adjoint(gP, slip, gv):
         gv[i, m - 3] -= gP[r, m + 3]
 
 
-@numba.njit(cache=True, inline="always")
+@jit(inline="always")
 def _lap(P, r, c, inv_dx2):
     return (P[r, c - 1] + P[r, c + 1] + P[r - 1, c] + P[r + 1, c] - 4 * P[r, c]) * inv_dx2
 
 
-@numba.njit(cache=True, inline="always")
+@jit(inline="always")
 def _lap_adjoint(gP, r, c, g):
     """Adds g d(_lap(P, r, c, 1))/dP into gP."""
     gP[r, c - 1] += g
@@ -171,7 +171,7 @@ def _lap_adjoint(gP, r, c, g):
     gP[r, c] -= 4 * g
 
 
-@numba.njit(cache=True, inline="always")
+@jit(inline="always")
 def _divergence_adjoint(gF, a, b, gG, c, d, g):
     """Adds the adjoint of (F[a, b+1] - F[a, b] + G[c, d+1] - G[c, d]) for its gradient g (the
     advection of one face from its two flux families, dx folded into g)."""
@@ -188,14 +188,14 @@ def _divergence_adjoint(gF, a, b, gG, c, d, g):
 #   G_y [H+1, W+1]   Q,  P,  1, 2, 2, 2    U at the vertices, from the x-faces
 
 
-@numba.njit(cache=True)
+@jit
 def _padded(vx, vy, walls):
     slip, u_bottom, u_top, v_left, v_right = walls
     P, QT = _pad(vx, slip, u_bottom, u_top), _pad(vy.T, slip, v_left, v_right)
     return P, QT, np.ascontiguousarray(P.T), np.ascontiguousarray(QT.T)
 
 
-@numba.njit(cache=True)
+@jit
 def _fluxes(P, QT, PT, Q):
     """(F_x, G_x^T, F_y^T, G_y) of the padded faces."""
     H, W = P.shape[0] - 4, Q.shape[1] - 4
@@ -208,7 +208,7 @@ def _fluxes(P, QT, PT, Q):
     return Fx, GxT, FyT, Gy
 
 
-@numba.njit(cache=True)
+@jit
 def _sample_forward(vx, vy, nu, dt, inv_dx, walls, wx, wy):
     H, W = vx.shape[0], vy.shape[1]
     P, QT, PT, Q = _padded(vx, vy, walls)
@@ -226,7 +226,7 @@ def _sample_forward(vx, vy, nu, dt, inv_dx, walls, wx, wy):
             wy[i, j] += dt * (nu * _lap(Q, i + 2, j + 2, inv_dx2) - adv)
 
 
-@numba.njit(cache=True)
+@jit
 def _sample_backward(vx, vy, nu, dt, inv_dx, walls, gwx, gwy, gvx, gvy, need_dt):
     """Adds dL/dv into gvx, gvy; returns (dL/dnu, dL/dt) (dL/dt 0 unless need_dt: it recomputes
     the fluxes)."""
@@ -279,13 +279,13 @@ def _sample_backward(vx, vy, nu, dt, inv_dx, walls, gwx, gwy, gvx, gvy, need_dt)
     return g_nu, g_dt
 
 
-@numba.njit(cache=True, parallel=True)
+@jit(parallel=True)
 def _forward_parallel(vx, vy, nu, dt, inv_dx, walls, wx, wy):
     for n in prange(vx.shape[0]):
         _sample_forward(vx[n], vy[n], nu[n], dt[n], inv_dx, walls, wx[n], wy[n])
 
 
-@numba.njit(cache=True, parallel=True)
+@jit(parallel=True)
 def _backward_parallel(vx, vy, nu, dt, inv_dx, walls, gwx, gwy, gvx, gvy, g_nu, g_dt, need_dt):
     for n in prange(vx.shape[0]):
         g_nu[n], g_dt[n] = _sample_backward(vx[n], vy[n], nu[n], dt[n], inv_dx, walls, gwx[n], gwy[n],
@@ -364,7 +364,7 @@ class Predict(torch.autograd.Function):
 # --------------------------------------------------------------------------------------------
 
 
-@numba.njit(cache=True)
+@jit
 def _penalize_divergence(wx, wy, bx, by, dx_, dy_, inv_dx, ux, uy, div):
     """u = w + b (v_d - w) on the interior faces, b v_d on the wall faces; div = div u."""
     N, H, W = div.shape
@@ -384,7 +384,7 @@ def _penalize_divergence(wx, wy, bx, by, dx_, dy_, inv_dx, ux, uy, div):
                 div[n, i, j] = (ux[n, i, j + 1] - ux[n, i, j] + uy[n, i + 1, j] - uy[n, i, j]) * inv_dx
 
 
-@numba.njit(cache=True)
+@jit
 def _subtract_gradient(ux, uy, phi, inv_dx, vx, vy):
     """v = u - grad phi on the interior faces, u on the wall faces."""
     N, H, W = phi.shape
@@ -400,7 +400,7 @@ def _subtract_gradient(ux, uy, phi, inv_dx, vx, vy):
                 vy[n, i, j] = uy[n, i, j] - (phi[n, i, j] - phi[n, i - 1, j]) * inv_dx
 
 
-@numba.njit(cache=True)
+@jit
 def _gradient_adjoint(gx, gy, inv_dx, out):
     """out += -grad^T g = div of g with its wall faces zeroed (the adjoint of - grad phi)."""
     N, H, W = out.shape
@@ -419,7 +419,7 @@ def _gradient_adjoint(gx, gy, inv_dx, out):
                 out[n, i, j] += s * inv_dx
 
 
-@numba.njit(cache=True, inline="always")
+@jit(inline="always")
 def _blend_adjoint(g, wall, w, b, d):
     """(dL/dw, dL/db, dL/dv_d) of u = b v_d (a wall face) or w + b (v_d - w) for dL/du = g."""
     if wall:
@@ -427,7 +427,7 @@ def _blend_adjoint(g, wall, w, b, d):
     return g * (1 - b), g * (d - w), g * b
 
 
-@numba.njit(cache=True)
+@jit
 def _penalize_divergence_adjoint(gux, guy, gdiv, wx, wy, bx, by, dx_, dy_, inv_dx, gwx, gwy, gbx, gby, gdx, gdy):
     """Given dL/du (gux, guy, consumed) and dL/ddiv: writes dL/dw, adds dL/db and dL/dv_d."""
     N, H, W = gdiv.shape

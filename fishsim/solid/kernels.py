@@ -25,10 +25,11 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from fishsim.compiled import jit
 from fishsim.solid.energies import _TINY
 
 
-@numba.njit(cache=True)
+@jit
 def _deformation_gradient(X, triangles, grad, e):
     """(F00, F01, F10, F11) of element e for one sample's nodal values X [N, 2] (F = G_e X)."""
     k0, k1, k2 = triangles[e, 0], triangles[e, 1], triangles[e, 2]
@@ -40,7 +41,7 @@ def _deformation_gradient(X, triangles, grad, e):
             y0 * grad[e, 0, 1] + y1 * grad[e, 1, 1] + y2 * grad[e, 2, 1])
 
 
-@numba.njit(cache=True)
+@jit
 def _objective_sample(X, Y, mass_h2, triangles, grad, w_corotated, muscle_of, w_muscle, stretch, b, g) -> float:
     """Phi of one sample (X, Y, g: its [N, 2] arrays; b its column in w_corotated and stretch),
     writing grad Phi into g."""
@@ -75,7 +76,7 @@ def _objective_sample(X, Y, mass_h2, triangles, grad, w_corotated, muscle_of, w_
     return phi
 
 
-@numba.njit(cache=True, parallel=True)
+@jit(parallel=True)
 def objective(X: np.ndarray, Y: np.ndarray, phi_args, samples: np.ndarray, g: np.ndarray) -> np.ndarray:
     """Phi [B] (J per unit depth), writing grad Phi into g [B, N, 2] (N per unit depth), for the
     given samples (indices; the others' entries are left as they are, Phi 0).
@@ -92,7 +93,7 @@ def objective(X: np.ndarray, Y: np.ndarray, phi_args, samples: np.ndarray, g: np
     return phi
 
 
-@numba.njit(cache=True)
+@jit
 def _dot(u: np.ndarray, v: np.ndarray) -> float:
     """sum_j u_j v_j of two contiguous arrays, flattened (in index order)."""
     u, v = u.reshape(-1), v.reshape(-1)
@@ -102,7 +103,7 @@ def _dot(u: np.ndarray, v: np.ndarray) -> float:
     return total
 
 
-@numba.njit(cache=True)
+@jit
 def _axpy(c: float, x: np.ndarray, z: np.ndarray) -> None:
     """z += c x for two contiguous arrays of one shape."""
     x, z = x.reshape(-1), z.reshape(-1)
@@ -110,7 +111,7 @@ def _axpy(c: float, x: np.ndarray, z: np.ndarray) -> None:
         z[j] += c * x[j]
 
 
-@numba.njit(cache=True, parallel=True)
+@jit(parallel=True)
 def lbfgs_first_loop(q: np.ndarray, S: np.ndarray, Y: np.ndarray, rho: np.ndarray, order: np.ndarray,
                      samples: np.ndarray, alphas: np.ndarray) -> None:
     """L-BFGS two-loop recursion, first half, in place on q [B, N, 2] for the given samples: for
@@ -124,7 +125,7 @@ def lbfgs_first_loop(q: np.ndarray, S: np.ndarray, Y: np.ndarray, rho: np.ndarra
             _axpy(-alphas[k, b], Y[h, b], q[b])
 
 
-@numba.njit(cache=True, parallel=True)
+@jit(parallel=True)
 def lbfgs_second_loop(r: np.ndarray, S: np.ndarray, Y: np.ndarray, rho: np.ndarray, order: np.ndarray,
                       samples: np.ndarray, alphas: np.ndarray) -> None:
     """Second half, in place on r = H0 q: from oldest to newest, beta = rho y.r,
@@ -136,7 +137,7 @@ def lbfgs_second_loop(r: np.ndarray, S: np.ndarray, Y: np.ndarray, rho: np.ndarr
             _axpy(alphas[k, b] - rho[h, b] * _dot(Y[h, b], r[b]), S[h, b], r[b])
 
 
-@numba.njit(cache=True)
+@jit
 def band_factor(L: np.ndarray) -> bool:
     """In place K -> its Cholesky factor, both as bands [n, w + 1] (L[j, i] = K_{j+i, j}, the
     lower triangle). Right-looking: column j is scaled by 1 / sqrt(pivot) and its outer product
@@ -159,7 +160,7 @@ def band_factor(L: np.ndarray) -> bool:
     return True
 
 
-@numba.njit(cache=True, fastmath={"reassoc", "contract"})
+@jit(fastmath={"reassoc", "contract"})
 def band_solve(L: np.ndarray, x: np.ndarray) -> None:
     """In place x -> (L L^T)^-1 x for a factor band L [n, w + 1] and x [n]: forward substitution
     by columns, back substitution by (vectorised) dots."""
@@ -176,7 +177,7 @@ def band_solve(L: np.ndarray, x: np.ndarray) -> None:
         x[j] = s / L[j, 0]
 
 
-@numba.njit(cache=True)
+@jit
 def _element_newton(e, b, alpha_R, beta_R, c, w_corotated, muscle_of, w_muscle, n0, n1, length, stretch,
                     grad, projected, H, Ke) -> None:
     """Ke [6, 6] = G_e^T H_e G_e of element e, sample b (element DOF 2k + a), with H [4, 4]
@@ -211,7 +212,7 @@ def _element_newton(e, b, alpha_R, beta_R, c, w_corotated, muscle_of, w_muscle, 
                     Ke[2 * k + a, 2 * l + bb] = s
 
 
-@numba.njit(cache=True)
+@jit
 def newton_elements(alpha_R: np.ndarray, beta_R: np.ndarray, c: np.ndarray, w_corotated: np.ndarray,
                     muscle_of: np.ndarray, w_muscle: np.ndarray, n0: np.ndarray, n1: np.ndarray,
                     length: np.ndarray, stretch: np.ndarray, grad: np.ndarray, projected: bool, b: int,
@@ -226,7 +227,7 @@ def newton_elements(alpha_R: np.ndarray, beta_R: np.ndarray, c: np.ndarray, w_co
                         grad, projected, H, Ke[e])
 
 
-@numba.njit(cache=True)
+@jit
 def _newton_factor(newton, slot: np.ndarray, diagonal: np.ndarray, mass_diag: np.ndarray, projected: bool,
                    b: int, L: np.ndarray) -> bool:
     """Assemble sample b's Newton matrix (newton_elements' element matrices, `newton` its argument
@@ -250,7 +251,7 @@ def _newton_factor(newton, slot: np.ndarray, diagonal: np.ndarray, mass_diag: np
     return band_factor(L)
 
 
-@numba.njit(cache=True, parallel=True)
+@jit(parallel=True)
 def newton_factors(newton, projected: bool, slot: np.ndarray, diagonal: np.ndarray, mass_diag: np.ndarray,
                    samples: np.ndarray, L: np.ndarray, ok: np.ndarray) -> None:
     """For each sample b in samples (in parallel): its Newton matrix's banded factor in L[b]
@@ -260,7 +261,7 @@ def newton_factors(newton, projected: bool, slot: np.ndarray, diagonal: np.ndarr
         ok[b] = _newton_factor(newton, slot, diagonal, mass_diag, projected, b, L[b])
 
 
-@numba.njit(cache=True)
+@jit
 def _solve_sample(L: np.ndarray, perm: np.ndarray, inverse: np.ndarray, r: np.ndarray, z: np.ndarray,
                   x: np.ndarray) -> None:
     """z = K^-1 r for one sample (r, z: contiguous [N, 2], DOF 2i + a; r and z may be the same
@@ -274,7 +275,7 @@ def _solve_sample(L: np.ndarray, perm: np.ndarray, inverse: np.ndarray, r: np.nd
         z[dof] = x[inverse[dof]]
 
 
-@numba.njit(cache=True, parallel=True)
+@jit(parallel=True)
 def solve_samples(L: np.ndarray, perm: np.ndarray, inverse: np.ndarray, R: np.ndarray, samples: np.ndarray,
                   Z: np.ndarray) -> None:
     """Z[b] = K_b^-1 R[b] ([B, N, 2]) for each b in samples (in parallel), with K_b's banded factor
@@ -284,7 +285,7 @@ def solve_samples(L: np.ndarray, perm: np.ndarray, inverse: np.ndarray, R: np.nd
         _solve_sample(L[b], perm, inverse, R[b], Z[b], np.empty(L.shape[1]))
 
 
-@numba.njit(cache=True)
+@jit
 def _max_nodal_norm(g: np.ndarray) -> float:
     """max_i |g_i| of one sample's [N, 2] nodal vectors; NaN if any is (a blown-up sample then
     stops iterating, as in the numpy path)."""
@@ -297,7 +298,7 @@ def _max_nodal_norm(g: np.ndarray) -> float:
     return largest
 
 
-@numba.njit(cache=True)
+@jit
 def _lbfgs_sample(X, Y, mass_h2, triangles, grad, w_corotated, muscle_of, w_muscle, stretch, b, L, perm,
                   inverse, atol, max_iter, m, g) -> int:
     """L-BFGS on Phi of sample b from X (its [N, 2] positions, updated in place to the minimiser;
@@ -350,7 +351,7 @@ def _lbfgs_sample(X, Y, mass_h2, triangles, grad, w_corotated, muscle_of, w_musc
     return iterations
 
 
-@numba.njit(cache=True, parallel=True)
+@jit(parallel=True)
 def lbfgs_samples(X: np.ndarray, Y: np.ndarray, phi_args, L: np.ndarray, perm: np.ndarray, inverse: np.ndarray,
                   newton, slot: np.ndarray, diagonal: np.ndarray, mass_diag: np.ndarray, stale: np.ndarray,
                   banded: np.ndarray, atol: float, max_iter: int, m: int, samples: np.ndarray, g: np.ndarray,
@@ -374,7 +375,7 @@ def lbfgs_samples(X: np.ndarray, Y: np.ndarray, phi_args, L: np.ndarray, perm: n
                                           stretch, b, L[b], perm, inverse, atol, max_iter, m, g[b])
 
 
-@numba.njit(cache=True, parallel=True)
+@jit(parallel=True)
 def parameter_gradients(X: np.ndarray, lam: np.ndarray, triangles: np.ndarray, grad: np.ndarray,
                         w_per_E: np.ndarray, muscle_of: np.ndarray, w_muscle: np.ndarray, grad_u: np.ndarray,
                         grad_E: np.ndarray) -> None:

@@ -32,6 +32,7 @@ from llvmlite import ir
 from numba.core import cgutils, types
 from numba.extending import intrinsic, models, overload, register_model
 
+from fishsim.compiled import jit
 from fishsim.solid.energies import _TINY
 
 LANES = 8
@@ -267,7 +268,7 @@ def vabs(a):
 # indexed flat: entry (2 i + a) of a nodal array [N, 2, LANES] starts at (2 i + a) LANES.
 
 
-@numba.njit(cache=True)
+@jit
 def _deformation_gradient(X, triangles, grad, e):
     """F of element e from the pack's positions X: (F00, F01, F10, F11), Vecs."""
     k0, k1, k2 = triangles[e, 0], triangles[e, 1], triangles[e, 2]
@@ -281,7 +282,7 @@ def _deformation_gradient(X, triangles, grad, e):
     return F00, F01, F10, F11
 
 
-@numba.njit(cache=True)
+@jit
 def _objective(X, Y, mass_h2, triangles, grad, w_corotated, muscle_of, w_muscle, stretch, g):
     """Phi of each lane (a Vec, J per unit depth), writing grad Phi into g: kernels'
     _objective_sample on a pack. X, Y, g [N, 2, LANES]; w_corotated [T, LANES]; stretch
@@ -318,7 +319,7 @@ def _objective(X, Y, mass_h2, triangles, grad, w_corotated, muscle_of, w_muscle,
     return phi
 
 
-@numba.njit(cache=True)
+@jit
 def _newton_band(X, triangles, grad, w_corotated, muscle_of, w_muscle, stretch, projected, slot, diagonal,
                  diagonal_values, L, H):
     """Each lane's Newton matrix M/h^2 + sum_e G_e^T H_e G_e at X, assembled into the band L
@@ -378,7 +379,7 @@ def _newton_band(X, triangles, grad, w_corotated, muscle_of, w_muscle, stretch, 
                     vstore(band, o, vload(band, o) + total)
 
 
-@numba.njit(cache=True)
+@jit
 def _factor(L, w):
     """In place, each lane's band (L[j, i] = K_{j+i, j}, half-bandwidth w) -> its Cholesky factor
     K = L L^T, the diagonal stored as 1 / L_jj (multiplications instead of slow vector
@@ -404,7 +405,7 @@ def _factor(L, w):
     return ok
 
 
-@numba.njit(cache=True)
+@jit
 def _finish_tile(band, width, w, j0, r0):
     """L[r, c] = (A[r, c] - sum_{j0 <= k < c} L[r, k] L[c, k]) / L_cc for the tile's rows
     r = r0 + a and columns c = j0 + b < r0 (A: the entry reduced by the columns left of j0): a
@@ -434,7 +435,7 @@ def _finish_tile(band, width, w, j0, r0):
         vstore(band, p3, x3)
 
 
-@numba.njit(cache=True)
+@jit
 def _finish_tile_guarded(band, width, w, j0, r0):
     """_finish_tile entry by entry, skipping entries outside the band."""
     for a in range(4):
@@ -451,7 +452,7 @@ def _finish_tile_guarded(band, width, w, j0, r0):
             vstore(band, o, s * vload(band, c * width * LANES))
 
 
-@numba.njit(cache=True)
+@jit
 def _finish_diagonal(band, width, r0):
     """Cholesky of the reduced 4 x 4 diagonal block of rows r0..r0 + 3 (diagonal stored as
     1 / L_jj); returns the lane mask of positive pivots."""
@@ -477,7 +478,7 @@ def _finish_diagonal(band, width, r0):
     return good
 
 
-@numba.njit(cache=True)
+@jit
 def _reduce_tile(band, width, w, j0, r0):
     """L[r0 + a, j0 + b] -= sum_{k < j0} L[r0 + a, k] L[j0 + b, k] for a, b < 4 (the entries of
     the band only; r0 >= j0, both multiples of 4)."""
@@ -511,7 +512,7 @@ def _subtract(band, width, w, r, j0, s0, s1, s2, s3):
             vstore(band, o, vload(band, o) - s)
 
 
-@numba.njit(cache=True)
+@jit
 def _solve(L, w, perm, inverse, r, z, x):
     """z = K^-1 r per lane (r, z [N, 2, LANES], may be the same array) with _factor's band L
     (half-bandwidth w, diagonal 1 / L_jj) under the DOF permutation perm
@@ -537,7 +538,7 @@ def _solve(L, w, perm, inverse, r, z, x):
         vstore(z, dof * LANES, vload(x, inverse[dof] * LANES))
 
 
-@numba.njit(cache=True)
+@jit
 def _dot(u, v):
     """Per-lane inner product (a Vec) of two flat pack arrays, summed in index order."""
     total = splat(0.0)
@@ -546,7 +547,7 @@ def _dot(u, v):
     return total
 
 
-@numba.njit(cache=True)
+@jit
 def _max_nodal_norm(g):
     """Per lane max_i |g_i| of a pack's [N, 2, LANES] nodal vectors; NaN in a lane with a NaN."""
     largest, nan = splat(0.0), splat(0.0)
@@ -557,7 +558,7 @@ def _max_nodal_norm(g):
     return where(nan, np.nan, largest)
 
 
-@numba.njit(cache=True)
+@jit
 def _lbfgs_pack(X, Y, mass_h2, triangles, grad, w_corotated, muscle_of, w_muscle, stretch, slot, diagonal,
                 diagonal_values, w, perm, inverse, L, atol, max_iter, m, g, iterations, ok):
     """The forward solve of a pack, in place on X [N, 2, LANES] (to the minimiser of each lane's
@@ -632,7 +633,7 @@ def _lbfgs_pack(X, Y, mass_h2, triangles, grad, w_corotated, muscle_of, w_muscle
         ok[k] = lane(lanes_ok, k) > 0
 
 
-@numba.njit(cache=True)
+@jit
 def _factor_newton(X, triangles, grad, w_corotated, muscle_of, w_muscle, stretch, slot, diagonal,
                    diagonal_values, w, L, H):
     """Each lane's Newton matrix at X assembled into L and factorised: the exact one, else (in
@@ -647,7 +648,7 @@ def _factor_newton(X, triangles, grad, w_corotated, muscle_of, w_muscle, stretch
     return ok
 
 
-@numba.njit(cache=True, parallel=True)
+@jit(parallel=True)
 def lbfgs_packs(X, Y, phi_args, band, L, atol, max_iter, m, g, iterations, ok):
     """The forward solve of every pack p (in parallel): _lbfgs_pack on X[p], Y[p], g[p]
     ([P, N, 2, LANES]) with the band L[p] [P, n, w + 1, LANES]; iterations, ok [P, LANES].
@@ -660,7 +661,7 @@ def lbfgs_packs(X, Y, phi_args, band, L, atol, max_iter, m, g, iterations, ok):
                     diagonal, diagonal_values, w, perm, inverse, L[p], atol, max_iter, m, g[p], iterations[p], ok[p])
 
 
-@numba.njit(cache=True, parallel=True)
+@jit(parallel=True)
 def newton_solve_packs(X, R, phi_args, band, L, Z, ok):
     """Z[p] = K^-1 R[p] per lane ([P, N, 2, LANES]) with K the exact Newton matrix at X[p], for
     every pack p in parallel; ok [P, LANES] = K was positive definite (else Z is garbage).

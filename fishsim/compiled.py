@@ -1,0 +1,117 @@
+"""numba's on-disk cache, keyed on every source file a compiled function can reach.
+
+numba caches a compiled function on disk and re-compiles it when the file that defines it
+changes, but not when a function it calls from another file changes: the caller's cache entry
+keeps the old callee's machine code. fishsim's compiled functions are declared with ``jit``
+(``numba.njit`` with ``cache=True``), and their cache entries are stamped with one hash of the
+defining file and of every file of the package it imports, transitively (``source_stamp``), so
+an edit anywhere in that chain re-compiles them. Compiled code may therefore call compiled code
+of other files (the solid's element physics, the banded solvers), each written once.
+
+The stamp replaces numba's per-file one through numba's cache-locator extension point (the same
+cache directories as numba's: ``NUMBA_CACHE_DIR`` if set, else ``__pycache__`` beside the
+source, else the user-wide cache); files outside the registered packages keep numba's own.
+"""
+
+from __future__ import annotations
+
+import ast
+import functools
+import hashlib
+from pathlib import Path
+
+import numba
+from numba.core import caching
+
+PACKAGE = Path(__file__).resolve().parent
+_ROOTS: list[Path] = []
+
+
+def _module_files(root: Path, name: str) -> list[Path]:
+    """The source files of module ``name`` (dotted, absolute) if it lies in package ``root``:
+    the module's .py file or its package's __init__.py (none for other packages)."""
+    parts = name.split(".")
+    if parts[0] != root.name or len(parts) == 1:
+        return []
+    path = root.joinpath(*parts[1:])
+    return [f for f in (path.with_suffix(".py"), path / "__init__.py") if f.is_file()]
+
+
+def imported_files(root: Path, path: Path) -> set[Path]:
+    """Files of package ``root`` that the source file ``path`` imports directly (absolute
+    imports; ``from pkg.a import b`` counts both pkg/a.py and a module pkg/a/b.py)."""
+    names = []
+    for node in ast.walk(ast.parse(path.read_bytes())):
+        if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            names += [node.module] + [f"{node.module}.{alias.name}" for alias in node.names]
+        elif isinstance(node, ast.Import):
+            names += [alias.name for alias in node.names]
+    return {f for name in names for f in _module_files(root, name)}
+
+
+@functools.cache
+def source_stamp(root: Path, path: Path) -> str:
+    """sha256 over ``path`` and the files of package ``root`` it imports, transitively (each
+    file's path relative to ``root`` and its bytes, in sorted order)."""
+    seen, todo = set(), [path]
+    while todo:
+        f = todo.pop()
+        if f not in seen:
+            seen.add(f)
+            todo += imported_files(root, f) - seen
+    digest = hashlib.sha256()
+    for f in sorted(seen):
+        digest.update(str(f.relative_to(root)).encode() + b"\0" + f.read_bytes())
+    return digest.hexdigest()
+
+
+def _root_of(py_file: str) -> Path | None:
+    path = Path(py_file).resolve()
+    return next((root for root in _ROOTS if path.is_relative_to(root)), None)
+
+
+class _SourceKeyed:
+    """Locator mixin: only for files of a registered package; stamp = ``source_stamp``."""
+
+    def get_source_stamp(self):
+        return source_stamp(self._root, Path(self._py_file).resolve())
+
+    @classmethod
+    def from_function(cls, py_func, py_file):
+        root = _root_of(py_file)
+        if root is None:
+            return None
+        locator = super().from_function(py_func, py_file)
+        if locator is not None:
+            locator._root = root
+        return locator
+
+
+class _UserDirLocator(_SourceKeyed, caching.UserProvidedCacheLocator):
+    pass
+
+
+class _InTreeLocator(_SourceKeyed, caching.InTreeCacheLocator):
+    pass
+
+
+class _UserWideLocator(_SourceKeyed, caching.UserWideCacheLocator):
+    pass
+
+
+def register(root: Path) -> None:
+    """Stamp the cache of every function compiled from package directory ``root`` with
+    ``source_stamp`` (idempotent; the locators go first in numba's list)."""
+    root = Path(root).resolve()
+    if root not in _ROOTS:
+        _ROOTS.append(root)
+    if _UserDirLocator not in caching.CacheImpl._locator_classes:
+        caching.CacheImpl._locator_classes[:0] = [_UserDirLocator, _InTreeLocator, _UserWideLocator]
+
+
+register(PACKAGE)
+
+
+def jit(*args, **options):
+    """``numba.njit`` with ``cache=True`` (and any other njit option), stamped by this module."""
+    return numba.njit(*args, cache=True, **options)
