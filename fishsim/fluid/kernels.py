@@ -40,7 +40,7 @@ from numba import prange
 from torch import Tensor
 
 from fishsim.compiled import jit
-from fishsim.fluid.dct import apply_inverse
+from fishsim.linalg.dct import apply_inverse
 
 
 @jit(inline="always")

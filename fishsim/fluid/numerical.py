@@ -80,7 +80,6 @@ from torch import Tensor
 
 from fishsim.errors import SimulationBlowUp
 from fishsim.fields import Boundary, FluidParams, FluidState, Grid, RefinedState, rest_state
-from fishsim.fluid.dct import neumann_inverse, solve_neumann_poisson
 from fishsim.fluid.grid import (
     MASK_FLOOR,
     NO_SLIP,
@@ -99,6 +98,7 @@ from fishsim.fluid.grid import (
 from fishsim.fluid.kernels import Constrain, Predict
 from fishsim.fluid.pressure import SchwarzPreconditioner, WeightedPoisson
 from fishsim.fluid.residual import per_sample
+from fishsim.linalg.dct import neumann_inverse, solve_neumann_poisson
 
 
 @dataclass(frozen=True)

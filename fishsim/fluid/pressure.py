@@ -57,10 +57,10 @@ import torch
 from torch import Tensor
 
 from fishsim.fields import Grid
-from fishsim.fluid.dct import neumann_inverse, solve_neumann_poisson
 from fishsim.fluid.grid import Faces, divergence, gradient
 from fishsim.fluid.residual import fluid_face_masks, momentum_residual
-from fishsim.solid.banded import BandedCholesky, BandLayout
+from fishsim.linalg.banded import BandedCholesky, BandLayout
+from fishsim.linalg.dct import neumann_inverse, solve_neumann_poisson
 
 
 @dataclass(frozen=True)

@@ -21,8 +21,8 @@ import numpy as np
 import scipy.sparse as sp
 
 from fishsim.errors import MeshError
+from fishsim.linalg.banded import BandLayout
 from fishsim.mesh.fish_mesh import FishMesh
-from fishsim.solid.banded import BandLayout
 
 
 @dataclass(frozen=True)

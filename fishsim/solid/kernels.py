@@ -1,14 +1,13 @@
 """Compiled (numba) hot loops of the PD solve: the objective's energy and gradient, the L-BFGS two-
-loop recursion, the banded Cholesky factor and solves (banded.py's), the element Newton matrices
+loop recursion, the element Newton matrices
 and their assembly into banded factors, the per-sample banded solves on the solver's [B, N, 2]
 layout, and the whole forward L-BFGS solve of a sample (lbfgs_samples); packed.py has their
-8-lane versions for batches. (Each file's compiled code calls only that file's: numba's cache of a
-function is invalidated only when the file defining it changes, not when a callee's does.)
+8-lane versions for batches. The element physics (energies, stresses, their differentials) is
+element.py's, shared with packed.py.
 
     Phi(X) = 1/(2 h^2) ||X - Y||_M^2 + E_int(X),   grad Phi = M/h^2 (X - Y) + G^T S(X)
 
-with E_int the co-rotated and muscle energies of elastic.py (same conventions: conformal
-coordinates, fiber column j = 0, target stretch 1 - contraction). One pass over the elements
+with E_int the co-rotated and muscle energies (element.py; elastic.py is their numpy reference). One pass over the elements
 computes F, the projections, the energy and the nodal gradient without numpy temporaries: on the
 default fish (2142 elements) 0.05 ms instead of 0.29 ms per evaluation, which L-BFGS does ~11
 times per step. Models with the volume term use the numpy paths (solve.Objective,
@@ -26,7 +25,15 @@ import numba
 import numpy as np
 
 from fishsim.compiled import jit
-from fishsim.solid.energies import _TINY
+from fishsim.linalg.banded import band_factor, band_solve
+from fishsim.solid.element import (
+    clamped,
+    corotated_differential,
+    corotated_stress,
+    fiber_length,
+    muscle_differential,
+    muscle_stress,
+)
 
 
 @jit
@@ -52,25 +59,17 @@ def _objective_sample(X, Y, mass_h2, triangles, grad, w_corotated, muscle_of, w_
             g[i, a] = mass_h2[i] * d
             phi += 0.5 * mass_h2[i] * d * d
     for e in range(triangles.shape[0]):
-        k0, k1, k2 = triangles[e, 0], triangles[e, 1], triangles[e, 2]
-        m = muscle_of[e]
         F00, F01, F10, F11 = _deformation_gradient(X, triangles, grad, e)
-        alpha, beta = (F00 + F11) / 2, (F10 - F01) / 2
-        gamma, delta = (F00 - F11) / 2, (F01 + F10) / 2
-        c = max(np.sqrt(alpha * alpha + beta * beta), _TINY)
-        ra, rb = alpha - alpha / c, beta - beta / c                 # F - R, conformal coordinates
-        w = w_corotated[e, b]
-        phi += w * (ra * ra + rb * rb + gamma * gamma + delta * delta)
-        S00, S01 = w * (ra + gamma), w * (delta - rb)
-        S10, S11 = w * (rb + delta), w * (ra - gamma)
-        if m >= 0:                                                  # muscle: F m - a F m / |F m|
-            length = max(np.sqrt(F00 * F00 + F10 * F10), _TINY)
-            m0 = F00 - stretch[m, b] * F00 / length
-            m1 = F10 - stretch[m, b] * F10 / length
-            phi += w_muscle[m] / 2 * (m0 * m0 + m1 * m1)
-            S00 += w_muscle[m] * m0
-            S10 += w_muscle[m] * m1
-        for k, node in ((0, k0), (1, k1), (2, k2)):                 # dE/dx_ka = sum_j S_aj g_kj
+        psi, S00, S01, S10, S11 = corotated_stress(F00, F01, F10, F11, w_corotated[e, b])
+        phi += psi
+        m = muscle_of[e]
+        if m >= 0:
+            psi, M00, M10 = muscle_stress(F00, F10, stretch[m, b], w_muscle[m])
+            phi += psi
+            S00 += M00
+            S10 += M10
+        for k in range(3):                                          # dE/dx_ka = sum_j S_aj g_kj
+            node = triangles[e, k]
             g[node, 0] += S00 * grad[e, k, 0] + S01 * grad[e, k, 1]
             g[node, 1] += S10 * grad[e, k, 0] + S11 * grad[e, k, 1]
     return phi
@@ -138,68 +137,19 @@ def lbfgs_second_loop(r: np.ndarray, S: np.ndarray, Y: np.ndarray, rho: np.ndarr
 
 
 @jit
-def band_factor(L: np.ndarray) -> bool:
-    """In place K -> its Cholesky factor, both as bands [n, w + 1] (L[j, i] = K_{j+i, j}, the
-    lower triangle). Right-looking: column j is scaled by 1 / sqrt(pivot) and its outer product
-    subtracted from the next w columns. Returns False (L then garbage) on a pivot <= 0, i.e. K is
-    not positive definite."""
-    n, w = L.shape[0], L.shape[1] - 1
-    for j in range(n):
-        pivot = L[j, 0]
-        if not pivot > 0.0:
-            return False
-        d = np.sqrt(pivot)
-        L[j, 0] = d
-        m = min(w, n - 1 - j)
-        for i in range(1, m + 1):
-            L[j, i] /= d
-        for k in range(1, m + 1):                   # column j + k -= L[j+k:, j] L[j+k, j]
-            lk = L[j, k]
-            for i in range(m - k + 1):
-                L[j + k, i] -= L[j, k + i] * lk
-    return True
-
-
-@jit(fastmath={"reassoc", "contract"})
-def band_solve(L: np.ndarray, x: np.ndarray) -> None:
-    """In place x -> (L L^T)^-1 x for a factor band L [n, w + 1] and x [n]: forward substitution
-    by columns, back substitution by (vectorised) dots."""
-    n, w = L.shape[0], L.shape[1] - 1
-    for j in range(n):
-        xj = x[j] / L[j, 0]
-        x[j] = xj
-        for i in range(1, min(w, n - 1 - j) + 1):
-            x[j + i] -= L[j, i] * xj
-    for j in range(n - 1, -1, -1):
-        s = x[j]
-        for i in range(1, min(w, n - 1 - j) + 1):
-            s -= L[j, i] * x[j + i]
-        x[j] = s / L[j, 0]
-
-
-@jit
 def _element_newton(e, b, alpha_R, beta_R, c, w_corotated, muscle_of, w_muscle, n0, n1, length, stretch,
                     grad, projected, H, Ke) -> None:
     """Ke [6, 6] = G_e^T H_e G_e of element e, sample b (element DOF 2k + a), with H [4, 4]
     scratch for H_e = d vec(S) / d vec(F) of the co-rotated and muscle energies."""
-    ce = max(c[e, b], 1.0) if projected else c[e, b]
     m = muscle_of[e]
+    ce = clamped(c[e, b], 1.0, projected)
+    L = clamped(length[m, b], stretch[m, b], projected) if m >= 0 else 1.0
     for col in range(4):                         # unit dF_aj, col = 2a + j
-        dF00, dF01 = 1.0 if col == 0 else 0.0, 1.0 if col == 1 else 0.0
-        dF10, dF11 = 1.0 if col == 2 else 0.0, 1.0 if col == 3 else 0.0
-        d_alpha, d_beta = (dF00 + dF11) / 2, (dF10 - dF01) / 2
-        d_gamma, d_delta = (dF00 - dF11) / 2, (dF01 + dF10) / 2
-        radial = alpha_R[e, b] * d_alpha + beta_R[e, b] * d_beta
-        w = w_corotated[e, b]
-        c0 = w * (d_alpha - (d_alpha - radial * alpha_R[e, b]) / ce)
-        c1 = w * (d_beta - (d_beta - radial * beta_R[e, b]) / ce)
-        c2, c3 = w * d_gamma, w * d_delta
-        S00, S01, S10, S11 = c0 + c2, c3 - c1, c1 + c3, c0 - c2
+        S00, S01, S10, S11 = corotated_differential(col, alpha_R[e, b], beta_R[e, b], ce, w_corotated[e, b])
         if m >= 0:
-            L = max(length[m, b], stretch[m, b]) if projected else length[m, b]
-            rad = n0[m, b] * dF00 + n1[m, b] * dF10
-            S00 += w_muscle[m] * (dF00 - stretch[m, b] * (dF00 - rad * n0[m, b]) / L)
-            S10 += w_muscle[m] * (dF10 - stretch[m, b] * (dF10 - rad * n1[m, b]) / L)
+            M00, M10 = muscle_differential(col, n0[m, b], n1[m, b], L, stretch[m, b], w_muscle[m])
+            S00 += M00
+            S10 += M10
         H[0, col], H[1, col], H[2, col], H[3, col] = S00, S01, S10, S11
     for k in range(3):                            # Ke[2k+a, 2l+b] = sum_ji g_kj H[2a+j, 2b+i] g_li
         for a in range(2):
@@ -391,13 +341,10 @@ def parameter_gradients(X: np.ndarray, lam: np.ndarray, triangles: np.ndarray, g
         for e in range(triangles.shape[0]):
             F00, F01, F10, F11 = _deformation_gradient(X[b], triangles, grad, e)
             D00, D01, D10, D11 = _deformation_gradient(lam[b], triangles, grad, e)
-            alpha, beta = (F00 + F11) / 2, (F10 - F01) / 2
-            gamma, delta = (F00 - F11) / 2, (F01 + F10) / 2
-            c = max(np.sqrt(alpha * alpha + beta * beta), _TINY)
-            ra, rb = alpha - alpha / c, beta - beta / c
-            total += w_per_E[e] * (D00 * (ra + gamma) + D01 * (delta - rb) + D10 * (rb + delta) + D11 * (ra - gamma))
+            _, S00, S01, S10, S11 = corotated_stress(F00, F01, F10, F11, w_per_E[e])
+            total += D00 * S00 + D01 * S01 + D10 * S10 + D11 * S11
             m = muscle_of[e]
             if m >= 0:
-                length = max(np.sqrt(F00 * F00 + F10 * F10), _TINY)
+                length = fiber_length(F00, F10)
                 grad_u[b, m] = -w_muscle[m] * (D00 * F00 + D10 * F10) / length
         grad_E[b] = -total

@@ -8,260 +8,34 @@ kernels.py becomes one vector operation here. Arrays of a pack put the lane inde
 positions and forces [N, 2, LANES], the Newton band [rows, w + 4, LANES] (PackBand), per-element
 weights [T, LANES]; one (vload) load reads an entry of all eight samples.
 
-numba does not vectorise such 8-wide lane loops by itself (its SLP vectoriser is off and the
-loop vectoriser judges 8 trips not worth it), so the vector is a numba type of its own, `Vec`,
-an LLVM <8 x double> value with the arithmetic operators (+, -, *, /, +=, -=, >, >=, <=),
-fma, sqrt, max, lane masks (1.0 / 0.0 per lane) and `where`, each one vector instruction.
+The vector is simd.py's `Vec` (one LLVM <8 x double> value); the element physics is
+element.py's, the same code as the per-sample kernels'.
 
 Kernels (each a pack, prange over packs): `lbfgs_packs`, the whole forward solve of kernels.py's
 _lbfgs_sample for eight samples at a time, factorising each lane's Newton matrix at the start of
 every step; `newton_solve_packs`, the adjoint's direct solve. Per lane the arithmetic is the
 scalar kernels' up to round-off (the factor is computed in another order and keeps 1 / L_jj on
 its diagonal), and a lane's results do not depend on the other lanes: a lane that fails
-(indefinite matrix, NaN) is flagged alone. (The compiled code here calls only this file's, so
-that numba's cache of it is invalidated whenever it changes.)
+(indefinite matrix, NaN) is flagged alone.
 """
 
 from __future__ import annotations
 
-import operator
-
 import numba
 import numpy as np
-from llvmlite import ir
-from numba.core import cgutils, types
-from numba.extending import intrinsic, models, overload, register_model
 
 from fishsim.compiled import jit
-from fishsim.solid.energies import _TINY
-
-LANES = 8
-_VEC = ir.VectorType(ir.DoubleType(), LANES)
-_I32 = ir.IntType(32)
-
-
-class Vec(types.Type):
-    """numba type of an 8 x float64 SIMD value (LLVM <8 x double>)."""
-
-    def __init__(self):
-        super().__init__(name="Vec")
-
-
-vec = Vec()
-
-
-@register_model(Vec)
-class _VecModel(models.PrimitiveModel):
-    def __init__(self, dmm, fe_type):
-        super().__init__(dmm, fe_type, _VEC)
-
-
-def _is_f64_array(a) -> bool:
-    return isinstance(a, types.Array) and a.dtype == types.float64 and a.layout == "C"
-
-
-def _element_pointer(context, builder, array_type, array, index_type, index):
-    """Pointer to flat element `index` of a C-contiguous array, as a <8 x double>*."""
-    data = context.make_array(array_type)(context, builder, array).data
-    offset = context.cast(builder, index, index_type, types.intp)
-    return builder.bitcast(builder.gep(data, [offset]), _VEC.as_pointer())
-
-
-@intrinsic
-def vload(typingctx, a, i):
-    """The 8 values a.flat[i:i + 8] of a C-contiguous float64 array (no bounds check)."""
-    if _is_f64_array(a) and isinstance(i, types.Integer):
-        def codegen(context, builder, sig, args):
-            return builder.load(_element_pointer(context, builder, sig.args[0], args[0], sig.args[1], args[1]),
-                                align=8)
-        return vec(a, i), codegen
-    return None
-
-
-@intrinsic
-def vstore(typingctx, a, i, v):
-    """a.flat[i:i + 8] = v (no bounds check)."""
-    if _is_f64_array(a) and isinstance(i, types.Integer) and isinstance(v, Vec):
-        def codegen(context, builder, sig, args):
-            builder.store(args[2], _element_pointer(context, builder, sig.args[0], args[0], sig.args[1], args[1]),
-                          align=8)
-            return context.get_dummy_value()
-        return types.none(a, i, v), codegen
-    return None
-
-
-@intrinsic
-def splat(typingctx, x):
-    """A Vec from a scalar (every lane x) or a Vec (itself)."""
-    if isinstance(x, Vec):
-        return vec(x), lambda context, builder, sig, args: args[0]
-    if isinstance(x, (types.Float, types.Integer, types.Boolean)):
-        def codegen(context, builder, sig, args):
-            value = context.cast(builder, args[0], sig.args[0], types.float64)
-            one = builder.insert_element(ir.Constant(_VEC, ir.Undefined), value, ir.Constant(_I32, 0))
-            return builder.shuffle_vector(one, one, ir.Constant(ir.VectorType(_I32, LANES), [0] * LANES))
-        return vec(x), codegen
-    return None
-
-
-@intrinsic
-def lane(typingctx, v, k):
-    """Lane k of v, a float."""
-    if isinstance(v, Vec) and isinstance(k, types.Integer):
-        def codegen(context, builder, sig, args):
-            return builder.extract_element(args[0], builder.trunc(context.cast(builder, args[1], sig.args[1],
-                                                                               types.int64), _I32))
-        return types.float64(v, k), codegen
-    return None
-
-
-def _binary(a, b, emit):
-    if isinstance(a, Vec) and isinstance(b, Vec):
-        return vec(a, b), lambda context, builder, sig, args: emit(builder, *args)
-    return None
-
-
-@intrinsic
-def _add(typingctx, a, b):
-    return _binary(a, b, lambda builder, x, y: builder.fadd(x, y, flags=("contract",)))
-
-
-@intrinsic
-def _sub(typingctx, a, b):
-    return _binary(a, b, lambda builder, x, y: builder.fsub(x, y, flags=("contract",)))
-
-
-@intrinsic
-def _mul(typingctx, a, b):
-    return _binary(a, b, lambda builder, x, y: builder.fmul(x, y, flags=("contract",)))
-
-
-@intrinsic
-def _div(typingctx, a, b):
-    return _binary(a, b, lambda builder, x, y: builder.fdiv(x, y))
-
-
-def _llvm_call(builder, name, *args):
-    """Call the LLVM intrinsic `name` (e.g. llvm.sqrt) on <8 x double> arguments."""
-    function = cgutils.get_or_insert_function(builder.module, ir.FunctionType(_VEC, [_VEC] * len(args)),
-                                              f"{name}.v{LANES}f64")
-    return builder.call(function, args)
-
-
-@intrinsic
-def _max(typingctx, a, b):
-    return _binary(a, b, lambda builder, x, y: _llvm_call(builder, "llvm.maxnum", x, y))
-
-
-@intrinsic
-def _greater(typingctx, a, b):
-    return _binary(a, b, lambda builder, x, y: builder.uitofp(builder.fcmp_ordered(">", x, y), _VEC))
-
-
-@intrinsic
-def _greater_equal(typingctx, a, b):
-    return _binary(a, b, lambda builder, x, y: builder.uitofp(builder.fcmp_ordered(">=", x, y), _VEC))
-
-
-@intrinsic
-def vsqrt(typingctx, a):
-    """sqrt per lane."""
-    if isinstance(a, Vec):
-        return vec(a), lambda context, builder, sig, args: _llvm_call(builder, "llvm.sqrt", args[0])
-    return None
-
-
-@intrinsic
-def isnan(typingctx, a):
-    """Mask: 1.0 where the lane is NaN, else 0.0."""
-    if isinstance(a, Vec):
-        def codegen(context, builder, sig, args):
-            return builder.uitofp(builder.fcmp_unordered("uno", args[0], args[0]), _VEC)
-        return vec(a), codegen
-    return None
-
-
-@intrinsic
-def _fma(typingctx, a, b, c):
-    if isinstance(a, Vec) and isinstance(b, Vec) and isinstance(c, Vec):
-        return vec(a, b, c), lambda context, builder, sig, args: _llvm_call(builder, "llvm.fma", *args)
-    return None
-
-
-@intrinsic
-def _where(typingctx, m, a, b):
-    if isinstance(m, Vec) and isinstance(a, Vec) and isinstance(b, Vec):
-        def codegen(context, builder, sig, args):
-            chosen = builder.fcmp_ordered("!=", args[0], ir.Constant(_VEC, [0.0] * LANES))
-            return builder.select(chosen, args[1], args[2])
-        return vec(m, a, b), codegen
-    return None
-
-
-def _involves_vec(*args) -> bool:
-    return any(isinstance(a, Vec) for a in args)
-
-
-def _overload_binary(op, implementation):
-    @overload(op)
-    def _impl(a, b):
-        if _involves_vec(a, b):
-            return lambda a, b: implementation(splat(a), splat(b))
-        return None
-
-
-for _op, _implementation in ((operator.add, _add), (operator.sub, _sub), (operator.mul, _mul),
-                             (operator.truediv, _div), (operator.iadd, _add), (operator.isub, _sub),
-                             (operator.gt, _greater), (operator.ge, _greater_equal)):
-    _overload_binary(_op, _implementation)
-
-
-@overload(operator.neg)
-def _neg(a):
-    if isinstance(a, Vec):
-        return lambda a: _sub(splat(0.0), a)
-    return None
-
-
-@overload(operator.le)
-def _less_equal(a, b):
-    if _involves_vec(a, b):
-        return lambda a, b: _greater_equal(splat(b), splat(a))
-    return None
-
-
-@numba.njit(inline="always")
-def vmax(a, b):
-    """max per lane (the non-NaN one where one is NaN)."""
-    return _max(splat(a), splat(b))
-
-
-@numba.njit(inline="always")
-def fma(a, b, c):
-    """a b + c per lane, one rounding."""
-    return _fma(splat(a), splat(b), splat(c))
-
-
-@numba.njit(inline="always")
-def where(mask, a, b):
-    """a where mask (1.0) else b, per lane."""
-    return _where(mask, splat(a), splat(b))
-
-
-@numba.njit(inline="always")
-def count(mask) -> float:
-    """Number of lanes set in a mask (sum of its lanes)."""
-    total = 0.0
-    for k in range(LANES):
-        total += lane(mask, k)
-    return total
-
-
-@numba.njit(inline="always")
-def vabs(a):
-    """|a| per lane."""
-    return vmax(a, -a)
-
+from fishsim.solid.element import (
+    clamped,
+    conformal,
+    corotated_differential,
+    corotated_stress,
+    fiber_length,
+    muscle_differential,
+    muscle_stress,
+    rotation,
+)
+from fishsim.solid.simd import LANES, count, fma, isnan, lane, splat, vabs, vload, vmax, vsqrt, vstore, where
 
 # ---------------------------------------------------------------------------------------------
 # Kernels on one pack. Arrays of a pack are C-contiguous with the lane index last and are
@@ -296,22 +70,14 @@ def _objective(X, Y, mass_h2, triangles, grad, w_corotated, muscle_of, w_muscle,
             phi += 0.5 * mass_h2[i] * d * d
     for e in range(triangles.shape[0]):
         F00, F01, F10, F11 = _deformation_gradient(X, triangles, grad, e)
-        alpha, beta = (F00 + F11) * 0.5, (F10 - F01) * 0.5
-        gamma, delta = (F00 - F11) * 0.5, (F01 + F10) * 0.5
-        c = vmax(vsqrt(alpha * alpha + beta * beta), _TINY)
-        ra, rb = alpha - alpha / c, beta - beta / c                 # F - R, conformal coordinates
-        w = vload(w_corotated, e * LANES)
-        phi += w * (ra * ra + rb * rb + gamma * gamma + delta * delta)
-        S00, S01 = w * (ra + gamma), w * (delta - rb)
-        S10, S11 = w * (rb + delta), w * (ra - gamma)
+        psi, S00, S01, S10, S11 = corotated_stress(F00, F01, F10, F11, vload(w_corotated, e * LANES))
+        phi += psi
         m = muscle_of[e]
-        if m >= 0:                                                  # muscle: F m - a F m / |F m|
-            length = vmax(vsqrt(F00 * F00 + F10 * F10), _TINY)
-            a_m = vload(stretch, m * LANES)
-            m0, m1 = F00 - a_m * F00 / length, F10 - a_m * F10 / length
-            phi += w_muscle[m] / 2 * (m0 * m0 + m1 * m1)
-            S00 += w_muscle[m] * m0
-            S10 += w_muscle[m] * m1
+        if m >= 0:
+            psi, M00, M10 = muscle_stress(F00, F10, vload(stretch, m * LANES), w_muscle[m])
+            phi += psi
+            S00 += M00
+            S10 += M10
         for k in range(3):                                          # dE/dx_ka = sum_j S_aj g_kj
             o = 2 * triangles[e, k] * LANES
             vstore(g, o, vload(g, o) + (S00 * grad[e, k, 0] + S01 * grad[e, k, 1]))
@@ -335,33 +101,24 @@ def _newton_band(X, triangles, grad, w_corotated, muscle_of, w_muscle, stretch, 
     zero = splat(0.0)
     for e in range(triangles.shape[0]):
         F00, F01, F10, F11 = _deformation_gradient(X, triangles, grad, e)
-        alpha, beta = (F00 + F11) * 0.5, (F10 - F01) * 0.5
-        c = vmax(vsqrt(alpha * alpha + beta * beta), _TINY)
-        alpha_R, beta_R = alpha / c, beta / c
-        ce = where(projected, vmax(c, 1.0), c)
+        alpha, beta, _, _ = conformal(F00, F01, F10, F11)
+        alpha_R, beta_R, c = rotation(alpha, beta)
+        ce = clamped(c, 1.0, projected)
         w = vload(w_corotated, e * LANES)
         m = muscle_of[e]
         n0, n1, length, a_m, w_m = zero, zero, zero, zero, 0.0
         if m >= 0:
-            length = vmax(vsqrt(F00 * F00 + F10 * F10), _TINY)
+            length = fiber_length(F00, F10)
             n0, n1 = F00 / length, F10 / length
             a_m = vload(stretch, m * LANES)
-            length = where(projected, vmax(length, a_m), length)
+            length = clamped(length, a_m, projected)
             w_m = w_muscle[m]
         for col in range(4):                                        # unit dF_aj, col = 2a + j
-            dF00, dF01 = 1.0 if col == 0 else 0.0, 1.0 if col == 1 else 0.0
-            dF10, dF11 = 1.0 if col == 2 else 0.0, 1.0 if col == 3 else 0.0
-            d_alpha, d_beta = (dF00 + dF11) / 2, (dF10 - dF01) / 2
-            d_gamma, d_delta = (dF00 - dF11) / 2, (dF01 + dF10) / 2
-            radial = alpha_R * d_alpha + beta_R * d_beta
-            c0 = w * (d_alpha - (d_alpha - radial * alpha_R) / ce)
-            c1 = w * (d_beta - (d_beta - radial * beta_R) / ce)
-            c2, c3 = w * d_gamma, w * d_delta
-            S00, S01, S10, S11 = c0 + c2, c3 - c1, c1 + c3, c0 - c2
+            S00, S01, S10, S11 = corotated_differential(col, alpha_R, beta_R, ce, w)
             if m >= 0:
-                rad = n0 * dF00 + n1 * dF10
-                S00 += w_m * (dF00 - a_m * (dF00 - rad * n0) / length)
-                S10 += w_m * (dF10 - a_m * (dF10 - rad * n1) / length)
+                M00, M10 = muscle_differential(col, n0, n1, length, a_m, w_m)
+                S00 += M00
+                S10 += M10
             vstore(H, col * LANES, S00)
             vstore(H, (4 + col) * LANES, S01)
             vstore(H, (8 + col) * LANES, S10)

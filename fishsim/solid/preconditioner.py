@@ -12,7 +12,7 @@
 
 The next two are constant in time and affine in E, so each is factorised once per distinct E
 (cached in model.factors) and reused every step. Every factorisation is a banded Cholesky after
-RCM reordering (banded.py; SuperLU if a matrix is not positive definite):
+RCM reordering (fishsim.linalg.banded; SuperLU if a matrix is not positive definite):
 
 - 'pd': DiffPD's global matrix A(E) = M/h^2 + G^T W(E) G, the same [N, N] matrix for x and y.
 - 'rest_newton': K0(E) = M/h^2 - df_int/dq at the rest shape, [2N, 2N]. Since
@@ -27,8 +27,8 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
+from fishsim.linalg.banded import BandedCholesky, lu_factor, spd_factor
 from fishsim.solid import elastic, kernels
-from fishsim.solid.banded import BandedCholesky, lu_factor, spd_factor
 from fishsim.solid.model import SolidModel
 
 _CACHE_SIZE = 64

@@ -37,8 +37,8 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from fishsim.linalg.banded import lu_factor, spd_factor
 from fishsim.solid import elastic, kernels, packed
-from fishsim.solid.banded import lu_factor, spd_factor
 from fishsim.solid.model import SolidModel
 from fishsim.solid.preconditioner import LaggedNewton, Preconditioner, newton_factors
 

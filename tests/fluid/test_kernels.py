@@ -5,10 +5,10 @@ batch independence."""
 import pytest
 import torch
 
-from fishsim.fluid.dct import neumann_inverse
 from fishsim.fluid.grid import FREE_SLIP, NO_SLIP, WallBC, advection, laplacian_faces, zero_walls
 from fishsim.fluid.kernels import Constrain, Predict
 from fishsim.fluid.numerical import penalize, project
+from fishsim.linalg.dct import neumann_inverse
 
 WALLS = {"no-slip": NO_SLIP, "slip": FREE_SLIP, "moving": WallBC(u_bottom=-0.2, u_top=0.3, v_left=-0.1, v_right=0.4)}
 

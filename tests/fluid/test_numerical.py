@@ -10,9 +10,9 @@ from fishsim.errors import SimulationBlowUp
 from fishsim.fields import Boundary, FluidModel, FluidParams, FluidState, Grid
 from fishsim.fluid import grid as G
 from fishsim.fluid.cases import taylor_green
-from fishsim.fluid.dct import dct, idct, neumann_inverse, solve_neumann_poisson
 from fishsim.fluid.numerical import NumericalFluid, RefinedState, project
 from fishsim.fluid.residual import fluid_face_masks, momentum_residual
+from fishsim.linalg.dct import dct, idct, neumann_inverse, solve_neumann_poisson
 
 D = torch.float64
 

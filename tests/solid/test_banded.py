@@ -6,10 +6,9 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
+from fishsim.linalg.banded import BandedCholesky, band_factor, band_solve, spd_factor
 from fishsim.mesh import make_fish_mesh
 from fishsim.solid import SolidModel, elastic, kernels
-from fishsim.solid.banded import BandedCholesky, spd_factor
-from fishsim.solid.kernels import band_factor, band_solve
 from fishsim.solid.preconditioner import LaggedNewton, newton_factors, pd_matrix, rest_newton_matrix
 from fishsim.solid.solve import Objective, _lbfgs, _remove_net_residual, balanced_order, pd_solve
 

@@ -9,8 +9,8 @@ import torch
 
 from fishsim.solid import PDOptions, SolidModel, elastic, kernels, packed, pd_step, rest_state
 from fishsim.solid.muscles import layer_muscles
-from fishsim.solid.packed import LANES, fma, isnan, lane, splat, vabs, vload, vmax, vsqrt, vstore, where
 from fishsim.solid.preconditioner import newton_factors
+from fishsim.solid.simd import LANES, fma, isnan, lane, splat, vabs, vload, vmax, vsqrt, vstore, where
 from fishsim.solid.solve import (
     Objective,
     _remove_net_residual,

@@ -1,14 +1,15 @@
-"""Banded Cholesky factorisation of the solid's symmetric positive definite matrices.
+"""Banded Cholesky factorisation of sparse symmetric positive definite matrices (the solid's
+Newton and PD matrices, the pressure recovery's Poisson matrix).
 
 The fish is long and thin, so after a reverse Cuthill-McKee reordering its FEM matrices are
 narrow bands: the default mesh's 2362 x 2362 Newton matrix has half-bandwidth w = 39. A banded
 Cholesky K = L L^T then costs n w^2 to factor and 4 n w to solve, against SuperLU's general
 sparse LU (default mesh, one thread: factor 0.84 vs 8.6 ms, solve 0.12 vs 0.57 ms).
 
-The factor and the triangular solves are compiled (kernels.band_factor, kernels.band_solve) on a
+The factor and the triangular solves are compiled (band_factor, band_solve) on a
 row-major band L[j, i] = L_{j+i, j} (column j of L, from its diagonal down; LAPACK's lower band
-storage transposed), so the solid's batched kernels (kernels.newton_factors,
-kernels.solve_samples) call them for many samples in parallel over numba's threads; LAPACK's
+storage transposed), so the solid's batched kernels (solid/kernels.py's newton_factors,
+solve_samples) call them for many samples in parallel over numba's threads; LAPACK's
 banded routines called from Python hold the GIL and cannot be. A matrix that is not positive
 definite falls back to SuperLU (`spd_factor`).
 """
@@ -22,8 +23,47 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.sparse.csgraph import reverse_cuthill_mckee
 
-from fishsim.solid.kernels import band_factor, band_solve
+from fishsim.compiled import jit
 
+
+@jit
+def band_factor(L: np.ndarray) -> bool:
+    """In place K -> its Cholesky factor, both as bands [n, w + 1] (L[j, i] = K_{j+i, j}, the
+    lower triangle). Right-looking: column j is scaled by 1 / sqrt(pivot) and its outer product
+    subtracted from the next w columns. Returns False (L then garbage) on a pivot <= 0, i.e. K is
+    not positive definite."""
+    n, w = L.shape[0], L.shape[1] - 1
+    for j in range(n):
+        pivot = L[j, 0]
+        if not pivot > 0.0:
+            return False
+        d = np.sqrt(pivot)
+        L[j, 0] = d
+        m = min(w, n - 1 - j)
+        for i in range(1, m + 1):
+            L[j, i] /= d
+        for k in range(1, m + 1):                   # column j + k -= L[j+k:, j] L[j+k, j]
+            lk = L[j, k]
+            for i in range(m - k + 1):
+                L[j + k, i] -= L[j, k + i] * lk
+    return True
+
+
+@jit(fastmath={"reassoc", "contract"})
+def band_solve(L: np.ndarray, x: np.ndarray) -> None:
+    """In place x -> (L L^T)^-1 x for a factor band L [n, w + 1] and x [n]: forward substitution
+    by columns, back substitution by (vectorised) dots."""
+    n, w = L.shape[0], L.shape[1] - 1
+    for j in range(n):
+        xj = x[j] / L[j, 0]
+        x[j] = xj
+        for i in range(1, min(w, n - 1 - j) + 1):
+            x[j + i] -= L[j, i] * xj
+    for j in range(n - 1, -1, -1):
+        s = x[j]
+        for i in range(1, min(w, n - 1 - j) + 1):
+            s -= L[j, i] * x[j + i]
+        x[j] = s / L[j, 0]
 
 class BandLayout:
     """Where a symmetric sparsity pattern's lower-triangle entries go in the band after the RCM

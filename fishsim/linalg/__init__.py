@@ -1,0 +1,2 @@
+"""Generic linear algebra the solid and the fluid share: banded Cholesky factors and solves of
+sparse SPD matrices (`banded`) and the DCT-diagonalised Neumann Poisson solves (`dct`)."""

@@ -1,0 +1,287 @@
+"""An 8 x float64 SIMD vector as a numba type, `Vec` (an LLVM <8 x double> value), and the
+arithmetic on it: +, -, *, /, +=, -=, >, >=, <= (a Vec with a scalar broadcasts the scalar),
+fma, sqrt, max, |.|, lane masks (1.0 / 0.0 per lane) and `where`, each one vector instruction;
+loads and stores of 8 consecutive float64 (vload, vstore). packed.py runs eight samples of the
+PD solve in the lanes of one Vec.
+
+numba does not vectorise such 8-wide lane loops by itself (its SLP vectoriser is off and the
+loop vectoriser judges 8 trips not worth it), hence a type of its own.
+
+`sqrt`, `maximum` and `select` are generic: on floats they are math.sqrt, max and a
+conditional; on Vecs the lane-wise vsqrt, vmax and where (a float mask there is a bool). Code
+written with them and the operators compiles for one sample (floats) and for a pack (Vecs):
+element.py's element physics is written once that way.
+"""
+
+from __future__ import annotations
+
+import math
+import operator
+
+import numba
+from llvmlite import ir
+from numba.core import cgutils, types
+from numba.extending import intrinsic, models, overload, register_model
+
+LANES = 8
+_VEC = ir.VectorType(ir.DoubleType(), LANES)
+_I32 = ir.IntType(32)
+
+
+class Vec(types.Type):
+    """numba type of an 8 x float64 SIMD value (LLVM <8 x double>)."""
+
+    def __init__(self):
+        super().__init__(name="Vec")
+
+
+vec = Vec()
+
+
+@register_model(Vec)
+class _VecModel(models.PrimitiveModel):
+    def __init__(self, dmm, fe_type):
+        super().__init__(dmm, fe_type, _VEC)
+
+
+def _is_f64_array(a) -> bool:
+    return isinstance(a, types.Array) and a.dtype == types.float64 and a.layout == "C"
+
+
+def _element_pointer(context, builder, array_type, array, index_type, index):
+    """Pointer to flat element `index` of a C-contiguous array, as a <8 x double>*."""
+    data = context.make_array(array_type)(context, builder, array).data
+    offset = context.cast(builder, index, index_type, types.intp)
+    return builder.bitcast(builder.gep(data, [offset]), _VEC.as_pointer())
+
+
+@intrinsic
+def vload(typingctx, a, i):
+    """The 8 values a.flat[i:i + 8] of a C-contiguous float64 array (no bounds check)."""
+    if _is_f64_array(a) and isinstance(i, types.Integer):
+        def codegen(context, builder, sig, args):
+            return builder.load(_element_pointer(context, builder, sig.args[0], args[0], sig.args[1], args[1]),
+                                align=8)
+        return vec(a, i), codegen
+    return None
+
+
+@intrinsic
+def vstore(typingctx, a, i, v):
+    """a.flat[i:i + 8] = v (no bounds check)."""
+    if _is_f64_array(a) and isinstance(i, types.Integer) and isinstance(v, Vec):
+        def codegen(context, builder, sig, args):
+            builder.store(args[2], _element_pointer(context, builder, sig.args[0], args[0], sig.args[1], args[1]),
+                          align=8)
+            return context.get_dummy_value()
+        return types.none(a, i, v), codegen
+    return None
+
+
+@intrinsic
+def splat(typingctx, x):
+    """A Vec from a scalar (every lane x) or a Vec (itself)."""
+    if isinstance(x, Vec):
+        return vec(x), lambda context, builder, sig, args: args[0]
+    if isinstance(x, (types.Float, types.Integer, types.Boolean)):
+        def codegen(context, builder, sig, args):
+            value = context.cast(builder, args[0], sig.args[0], types.float64)
+            one = builder.insert_element(ir.Constant(_VEC, ir.Undefined), value, ir.Constant(_I32, 0))
+            return builder.shuffle_vector(one, one, ir.Constant(ir.VectorType(_I32, LANES), [0] * LANES))
+        return vec(x), codegen
+    return None
+
+
+@intrinsic
+def lane(typingctx, v, k):
+    """Lane k of v, a float."""
+    if isinstance(v, Vec) and isinstance(k, types.Integer):
+        def codegen(context, builder, sig, args):
+            return builder.extract_element(args[0], builder.trunc(context.cast(builder, args[1], sig.args[1],
+                                                                               types.int64), _I32))
+        return types.float64(v, k), codegen
+    return None
+
+
+def _binary(a, b, emit):
+    if isinstance(a, Vec) and isinstance(b, Vec):
+        return vec(a, b), lambda context, builder, sig, args: emit(builder, *args)
+    return None
+
+
+@intrinsic
+def _add(typingctx, a, b):
+    return _binary(a, b, lambda builder, x, y: builder.fadd(x, y, flags=("contract",)))
+
+
+@intrinsic
+def _sub(typingctx, a, b):
+    return _binary(a, b, lambda builder, x, y: builder.fsub(x, y, flags=("contract",)))
+
+
+@intrinsic
+def _mul(typingctx, a, b):
+    return _binary(a, b, lambda builder, x, y: builder.fmul(x, y, flags=("contract",)))
+
+
+@intrinsic
+def _div(typingctx, a, b):
+    return _binary(a, b, lambda builder, x, y: builder.fdiv(x, y))
+
+
+def _llvm_call(builder, name, *args):
+    """Call the LLVM intrinsic `name` (e.g. llvm.sqrt) on <8 x double> arguments."""
+    function = cgutils.get_or_insert_function(builder.module, ir.FunctionType(_VEC, [_VEC] * len(args)),
+                                              f"{name}.v{LANES}f64")
+    return builder.call(function, args)
+
+
+@intrinsic
+def _max(typingctx, a, b):
+    return _binary(a, b, lambda builder, x, y: _llvm_call(builder, "llvm.maxnum", x, y))
+
+
+@intrinsic
+def _greater(typingctx, a, b):
+    return _binary(a, b, lambda builder, x, y: builder.uitofp(builder.fcmp_ordered(">", x, y), _VEC))
+
+
+@intrinsic
+def _greater_equal(typingctx, a, b):
+    return _binary(a, b, lambda builder, x, y: builder.uitofp(builder.fcmp_ordered(">=", x, y), _VEC))
+
+
+@intrinsic
+def vsqrt(typingctx, a):
+    """sqrt per lane."""
+    if isinstance(a, Vec):
+        return vec(a), lambda context, builder, sig, args: _llvm_call(builder, "llvm.sqrt", args[0])
+    return None
+
+
+@intrinsic
+def isnan(typingctx, a):
+    """Mask: 1.0 where the lane is NaN, else 0.0."""
+    if isinstance(a, Vec):
+        def codegen(context, builder, sig, args):
+            return builder.uitofp(builder.fcmp_unordered("uno", args[0], args[0]), _VEC)
+        return vec(a), codegen
+    return None
+
+
+@intrinsic
+def _fma(typingctx, a, b, c):
+    if isinstance(a, Vec) and isinstance(b, Vec) and isinstance(c, Vec):
+        return vec(a, b, c), lambda context, builder, sig, args: _llvm_call(builder, "llvm.fma", *args)
+    return None
+
+
+@intrinsic
+def _where(typingctx, m, a, b):
+    if isinstance(m, Vec) and isinstance(a, Vec) and isinstance(b, Vec):
+        def codegen(context, builder, sig, args):
+            chosen = builder.fcmp_ordered("!=", args[0], ir.Constant(_VEC, [0.0] * LANES))
+            return builder.select(chosen, args[1], args[2])
+        return vec(m, a, b), codegen
+    return None
+
+
+def _involves_vec(*args) -> bool:
+    return any(isinstance(a, Vec) for a in args)
+
+
+def _overload_binary(op, implementation):
+    @overload(op)
+    def _impl(a, b):
+        if _involves_vec(a, b):
+            return lambda a, b: implementation(splat(a), splat(b))
+        return None
+
+
+for _op, _implementation in ((operator.add, _add), (operator.sub, _sub), (operator.mul, _mul),
+                             (operator.truediv, _div), (operator.iadd, _add), (operator.isub, _sub),
+                             (operator.gt, _greater), (operator.ge, _greater_equal)):
+    _overload_binary(_op, _implementation)
+
+
+@overload(operator.neg)
+def _neg(a):
+    if isinstance(a, Vec):
+        return lambda a: _sub(splat(0.0), a)
+    return None
+
+
+@overload(operator.le)
+def _less_equal(a, b):
+    if _involves_vec(a, b):
+        return lambda a, b: _greater_equal(splat(b), splat(a))
+    return None
+
+
+@numba.njit(inline="always")
+def vmax(a, b):
+    """max per lane (the non-NaN one where one is NaN)."""
+    return _max(splat(a), splat(b))
+
+
+@numba.njit(inline="always")
+def fma(a, b, c):
+    """a b + c per lane, one rounding."""
+    return _fma(splat(a), splat(b), splat(c))
+
+
+@numba.njit(inline="always")
+def where(mask, a, b):
+    """a where mask (1.0) else b, per lane."""
+    return _where(mask, splat(a), splat(b))
+
+
+@numba.njit(inline="always")
+def count(mask) -> float:
+    """Number of lanes set in a mask (sum of its lanes)."""
+    total = 0.0
+    for k in range(LANES):
+        total += lane(mask, k)
+    return total
+
+
+@numba.njit(inline="always")
+def vabs(a):
+    """|a| per lane."""
+    return vmax(a, -a)
+
+
+def sqrt(x):
+    """sqrt of a float, or per lane of a Vec (compiled code only)."""
+    return math.sqrt(x)
+
+
+def maximum(a, b):
+    """max of two floats, or per lane where either is a Vec (compiled code only)."""
+    return max(a, b)
+
+
+def select(mask, a, b):
+    """a if mask else b: a bool mask on floats, a lane mask on Vecs (compiled code only)."""
+    return a if mask else b
+
+
+@overload(sqrt)
+def _sqrt(x):
+    if isinstance(x, Vec):
+        return lambda x: vsqrt(x)
+    return lambda x: math.sqrt(x)
+
+
+@overload(maximum)
+def _maximum(a, b):
+    if _involves_vec(a, b):
+        return lambda a, b: vmax(a, b)
+    return lambda a, b: max(a, b)
+
+
+@overload(select)
+def _select(mask, a, b):
+    if isinstance(mask, Vec):
+        return lambda mask, a, b: where(mask, a, b)
+    return lambda mask, a, b: a if mask else b
