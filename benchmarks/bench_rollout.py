@@ -27,9 +27,9 @@ import torch
 from fishsim.config import load_config
 from fishsim.episode import build_episode
 from fishsim.errors import SimulationBlowUp
-from fishsim.fluid.dct import NeumannPoisson
 from fishsim.fluid.kernels import Constrain, Predict
 from fishsim.fluid.pressure import WeightedPoisson
+from fishsim.linalg.dct import NeumannPoisson
 from fishsim.rollout import SwimParams, rollout
 from fishsim.solid.step import PDStepFunction
 
