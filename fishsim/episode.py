@@ -74,9 +74,9 @@ def build_episode(cfg: SimulateConfig) -> Episode:
         check_fluid(fluid.model, cfg.fluid.model_file or SHIPPED_HYDRONET, cfg.fluid.rho, cfg.fluid.mu,
                     cfg.fluid.dx, cfg.h, cfg.fluid.strict_range)
     solid = SolidModel(mesh, cfg.solid.material, h=cfg.h, options=cfg.solid.pd,
-                       added_mass_ratio=cfg.coupling.stabilisation_ratio if fluid is not None else 0.0,
+                       added_mass_ratio=cfg.coupling.stabilisation_ratio if fluid.exerts_force else 0.0,
                        muscles=build_muscles(cfg.fish, mesh))
-    walls = make_tank(cfg.fluid, device, unit_inflow=cfg.tunnel) if fluid is not None else None
+    walls = make_tank(cfg.fluid, device, unit_inflow=cfg.tunnel) if fluid.exerts_force else None
     swimmer = Swimmer(solid, fluid, cfg.coupling, walls, fluid_dtype=fluid_dtype(cfg.fluid),
                       hold_x=cfg.hold_x, hold_y=cfg.hold_y, tunnel=cfg.tunnel)
     params = batch_params(cfg, mesh.length, device)
@@ -112,5 +112,4 @@ def batch_params(cfg: SimulateConfig, length: float, device) -> SwimParams:
                                 omega=2 * math.pi * per_fish(b.frequency, c.frequency),
                                 gamma=per_fish(b.wave_number, gamma), t_a=c.t_a)
     E = per_fish(b.youngs_modulus, cfg.solid.material.youngs_modulus)
-    fluid = fluid_params(cfg.fluid, B, cfg.h, device) if cfg.fluid.model != "none" else None
-    return SwimParams(controller=controller, E=E, fluid=fluid)
+    return SwimParams(controller=controller, E=E, fluid=fluid_params(cfg.fluid, B, cfg.h, device))

@@ -66,11 +66,22 @@ class FluidState:
     a: Tensor
     p: Tensor
 
+    def _names(self) -> list[str]:
+        return [f.name for f in dataclasses.fields(self) if getattr(self, f.name) is not None]
+
     def map(self, fn: Callable[[str, Tensor], Tensor]) -> Self:
         """The same kind of state with ``fn(name, tensor)`` applied to each of its tensors (a, p
         and a refined state's fine_a): per-sample selection, slicing, device moves."""
-        return dataclasses.replace(self, **{f.name: fn(f.name, getattr(self, f.name))
-                                            for f in dataclasses.fields(self) if getattr(self, f.name) is not None})
+        return dataclasses.replace(self, **{name: fn(name, getattr(self, name)) for name in self._names()})
+
+    def tensors(self) -> tuple[Tensor, ...]:
+        """Its tensors (a, p, a refined state's fine_a; fields that are None left out), the form
+        a checkpoint segment passes; ``with_tensors`` rebuilds the state."""
+        return tuple(getattr(self, name) for name in self._names())
+
+    def with_tensors(self, tensors) -> Self:
+        """The same kind of state with its tensors replaced by ``tensors`` (``tensors()``'s order)."""
+        return dataclasses.replace(self, **dict(zip(self._names(), tensors, strict=True)))
 
 
 @dataclass(frozen=True)
@@ -114,12 +125,14 @@ class FluidParams:
 class FluidModel(Protocol):
     """Advances the fluid one time step: ``(a_t, p_t, b_t, v_d,t) -> (a_t+1, p_t+1)``.
 
-    Implemented by ``fishsim.fluid.numerical.NumericalFluid`` and
-    ``fishsim.fluid.hydronet.HydroNetFluid``; callers never branch on which they hold.
+    Implemented by ``fishsim.fluid.numerical.NumericalFluid``,
+    ``fishsim.fluid.hydronet.HydroNetFluid`` and ``fishsim.fluid.vacuum.Vacuum`` (no fluid);
+    callers never branch on which they hold, only on ``exerts_force``.
     ``step`` is differentiable with torch autograd and never mutates its inputs.
     """
 
     grid: Grid
+    exerts_force: bool  # False only for the vacuum (fishsim.fluid.vacuum): no coupling needed
 
     def initial_state(self, batch: int, device=None, dtype=torch.float32) -> FluidState:
         """Fluid at rest: a = 0, p = 0."""

@@ -7,7 +7,7 @@ One frame (docs/physics.md section 1, h = 0.01 s):
 3. IBM: p_t+1 sampled around the surface nodes -> f_ext (burn-in scaled)
 4. PD solid step with f_ext and the muscle contraction h(X, t_+1) -> (q_t+1, qdot_t+1)
 
-Without a fluid (``fluid=None``, vacuum) steps 1-3 are skipped and f_ext = 0.
+In the vacuum (fishsim.fluid.vacuum.Vacuum, ``fluid=none``) steps 1-3 are skipped and f_ext = 0.
 Every arrow is differentiable; ``rollout`` checkpoints segments of frames so long episodes fit in
 memory: a segment's forward runs without an autograd graph (only its boundary states are kept)
 and its backward recomputes it with one (``CheckpointedFrames``). The recomputation replays each
@@ -32,7 +32,7 @@ from fishsim.coupling import CouplingConfig, exchange_to_solid, fluid_to_solid, 
 from fishsim.coupling.added_mass import mass_centroid, stabilise_translation, stabilising_force
 from fishsim.coupling.config import AVERAGE
 from fishsim.errors import ConfigError, SimulationBlowUp
-from fishsim.fields import Boundary, FluidModel, FluidParams, FluidState, RefinedState
+from fishsim.fields import Boundary, FluidModel, FluidParams, FluidState
 from fishsim.fluid.grid import curl, faces_to_centres, union
 from fishsim.mesh.triangulate import element_areas
 from fishsim.solid import SolidModel, pd_step, predicted_start
@@ -44,7 +44,7 @@ class SwimState:
     """State of a batch of swimmers at one frame (never mutated).
 
     q, qdot: world-frame node positions (m) and velocities (m/s), [B, N, 2], float64.
-    fluid: the fluid state (None in vacuum).
+    fluid: the fluid state (the vacuum's holds no field).
     qdot_prev: the previous frame's velocities (the added-mass stabilisation's a_t and the PD
         step's predicted start; None: a start from rest).
     tunnel: in a swim tunnel (``Swimmer(tunnel=True)``) the speed U of the water past the fish
@@ -53,9 +53,26 @@ class SwimState:
 
     q: Tensor
     qdot: Tensor
-    fluid: FluidState | None = None
+    fluid: FluidState
     qdot_prev: Tensor | None = None
     tunnel: Tensor | None = None
+
+    def tensors(self) -> tuple[Tensor, ...]:
+        """The state as a tuple of tensors, the form checkpoint segments pass: q, qdot,
+        qdot_prev (qdot where None: a start from rest, which predicted_start then also makes
+        the free flight), the fluid state's tensors and the swim tunnel's speeds if any."""
+        qdot_prev = self.qdot if self.qdot_prev is None else self.qdot_prev
+        tunnel = () if self.tunnel is None else (self.tunnel,)
+        return (self.q, self.qdot, qdot_prev, *self.fluid.tensors(), *tunnel)
+
+    def with_tensors(self, tensors) -> SwimState:
+        """The same kind of state (fluid state, tunnel or not) from ``tensors()``'s tuple."""
+        if len(tensors) != len(self.tensors()):
+            raise ValueError(f"a {type(self.fluid).__name__} swim state has {len(self.tensors())} tensors, got {len(tensors)}")
+        q, qdot, qdot_prev, *rest = tensors
+        n = len(self.fluid.tensors())
+        return SwimState(q, qdot, self.fluid.with_tensors(rest[:n]), qdot_prev,
+                         rest[n] if self.tunnel is not None else None)
 
 
 @dataclass(frozen=True)
@@ -64,7 +81,7 @@ class SwimParams:
 
     controller: the travelling-wave controller ([B] tensors C, omega, gamma).
     E: Young's modulus [B] (Pa).
-    fluid: rho, mu [B] and h (None in vacuum).
+    fluid: rho, mu [B] and h; None: the vacuum's (rho = mu = 0).
     muscle_thickness: the muscle layer's thickness (a scalar tensor, fraction of the local
         half-width; shared by the batch, as the muscles are) to differentiate through, e.g. as a
         co-design parameter; None (default, no cost): the solid's fixed muscle weights. Its value
@@ -80,6 +97,11 @@ class SwimParams:
     fluid: FluidParams | None = None
     muscle_thickness: Tensor | None = None
     muscle_x_range: tuple[float, float] = (0.05, 0.95)
+
+    def __post_init__(self):
+        if self.fluid is None:                          # the vacuum's: rho = mu = 0
+            zero = torch.zeros_like(self.E)
+            object.__setattr__(self, "fluid", FluidParams(rho=zero, mu=zero))
 
 
 @dataclass
@@ -115,7 +137,7 @@ class Swimmer:
 
     solid: SolidModel of the fish mesh; in a fluid, built with the coupling's
         ``added_mass_ratio`` (fishsim.coupling.added_mass), whose force M^ a_t each frame adds
-        to the fluid's.  fluid: a FluidModel or None (vacuum).
+        to the fluid's.  fluid: a FluidModel (fishsim.fluid.vacuum.Vacuum: none).
     coupling: CouplingConfig.  walls: the tank's Boundary [1, ., H, W] (mask 1 in the walls).
     fluid_dtype: dtype of the fluid fields (float32 for HydroNet and the numerical solver).
     hold_x: the constraint mode "held on the x axis" (the paper's thrust experiment, Fig. 5):
@@ -131,17 +153,17 @@ class Swimmer:
         momentum (``tunnel_speed``). Everything else is as in free swimming.
     """
 
-    def __init__(self, solid: SolidModel, fluid: FluidModel | None, coupling: CouplingConfig,
+    def __init__(self, solid: SolidModel, fluid: FluidModel, coupling: CouplingConfig,
                  walls: Boundary | None = None, fluid_dtype: torch.dtype = torch.float32,
                  hold_x: bool = False, hold_y: bool = False, tunnel: bool = False):
-        if tunnel and (fluid is None or walls is None):
+        if tunnel and (not fluid.exerts_force or walls is None):
             raise ConfigError("a swim tunnel needs a fluid and its channel walls")
         self.solid, self.fluid, self.coupling = solid, fluid, coupling
         self.walls, self.fluid_dtype, self.hold = walls, fluid_dtype, (hold_x or tunnel, hold_y)
         self.tunnel = tunnel
         self.surface = torch.as_tensor(solid.mesh.surface, dtype=torch.long)
         self.triangles = torch.as_tensor(solid.mesh.triangles, dtype=torch.long)
-        if fluid is not None and coupling.force == "exchange" and not hasattr(fluid, "step_with_diagnostics"):
+        if fluid.exerts_force and coupling.force == "exchange" and not hasattr(fluid, "step_with_diagnostics"):
             raise ConfigError("coupling.force=exchange needs the numerical fluid's momentum exchange "
                               "(fluid=numerical); use coupling.force=pressure with this fluid")
         self.added_mass = torch.as_tensor(solid.added_mass) if solid.added_mass.any() else None
@@ -161,12 +183,10 @@ class Swimmer:
         B = params.E.shape[0]
         q = torch.as_tensor(self.solid.mesh.points, dtype=torch.float64, device=params.E.device)
         q = (q + torch.tensor(origin, dtype=q.dtype, device=q.device)).expand(B, -1, -1).clone()
-        fluid = None
-        if self.fluid is not None:
-            fluid = self.fluid.initial_state(B, device=q.device, dtype=self.fluid_dtype)
+        fluid = self.fluid.initial_state(B, device=q.device, dtype=self.fluid_dtype)
         qdot = torch.zeros_like(q)
         tunnel = q.new_zeros(B, 2) if self.tunnel else None
-        return SwimState(q=q, qdot=qdot, fluid=fluid, qdot_prev=None if fluid is None else qdot, tunnel=tunnel)
+        return SwimState(q=q, qdot=qdot, fluid=fluid, qdot_prev=qdot, tunnel=tunnel)
 
     def boundary(self, state: SwimState) -> Boundary:
         """Step 1: the fish's soft mask and velocity, united with the tank walls."""
@@ -259,7 +279,7 @@ class Swimmer:
         t0 = time.perf_counter()
         fluid, boundary = state.fluid, None
         f_ext, mass = torch.zeros_like(state.q), self.node_mass(state.q)
-        if self.fluid is not None:
+        if self.fluid.exerts_force:
             fish, boundary = self.fish_and_boundary(state)
             t0 = clock.add("coupling", t0, dev)
             fluid, f_ext = self.fluid_step(state, fish, boundary, params, t, start, mass)
@@ -273,7 +293,7 @@ class Swimmer:
             None if state.qdot_prev is None else predicted_start(state.q, state.qdot, state.qdot_prev, self.h))
         q, qdot = pd_step(self.solid, state.q, state.qdot, contraction, f_ext + self.added_mass_force(state),
                           params.E, start=solid_start, muscle_weight=weight)
-        if self.fluid is not None and self.coupling.force_mode == AVERAGE and state.qdot_prev is not None:
+        if self.fluid.exerts_force and self.coupling.force_mode == AVERAGE:
             free = (not self.hold[0], not self.hold[1])
             q, qdot = stabilise_translation(q, qdot, state.qdot, state.qdot_prev, mass,
                                             self.coupling.added_mass_ratio, self.h, free)
@@ -282,7 +302,7 @@ class Swimmer:
         tunnel = self.tunnel_speed(state, f_ext, params.fluid.rho, mass) if self.tunnel else None
         require_finite(solid_positions_q=q, solid_velocities_qdot=qdot)
         require_no_inversion(q, self.triangles)
-        if self.fluid is not None:
+        if self.fluid.exerts_force:
             require_physical(q, qdot, self.fluid.grid)
             require_bounded_force(f_ext, params.fluid.rho, self.solid.mesh.length)
         clock.add("solid", t0, dev)
@@ -393,43 +413,19 @@ def require_finite(**fields: Tensor) -> None:
 # ------------------------------------------------------------------------------------------------
 
 
-def _flatten(state: SwimState) -> tuple[Tensor, ...]:
-    """The state as a fixed tuple of tensors (checkpoint segments pass these): q, qdot,
-    qdot_prev and, with a fluid, a, p, the refined fluid's fine potential and the swim tunnel's
-    speeds (each an empty tensor when there is none), so that a refined fluid keeps its
-    fine-scale flow, and a tunnel its speed, across segments."""
-    qdot_prev = state.qdot if state.qdot_prev is None else state.qdot_prev
-    if state.fluid is None:
-        return state.q, state.qdot, qdot_prev
-    fine = getattr(state.fluid, "fine_a", None)
-    or_empty = lambda x, like: like.new_empty(0) if x is None else x
-    return (state.q, state.qdot, qdot_prev, state.fluid.a, state.fluid.p, or_empty(fine, state.fluid.a),
-            or_empty(state.tunnel, state.q))
-
-
-def _unflatten(tensors: tuple[Tensor, ...]) -> SwimState:
-    if len(tensors) == 3:
-        q, qdot, qdot_prev = tensors
-        return SwimState(q, qdot, qdot_prev=qdot_prev)
-    q, qdot, qdot_prev, a, p, fine, tunnel = tensors
-    fluid = FluidState(a=a, p=p) if fine.numel() == 0 else RefinedState(a=a, p=p, fine_a=fine)
-    return SwimState(q, qdot, fluid, qdot_prev, None if tunnel.numel() == 0 else tunnel)
-
-
 def _param_tensors(params: SwimParams) -> tuple[Tensor, ...]:
     """The tensors of ``params`` (controller C, omega, gamma; E; fluid rho, mu; the muscle
     thickness if given)."""
     c = params.controller
-    fluid = () if params.fluid is None else (params.fluid.rho, params.fluid.mu)
     thickness = () if params.muscle_thickness is None else (params.muscle_thickness,)
-    return (c.C, c.omega, c.gamma, params.E, *fluid, *thickness)
+    return (c.C, c.omega, c.gamma, params.E, params.fluid.rho, params.fluid.mu, *thickness)
 
 
 def _with_param_tensors(params: SwimParams, tensors: tuple[Tensor, ...]) -> SwimParams:
     """``params`` with its tensors replaced (inverse of _param_tensors)."""
-    C, omega, gamma, E, *rest = tensors
+    C, omega, gamma, E, rho, mu, *rest = tensors
     controller = dataclasses.replace(params.controller, C=C, omega=omega, gamma=gamma)
-    fluid_params = None if params.fluid is None else dataclasses.replace(params.fluid, rho=rest[0], mu=rest[1])
+    fluid_params = dataclasses.replace(params.fluid, rho=rho, mu=mu)
     thickness = None if params.muscle_thickness is None else rest[-1]
     return dataclasses.replace(params, controller=controller, E=E, fluid=fluid_params, muscle_thickness=thickness)
 
@@ -461,8 +457,7 @@ class CheckpointedFrames(torch.autograd.Function):
 
 def _detached(state: SwimState) -> SwimState:
     """The solved parts of a state (q, fluid p), detached, as a start for a recomputation."""
-    fluid = None if state.fluid is None else FluidState(a=None, p=state.fluid.p.detach())
-    return SwimState(q=state.q.detach(), qdot=None, fluid=fluid)
+    return SwimState(q=state.q.detach(), qdot=None, fluid=FluidState(a=None, p=state.fluid.p.detach()))
 
 
 def rollout(swimmer: Swimmer, state: SwimState, params: SwimParams, n_frames: int,
@@ -499,11 +494,11 @@ def rollout(swimmer: Swimmer, state: SwimState, params: SwimParams, n_frames: in
     seg = segment if segment > 0 and torch.is_grad_enabled() else n_frames
     solutions: dict[int, SwimState] = {}      # frame -> forward solution, replayed in recomputation
 
-    tensors, chunks = _flatten(state), []
+    tensors, chunks = state.tensors(), []
     n_state = len(tensors)
 
     def run_frames(t0: int, count: int, anchor: float, *tensors: Tensor):
-        s, rows = _unflatten(tensors[:n_state]), []
+        s, rows = state.with_tensors(tensors[:n_state]), []
         p = _with_param_tensors(params, tensors[n_state:])
         if anchor:
             p = dataclasses.replace(p, controller=dataclasses.replace(p.controller, t_anchor=anchor))
@@ -532,7 +527,7 @@ def rollout(swimmer: Swimmer, state: SwimState, params: SwimParams, n_frames: in
                 if keep_solutions:
                     solutions[t] = _detached(s)
             rows.append(torch.stack(list(m.values())))
-        return (*_flatten(s), torch.stack(rows))
+        return (*s.tensors(), torch.stack(rows))
 
     keep_solutions = seg < n_frames and any(x.requires_grad for x in (*tensors, *_param_tensors(params)))
     t, anchor = start, 0.0
@@ -553,7 +548,7 @@ def rollout(swimmer: Swimmer, state: SwimState, params: SwimParams, n_frames: in
         chunks.append(rows)
         t += count
     stacked = torch.cat(chunks)  # [n_frames, n_metrics, B]
-    return _unflatten(tensors), {name: stacked[:, i] for i, name in enumerate(METRICS)}
+    return state.with_tensors(tensors), {name: stacked[:, i] for i, name in enumerate(METRICS)}
 
 
 def _select(keep: Tensor, x: Tensor | None, other: Tensor | None) -> Tensor | None:
@@ -572,7 +567,7 @@ def park(state: SwimState, params: SwimParams, alive: Tensor, rest: SwimState) -
         r = getattr(rest.fluid, name, None)
         return _select(alive, x, torch.zeros_like(x) if r is None else r)
 
-    fluid = None if state.fluid is None else state.fluid.map(at_rest)
+    fluid = state.fluid.map(at_rest)
     qdot_prev = _select(alive, state.qdot_prev, rest.qdot_prev if rest.qdot_prev is not None else torch.zeros_like(rest.q))
     parked = SwimState(_select(alive, state.q, rest.q), _select(alive, state.qdot, rest.qdot), fluid, qdot_prev,
                        _select(alive, state.tunnel, rest.tunnel))
@@ -584,11 +579,10 @@ def park(state: SwimState, params: SwimParams, alive: Tensor, rest: SwimState) -
 def _sample(state: SwimState, params: SwimParams, b: int) -> tuple[SwimState, SwimParams]:
     """Sample b of a batch as a batch of one."""
     one = lambda x: None if x is None else x[b:b + 1]
-    fluid = None if state.fluid is None else state.fluid.map(lambda _, x: one(x))
+    fluid = state.fluid.map(lambda _, x: one(x))
     c = params.controller
     controller = dataclasses.replace(c, C=one(c.C), omega=one(c.omega), gamma=one(c.gamma))
-    fp = None if params.fluid is None else dataclasses.replace(params.fluid, rho=one(params.fluid.rho),
-                                                               mu=one(params.fluid.mu))
+    fp = dataclasses.replace(params.fluid, rho=one(params.fluid.rho), mu=one(params.fluid.mu))
     return (SwimState(one(state.q), one(state.qdot), fluid, one(state.qdot_prev), one(state.tunnel)),
             dataclasses.replace(params, controller=controller, E=one(params.E), fluid=fp))
 

@@ -29,7 +29,7 @@ def small_swimmer(overrides=(), dtype=torch.float64):
     if isinstance(sw.fluid, NumericalFluid):
         sw = Swimmer(sw.solid, NumericalFluid(sw.fluid.grid, substeps=2), cfg.coupling,
                      _cast(sw.walls, dtype), fluid_dtype=dtype)
-    elif sw.fluid is not None:
+    elif sw.fluid.exerts_force:
         sw.fluid.model.to(dtype)
         sw = Swimmer(sw.solid, sw.fluid, cfg.coupling, _cast(sw.walls, dtype), fluid_dtype=dtype)
     return cfg, sw, ep
@@ -49,7 +49,7 @@ def _cast(boundary, dtype):
 def head_distance(sw, cfg, ep, omega, C, E, frames):
     p = batch_params(cfg, sw.solid.mesh.length, "cpu")
     ctrl = type(p.controller)(C=C, omega=omega, gamma=p.controller.gamma, t_a=0.05)
-    fluid = None if p.fluid is None else type(p.fluid)(p.fluid.rho.double(), p.fluid.mu.double(), p.fluid.h)
+    fluid = type(p.fluid)(p.fluid.rho.double(), p.fluid.mu.double(), p.fluid.h)
     params = type(p)(controller=ctrl, E=E, fluid=fluid)
     state = sw.initial_state(params, ep.origin)
     _, m = rollout(sw, state, params, frames, segment=2)
@@ -333,8 +333,8 @@ def test_truncated_backpropagation_equals_detached_windows(segment):
     def by_windows(params):
         state, total = sw.initial_state(params, ep.origin), 0.0
         for t0 in range(0, n, k):
-            state = SwimState(*(x.detach() for x in (state.q, state.qdot)), qdot_prev=state.qdot_prev.detach()
-                              if state.qdot_prev is not None else None)
+            state = SwimState(*(x.detach() for x in (state.q, state.qdot)), state.fluid.map(lambda _, x: x.detach()),
+                              state.qdot_prev.detach())
             anchored = dataclasses.replace(params.controller, t_anchor=t0 * sw.h)
             state, m = rollout(sw, state, dataclasses.replace(params, controller=anchored), min(k, n - t0), start=t0)
             total = total + m["tail_y"].sum()
@@ -432,3 +432,37 @@ def test_a_refined_fluid_keeps_its_fine_flow_across_checkpoint_segments():
     (g_plain,) = torch.autograd.grad(plain.q[..., 1].sum(), C)
     (g_checkpointed,) = torch.autograd.grad(checkpointed.q[..., 1].sum(), C)
     torch.testing.assert_close(g_checkpointed, g_plain, rtol=1e-6, atol=0)
+
+
+def test_the_vacuum_is_a_fluid_model_whose_episodes_checkpoint_like_any():
+    """fluid=none builds the Vacuum (a FluidModel that exerts no force, whose state holds no
+    field): a checkpointed vacuum rollout, its gradient and a swim state's tensors round trip
+    equal the plain ones (the gradient within the replay's solver tolerance), and a tunnel's speed and a refined fluid's fine potential are
+    part of a state's tensors."""
+    from fishsim.fields import FluidModel
+    from fishsim.fluid.vacuum import Vacuum
+
+    cfg = load_config("simulate", [*SMALL, "fluid=none"])
+    ep = build_episode(cfg)
+    sw, params = ep.swimmer, ep.params
+    assert isinstance(sw.fluid, Vacuum) and isinstance(sw.fluid, FluidModel) and not sw.fluid.exerts_force
+    assert float(params.fluid.rho.abs().max()) == 0.0
+    omega = params.controller.omega.clone().requires_grad_(True)
+    params = dataclasses.replace(params, controller=dataclasses.replace(params.controller, omega=omega))
+    plain, m_plain = rollout(sw, sw.initial_state(params, ep.origin), params, 7)
+    checkpointed, m_checkpointed = rollout(sw, sw.initial_state(params, ep.origin), params, 7, segment=3)
+    assert torch.equal(checkpointed.q, plain.q) and torch.equal(m_checkpointed["head_x"], m_plain["head_x"])
+    (g_plain,) = torch.autograd.grad(m_plain["head_x"][-1].sum(), omega)
+    (g_checkpointed,) = torch.autograd.grad(m_checkpointed["head_x"][-1].sum(), omega)
+    torch.testing.assert_close(g_checkpointed, g_plain, rtol=1e-6, atol=0)     # a replay: within the PD tolerance
+    assert bool((g_plain != 0).all())
+    assert torch.equal(plain.with_tensors(plain.tensors()).q, plain.q)
+
+    refined = RefinedState(a=torch.zeros(1, 1, 3, 3), p=torch.zeros(1, 1, 2, 2), fine_a=torch.ones(1, 1, 5, 5))
+    state = SwimState(plain.q[:1], plain.qdot[:1], refined, None, tunnel=torch.ones(1, 2))
+    tensors = state.tensors()
+    assert len(tensors) == 7 and torch.equal(tensors[2], state.qdot)     # qdot_prev None -> qdot
+    back = state.with_tensors(tuple(2 * x for x in tensors))
+    assert torch.equal(back.fluid.fine_a, 2 * refined.fine_a) and torch.equal(back.tunnel, 2 * state.tunnel)
+    with pytest.raises(ValueError, match="RefinedState swim state has 7 tensors, got 6"):
+        state.with_tensors(tensors[:6])

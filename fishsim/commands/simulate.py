@@ -28,7 +28,7 @@ def open_writer(cfg: SimulateConfig, episode: Episode, path) -> TrajectoryWriter
     """Declare every series of the run and write the static data (mesh, controller, config)."""
     sw, p = episode.swimmer, episode.params
     mesh, B = sw.solid.mesh, p.E.shape[0]
-    fluid_shape = (cfg.fluid.H, cfg.fluid.W) if sw.fluid is not None else None
+    fluid_shape = (cfg.fluid.H, cfg.fluid.W) if sw.fluid.exerts_force else None
     series = trajectory_series(mesh.n_nodes, B, sw.solid.n_muscles, METRICS, fluid_shape)
     static = {
         "mesh/points": mesh.points, "mesh/triangles": mesh.triangles, "mesh/surface": mesh.surface,
@@ -83,14 +83,14 @@ def run(cfg: SimulateConfig) -> dict:
         task = progress.add_task("simulate", total=cfg.frames)
 
         def on_frame(t, s, out, metrics):
-            if sw.fluid is not None:
+            if sw.fluid.exerts_force:
                 for b in wall_proximity(bounds, s.q):
                     if b not in near_wall:
                         near_wall[b] = t + 1
                         progress.console.print(f"[yellow]warning: fish {b} came within a body width of the tank wall at "
                                                f"frame {t + 1}; from here on its motion is wall-dominated[/]")
             writer.append(frame_record(t, s, out, metrics, cfg.h))
-            if sw.fluid is not None and (t + 1) % cfg.fluid_stride == 0:
+            if sw.fluid.exerts_force and (t + 1) % cfg.fluid_stride == 0:
                 writer.append(fluid_record(t, s, out, cfg.fluid.dx))
             writer.end_frame()
             for k, v in metrics.items():

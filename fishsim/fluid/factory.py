@@ -23,13 +23,15 @@ def fluid_dtype(cfg) -> torch.dtype:
     return getattr(torch, cfg.dtype)
 
 
-def make_fluid(cfg, device=None) -> FluidModel | None:
-    """The ``FluidModel`` of a ``FluidConfig`` (None for ``model=none``, the vacuum) on ``device``.
+def make_fluid(cfg, device=None) -> FluidModel:
+    """The ``FluidModel`` of a ``FluidConfig`` (``model=none``: the Vacuum) on ``device``.
 
     hydronet: the model in ``cfg.model_file`` or, when unset, the shipped one, with the pressure
     ``cfg.pressure``; a missing or corrupt file raises InputFileError saying how to train one."""
     if cfg.model == "none":
-        return None
+        from fishsim.fluid.vacuum import Vacuum
+
+        return Vacuum(make_grid(cfg))
     if cfg.model == "numerical":
         from fishsim.fluid.numerical import NumericalFluid
 
@@ -56,6 +58,7 @@ def make_tank(cfg, device=None, unit_inflow: bool = False) -> Boundary:
 
 
 def fluid_params(cfg, batch: int, h: float, device=None) -> FluidParams:
-    """rho, mu as [B] tensors (in the fluid's ``cfg.dtype``) and the time step h."""
-    full = lambda v: torch.full((batch,), float(v), device=device, dtype=fluid_dtype(cfg))
+    """rho, mu as [B] tensors (in the fluid's ``cfg.dtype``; 0 in the vacuum) and the time step h."""
+    vacuum = cfg.model == "none"
+    full = lambda v: torch.full((batch,), 0.0 if vacuum else float(v), device=device, dtype=fluid_dtype(cfg))
     return FluidParams(rho=full(cfg.rho), mu=full(cfg.mu), h=h)

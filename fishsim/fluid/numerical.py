@@ -320,6 +320,8 @@ class NumericalFluid:
         the split scheme only (``brinkman`` None).
     """
 
+    exerts_force = True
+
     def __init__(
         self,
         grid: Grid,
@@ -353,8 +355,13 @@ class NumericalFluid:
     # -- contract ------------------------------------------------------------------------------
 
     def initial_state(self, batch: int, device=None, dtype=torch.float32) -> FluidState:
-        """Fluid at rest: a = 0, p = 0 on the r = 1 grid."""
-        return rest_state(self.grid, batch, device, dtype)
+        """Fluid at rest: a = 0, p = 0 on the r = 1 grid; refined (r > 1), a RefinedState whose
+        fine potential is 0 too, so that every state of an episode has the same tensors."""
+        rest = rest_state(self.grid, batch, device, dtype)
+        if self.refinement == 1:
+            return rest
+        fine_a = torch.zeros(batch, 1, self.fine.H + 1, self.fine.W + 1, device=device, dtype=dtype)
+        return RefinedState(a=rest.a, p=rest.p, fine_a=fine_a)
 
     def step(self, state: FluidState, boundary: Boundary, params: FluidParams,
              start: Tensor | None = None) -> FluidState:

@@ -173,7 +173,7 @@ class Problem:
         pick = lambda name, value: col[name] if name in col else value.expand(B)
         omega = 2 * math.pi * col["frequency"] if "frequency" in col else c.omega.expand(B)
         controller = dataclasses.replace(c, C=pick("amplitude", c.C), omega=omega, gamma=pick("wave_number", c.gamma))
-        fluid = None if base.fluid is None else fluid_params(self.cfg.fluid, B, self.cfg.h, x.device)
+        fluid = fluid_params(self.cfg.fluid, B, self.cfg.h, x.device)
         return dataclasses.replace(base, controller=controller, E=pick("youngs_modulus", base.E), fluid=fluid)
 
     def evaluate(self, z: Tensor, gradient: bool = False, isolate: bool = True) -> Evaluation:

@@ -121,13 +121,15 @@ def _episode_loss(mesh, elements, thickness, C, segment: int, differentiable: bo
     """Final tail y + head x (summed over a batch of 2) after `frames` frames in vacuum of the
     layer-muscled fish, through `rollout` (the thickness as SwimParams.muscle_thickness)."""
     from fishsim.coupling import CouplingConfig
+    from fishsim.fields import Grid
+    from fishsim.fluid.vacuum import Vacuum
     from fishsim.rollout import Swimmer, SwimParams, rollout
     from fishsim.solid.controller import WaveController
     from fishsim.solid.muscles import layer_muscles
 
     model = SolidModel(mesh, options=PDOptions(**TIGHT),
                        muscles=layer_muscles(mesh, float(thickness.detach()), elements=elements))
-    swimmer = Swimmer(model, None, CouplingConfig())
+    swimmer = Swimmer(model, Vacuum(Grid()), CouplingConfig())
     ctrl = WaveController.default(mesh.length, batch=2)
     params = SwimParams(WaveController(C, ctrl.omega, ctrl.gamma), torch.tensor([6e5, 4e5], dtype=torch.float64),
                         muscle_thickness=thickness if differentiable else None)

@@ -216,6 +216,8 @@ class HydroNetFluid:
     shipped before 2026-11-26 gave 3x too little thrust with its own pressure).
     """
 
+    exerts_force = True
+
     def __init__(self, model: HydroNet, grid: Grid, bf16: bool = False, pressure: str = NETWORK,
                  recovery: RecoveryConfig | None = None):
         if pressure not in PRESSURES:
