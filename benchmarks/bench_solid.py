@@ -22,7 +22,7 @@ import torch
 from fishsim.mesh import make_fish_mesh, mesh_quality
 from fishsim.solid import SolidModel, pd_step, predicted_start, rest_state
 from fishsim.solid.controller import WaveController
-from fishsim.solid.model import SolverStats
+from fishsim.solid.model import SolverCache, SolverStats
 from fishsim.solid.muscles import layer_muscles
 
 
@@ -35,25 +35,25 @@ def _controller(batch: int, length: float) -> WaveController:
 def _warm_state(model: SolidModel, ctrl: WaveController, warmup: int):
     """(q, qdot, qdot_prev) after ``warmup`` steps from rest."""
     q, qdot = rest_state(model, len(ctrl.C))
-    qdot_prev = qdot
+    qdot_prev, cache = qdot, SolverCache()
     with torch.no_grad():
         for k in range(warmup):
             qdot_prev, (q, qdot) = qdot, pd_step(model, q, qdot, ctrl.contraction(model, k * model.h),
-                                                 start=predicted_start(q, qdot, qdot_prev, model.h))
+                                                 start=predicted_start(q, qdot, qdot_prev, model.h), cache=cache)
     return q, qdot, qdot_prev
 
 
 def _time_forward(model, ctrl, q, qdot, qdot_prev, start: int, steps: int) -> tuple[float, float, float]:
     """(ms per step, L-BFGS iterations per step of the batch's slowest sample, mean iterations
     per step and sample) without autograd."""
-    its = []
+    its, cache = [], SolverCache()
     with torch.no_grad():
         t0 = time.perf_counter()
         for k in range(start, start + steps):
             guess = predicted_start(q, qdot, qdot_prev, model.h)
             qdot_prev = qdot
             q, qdot, info = pd_step(model, q, qdot, ctrl.contraction(model, k * model.h), return_info=True,
-                                    start=guess)
+                                    start=guess, cache=cache)
             its.append(info.iterations)
         elapsed = time.perf_counter() - t0
     its = np.array(its)
@@ -66,15 +66,15 @@ def _time_backward(model, ctrl, q, qdot, start: int, steps: int) -> tuple[float,
     omega = ctrl.omega.clone().requires_grad_()
     ctrl = WaveController(ctrl.C, omega, ctrl.gamma, ctrl.t_a)
     q, qdot = q.clone().requires_grad_(), qdot.clone().requires_grad_()
-    q0, qdot0 = q, qdot
+    q0, qdot0, cache = q, qdot, SolverCache()
     for k in range(start, start + steps):
-        q, qdot = pd_step(model, q, qdot, ctrl.contraction(model, k * model.h))
+        q, qdot = pd_step(model, q, qdot, ctrl.contraction(model, k * model.h), cache=cache)
     loss = q[:, :, 1].sum() + qdot[:, :, 0].mean()
-    model.stats = SolverStats()
+    cache.stats = SolverStats()                         # the backward's statistics alone
     t0 = time.perf_counter()
     torch.autograd.grad(loss, [omega, q0, qdot0])
     elapsed = time.perf_counter() - t0
-    return 1e3 * elapsed / steps, model.stats.backward_iterations_total / steps
+    return 1e3 * elapsed / steps, cache.stats.backward_iterations_total / steps
 
 
 def tail_excursion(model: SolidModel, frequency: float = 5.0, t_end: float = 1.2, window: float = 0.2) -> float:
@@ -82,11 +82,11 @@ def tail_excursion(model: SolidModel, frequency: float = 5.0, t_end: float = 1.2
     tail tip (X = 0) over the last ``window`` s of a ``t_end`` s stroke in vacuum."""
     ctrl = WaveController.default(model.mesh.length, 1, frequency)
     q, qdot = rest_state(model, 1)
-    tail, ys = int(np.argmin(model.mesh.points[:, 0])), []
+    tail, ys, cache = int(np.argmin(model.mesh.points[:, 0])), [], SolverCache()
     n = round(t_end / model.h)
     with torch.no_grad():
         for k in range(n):
-            q, qdot = pd_step(model, q, qdot, ctrl.contraction(model, k * model.h))
+            q, qdot = pd_step(model, q, qdot, ctrl.contraction(model, k * model.h), cache=cache)
             if (k + 1) * model.h > t_end - window:
                 ys.append(float(q[0, tail, 1]))
     return max(ys) - min(ys)

@@ -35,7 +35,7 @@ from fishsim.errors import ConfigError, SimulationBlowUp
 from fishsim.fields import Boundary, FluidModel, FluidParams, FluidState
 from fishsim.fluid.grid import curl, faces_to_centres, union
 from fishsim.mesh.triangulate import element_areas
-from fishsim.solid import SolidModel, pd_step, predicted_start
+from fishsim.solid import SolidModel, SolverCache, pd_step, predicted_start
 from fishsim.solid.controller import WaveController
 
 
@@ -175,11 +175,7 @@ class Swimmer:
 
     def initial_state(self, params: SwimParams, origin: tuple[float, float]) -> SwimState:
         """Fish at rest with its material frame translated to ``origin`` (x, y) in metres
-        (material X = 0, the tail, sits at x = origin[0]); fluid at rest. A new episode also drops
-        the solid's lagged preconditioner, so that an episode's result never depends on the
-        episodes run before it in the same process (they differ only within the solver's
-        tolerance, but a resumed optimisation must repeat an uninterrupted one exactly)."""
-        self.solid.lagged = None
+        (material X = 0, the tail, sits at x = origin[0]); fluid at rest."""
         B = params.E.shape[0]
         q = torch.as_tensor(self.solid.mesh.points, dtype=torch.float64, device=params.E.device)
         q = (q + torch.tensor(origin, dtype=q.dtype, device=q.device)).expand(B, -1, -1).clone()
@@ -269,12 +265,13 @@ class Swimmer:
         return fluid, f_ext
 
     def frame(self, state: SwimState, params: SwimParams, t: int,
-              start: SwimState | None = None,
-              muscles: tuple[Tensor, Tensor] | None = None) -> tuple[SwimState, FrameOutput]:
+              start: SwimState | None = None, muscles: tuple[Tensor, Tensor] | None = None,
+              cache: SolverCache | None = None) -> tuple[SwimState, FrameOutput]:
         """Advance one frame (module docstring); ``t`` is the index of the frame being left.
         ``start``: a guess of the new state (its q and fluid p) for the iterative solves
         (default: the PD step starts from ``predicted_start``, the fluid from p_t).
-        ``muscles``: ``muscle_weights(params)`` if already computed (default: computed here)."""
+        ``muscles``: ``muscle_weights(params)`` if already computed (default: computed here).
+        ``cache``: the PD solve's SolverCache of the frames' sequence (default: a fresh one)."""
         dev, clock = state.q.device, self.timer
         t0 = time.perf_counter()
         fluid, boundary = state.fluid, None
@@ -292,7 +289,7 @@ class Swimmer:
         solid_start = start.q if start is not None else (
             None if state.qdot_prev is None else predicted_start(state.q, state.qdot, state.qdot_prev, self.h))
         q, qdot = pd_step(self.solid, state.q, state.qdot, contraction, f_ext + self.added_mass_force(state),
-                          params.E, start=solid_start, muscle_weight=weight)
+                          params.E, start=solid_start, muscle_weight=weight, cache=cache)
         if self.fluid.exerts_force and self.coupling.force_mode == AVERAGE:
             free = (not self.hold[0], not self.hold[1])
             q, qdot = stabilise_translation(q, qdot, state.qdot, state.qdot_prev, mass,
@@ -463,7 +460,7 @@ def _detached(state: SwimState) -> SwimState:
 def rollout(swimmer: Swimmer, state: SwimState, params: SwimParams, n_frames: int,
             segment: int = 0, on_frame: Callable[[int, SwimState, FrameOutput, dict], None] | None = None,
             start: int = 0, failures: dict[int, tuple[int, str]] | None = None,
-            truncate: int = 0) -> tuple[SwimState, dict[str, Tensor]]:
+            truncate: int = 0, cache: SolverCache | None = None) -> tuple[SwimState, dict[str, Tensor]]:
     """Run ``n_frames`` frames from frame ``start``; return the final state and the per-frame
     metrics stacked to [n_frames, B] (differentiable w.r.t. the initial state and ``params``).
 
@@ -485,6 +482,10 @@ def rollout(swimmer: Swimmer, state: SwimState, params: SwimParams, n_frames: in
         reaches the parameters only through the frames since the last cut (a biased but bounded
         gradient for long episodes whose full gradient grows with their length; docs/physics.md
         section 9).
+    cache: the PD solve's SolverCache (its preconditioner carried from frame to frame, its
+        statistics); default: a fresh one, so that a call never depends on what ran before it
+        (a resumed optimisation repeats an uninterrupted one exactly). Pass one to read the
+        statistics or to carry the preconditioner over consecutive calls.
     Raises SimulationBlowUp naming the frame if a state goes non-finite.
     """
     recorded = [start - 1]
@@ -493,6 +494,7 @@ def rollout(swimmer: Swimmer, state: SwimState, params: SwimParams, n_frames: in
     masks: dict[int, Tensor] = {}             # frame -> the alive mask it ran with (replayed)
     seg = segment if segment > 0 and torch.is_grad_enabled() else n_frames
     solutions: dict[int, SwimState] = {}      # frame -> forward solution, replayed in recomputation
+    cache = SolverCache() if cache is None else cache
 
     tensors, chunks = state.tensors(), []
     n_state = len(tensors)
@@ -509,14 +511,14 @@ def rollout(swimmer: Swimmer, state: SwimState, params: SwimParams, n_frames: in
             s_in, p_in = park(s, p, mask, rest) if isolate else (s, p)
             try:
                 s_new, out = swimmer.frame(s_in, p_in, t, start=solutions.get(t) if replay else None,
-                                           muscles=muscles)
+                                           muscles=muscles, cache=cache)
             except SimulationBlowUp as err:
                 if not isolate or replay:
                     raise SimulationBlowUp(f"simulation blew up at frame {t + 1}: {err}") from None
                 mask = mask & ~failing_samples(swimmer, s_in, p_in, t, mask, failures, err)
                 alive[0] = mask
                 s_in, p_in = park(s, p, mask, rest)
-                s_new, out = swimmer.frame(s_in, p_in, t, muscles=muscles)
+                s_new, out = swimmer.frame(s_in, p_in, t, muscles=muscles, cache=cache)
             s = s_new
             m = frame_metrics(swimmer, s, out)
             if not replay:

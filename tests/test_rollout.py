@@ -15,6 +15,7 @@ from fishsim.episode import batch_params, build_episode
 from fishsim.errors import ConfigError, SimulationBlowUp
 from fishsim.fluid.numerical import NumericalFluid, RefinedState
 from fishsim.rollout import Swimmer, SwimState, rollout
+from fishsim.solid import SolverCache
 
 SMALL = ["fish.edge_length=4e-3", "fluid.H=32", "fluid.W=96", "fluid.dx=6e-3", "origin=[0.2,0.096]",
          "fluid.wall_x=2", "fluid.wall_y=2", "coupling.n_burn_in=2", "solid.pd.atol=1e-8"]
@@ -234,11 +235,11 @@ def test_checkpointed_gradient_equals_plain_backprop(fluid, tiny_model):
                                   gamma=p.controller.gamma, t_a=0.05)
         fluid_params = type(p.fluid)(p.fluid.rho.double(), p.fluid.mu.double(), p.fluid.h)
         params = type(p)(controller=ctrl, E=p.E, fluid=fluid_params)
-        sw.solid.lagged = None  # both forward passes start from fresh PD preconditioners
-        _, m = rollout(sw, sw.initial_state(params, ep.origin), params, 6, segment=segment)
+        cache = SolverCache()   # each rollout's own: both forward passes start from fresh PD preconditioners
+        _, m = rollout(sw, sw.initial_state(params, ep.origin), params, 6, segment=segment, cache=cache)
         grads.append(torch.autograd.grad(m["head_x"][-1].sum(), omega)[0])
         if segment:  # the backward's last recomputed frame (frame 3 of 6)
-            assert sw.solid.stats.forward_iterations.max() == 0
+            assert cache.stats.forward_iterations.max() == 0
     # the recomputed segments repeat the forward solves to round-off, not bit for bit (measured 4e-9)
     torch.testing.assert_close(grads[0], grads[1], rtol=1e-8, atol=0)
 

@@ -349,7 +349,6 @@ class NumericalFluid:
         self.cfl, self.diffusion, self.brinkman = cfl, diffusion, brinkman
         self.substeps, self.max_substeps = int(substeps), max_substeps
         self.penalization_iterations = int(penalization_iterations)
-        self.steps_taken = 0  # only used to name the step in blow-up messages
         self._inv: dict = {}
 
     # -- contract ------------------------------------------------------------------------------
@@ -400,7 +399,6 @@ class NumericalFluid:
             v = new
             p_sum = p_sum + phi
             pen_sum = tuple(s + q for s, q in zip(pen_sum, pen))
-        self.steps_taken += 1
         self._check_finite(v, h)
         a = stream_function(v, dx)
         p = _mean_free(rho * p_sum / h)
@@ -470,7 +468,7 @@ class NumericalFluid:
             nu_b = torch.broadcast_to(nu.detach().reshape(-1), speed.shape[:1]).double().cpu()
         if not bool(torch.isfinite(speed).all()):
             raise SimulationBlowUp(
-                f"fluid step {self.steps_taken}: non-finite velocity in the input state or boundary "
+                "fluid step: non-finite velocity in the input state or boundary "
                 "velocity; the previous step diverged (CFL/viscous instability) or v_d is NaN"
             )
         floor = torch.full_like(speed, self.refinement * self.substeps)
@@ -479,7 +477,7 @@ class NumericalFluid:
         if int(n.max()) > self.max_substeps:
             b = int(n.argmax())
             raise SimulationBlowUp(
-                f"fluid step {self.steps_taken}: max |v| = {float(speed[b]):.3g} m/s, nu = {float(nu_b[b]):.3g} m^2/s "
+                f"fluid step: max |v| = {float(speed[b]):.3g} m/s, nu = {float(nu_b[b]):.3g} m^2/s "
                 f"need {int(n[b])} sub-steps (> max_substeps = {self.max_substeps}) at h = {h:g} s, dx = {dx:g} m: "
                 "runaway velocity (CFL); check the boundary velocity, h and mu/rho"
             )
@@ -490,7 +488,7 @@ class NumericalFluid:
             ok = all(bool(torch.isfinite(c).all()) for c in v)
         if not ok:
             raise SimulationBlowUp(
-                f"fluid step {self.steps_taken - 1}: non-finite velocity after the step "
+                f"fluid step: non-finite velocity after the step "
                 f"(h = {h:g} s, {self.fine.H}x{self.fine.W} cells); likely an unstable sub-step count "
                 "(fixed `substeps` too small for the CFL) or a non-finite mask/boundary velocity"
             )

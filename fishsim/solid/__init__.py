@@ -12,7 +12,7 @@ from fishsim.lazy import exports
 __getattr__, __all__ = exports(__name__, {
     "config": ("PDOptions", "SolidMaterial"),
     "fem": ("FemQuantities", "fem_quantities"),
-    "model": ("SolidModel",),
+    "model": ("SolidModel", "SolverCache"),
     "solve": ("ForwardInfo",),
     "step": ("pd_step", "predicted_start", "rest_state"),
 })

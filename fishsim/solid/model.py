@@ -30,9 +30,8 @@ from fishsim.solid.packed import PackBand
 
 @dataclass
 class SolverStats:
-    """Solver diagnostics (the only mutable part of a model): the last forward step's L-BFGS
-    iterations and residual per sample, the last adjoint's CG iterations and number of samples
-    solved directly, and running totals (reset by assigning a fresh SolverStats())."""
+    """Solver diagnostics: the last forward step's L-BFGS iterations and residual per sample,
+    the last adjoint's CG iterations and number of samples solved directly, and running totals."""
 
     forward_iterations: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     forward_residual: np.ndarray = field(default_factory=lambda: np.zeros(0))
@@ -56,14 +55,30 @@ class SolverStats:
         self.backward_direct_total += direct
 
 
+@dataclass
+class SolverCache:
+    """What the PD solve carries from one step to the next. The caller that runs a sequence of
+    steps holds it and passes it to each pd_step (the rollout holds one per episode); the model
+    never changes. A fresh cache gives the same steps within the solver's tolerance (it only
+    refactorises at its first step), so a result depends on the cache's history only there.
+
+    lagged: the batch's lagged Newton factors (preconditioner.LaggedFactors; None: none yet).
+    factors: (kind, E) -> factorisation of a fixed preconditioner (preconditioner.factor).
+    stats: the steps' diagnostics (SolverStats).
+    """
+
+    lagged: object = None
+    factors: dict = field(default_factory=dict)
+    stats: SolverStats = field(default_factory=SolverStats)
+
+
 # Spring constant of an anchored node, in units of E (SolidModel's anchors).
 ANCHOR_STIFFNESS = 1e2
 
 
 class SolidModel:
     """Mesh, material, time step and precomputed operators of the PD solid (read-only after
-    construction, except for the factorisation caches `factors` and `lagged` and the
-    diagnostics `stats`).
+    construction; what the solve carries between steps is a SolverCache the caller holds).
 
     fem: FemQuantities of the mesh (fem.mass: the fish's own lumped masses).
     added_mass: [N] added_mass_ratio * fem.mass, extra nodal mass (kg per unit depth) of the
@@ -111,9 +126,6 @@ class SolidModel:
         self.mass_h2 = self.mass / self.h**2
         self.mass_diag = np.repeat(self.mass_h2, 2)
         self.K0, self.K_muscle = self._stiffness_parts()
-        self.stats = SolverStats()
-        self.factors: dict[float, object] = {}   # E -> factorisation (preconditioner.py)
-        self.lagged = None                        # the batch's lagged Newton factors (preconditioner.py)
 
     @property
     def n_nodes(self) -> int:

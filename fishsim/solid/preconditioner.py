@@ -3,7 +3,7 @@
 - 'lagged_newton' (forward default): per sample, the Newton matrix of elastic.newton_matrix
   (the exact Hessian of Phi; its positive definite projection where the exact one is indefinite,
   under strong compression), factorised at the start of a step and reused by later steps until
-  one needs more than options.refresh_iterations iterations (kept in model.lagged; the batch size
+  one needs more than options.refresh_iterations iterations (kept in the SolverCache; the batch size
   changing rebuilds them). The batch's factors are assembled and factorised in parallel over
   the samples, straight into their bands (kernels.newton_factors). It follows the body's local
   rotations, which the two fixed matrices below cannot. The exact Hessian, where positive
@@ -11,7 +11,7 @@
   projected one.
 
 The next two are constant in time and affine in E, so each is factorised once per distinct E
-(cached in model.factors) and reused every step. Every factorisation is a banded Cholesky after
+(cached in the SolverCache) and reused every step. Every factorisation is a banded Cholesky after
 RCM reordering (fishsim.linalg.banded; SuperLU if a matrix is not positive definite):
 
 - 'pd': DiffPD's global matrix A(E) = M/h^2 + G^T W(E) G, the same [N, N] matrix for x and y.
@@ -29,7 +29,7 @@ import scipy.sparse as sp
 
 from fishsim.linalg.banded import BandedCholesky, lu_factor, spd_factor
 from fishsim.solid import elastic, kernels
-from fishsim.solid.model import SolidModel
+from fishsim.solid.model import SolidModel, SolverCache
 
 _CACHE_SIZE = 64
 
@@ -47,15 +47,16 @@ def rest_newton_matrix(model: SolidModel, E: float) -> sp.csc_matrix:
     return elastic.newton_matrix(model, p, 0)
 
 
-def factor(model: SolidModel, E: float, kind: str):
-    """Cached factorisation of the 'rest_newton' or 'pd' matrix for Young's modulus E."""
-    key = (kind, float(E))
-    if key not in model.factors:
-        if len(model.factors) >= _CACHE_SIZE:
-            model.factors.pop(next(iter(model.factors)))
+def factor(model: SolidModel, E: float, kind: str, cache: SolverCache):
+    """Factorisation of the 'rest_newton' or 'pd' matrix for Young's modulus E, kept in
+    ``cache.factors``."""
+    key, factors = (kind, float(E)), cache.factors
+    if key not in factors:
+        if len(factors) >= _CACHE_SIZE:
+            factors.pop(next(iter(factors)))
         build = rest_newton_matrix if kind == "rest_newton" else pd_matrix
-        model.factors[key] = spd_factor(build(model, float(E)))
-    return model.factors[key]
+        factors[key] = spd_factor(build(model, float(E)))
+    return factors[key]
 
 
 def best_fit_rotation(model: SolidModel, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -84,10 +85,10 @@ class Preconditioner:
     each sample's rigid frame. Every sample is solved (the `active` argument of the call is
     accepted for LaggedNewton's interface)."""
 
-    def __init__(self, model: SolidModel, E: np.ndarray, X_frame: np.ndarray | None = None,
+    def __init__(self, model: SolidModel, cache: SolverCache, E: np.ndarray, X_frame: np.ndarray | None = None,
                  kind: str = "rest_newton"):
         values, inverse = np.unique(E, return_inverse=True)
-        self.groups = [(factor(model, v, kind), np.flatnonzero(inverse.ravel() == i)) for i, v in enumerate(values)]
+        self.groups = [(factor(model, v, kind, cache), np.flatnonzero(inverse.ravel() == i)) for i, v in enumerate(values)]
         self.rotated = kind == "rest_newton"
         if self.rotated:
             self.cos, self.sin = best_fit_rotation(model, elastic.to_columns(X_frame))
@@ -126,8 +127,7 @@ def newton_factors(model: SolidModel, p: elastic.Projections, samples: np.ndarra
 
 
 class LaggedFactors:
-    """The lagged Newton factors of a batch of B samples, kept on the model between steps
-    (model.lagged): banded factors L [B, n, w + 1] where `banded`, else a SuperLU object in
+    """The lagged Newton factors of a batch of B samples, kept between steps (SolverCache.lagged): banded factors L [B, n, w + 1] where `banded`, else a SuperLU object in
     `other` (models with the volume term, or a projected matrix that failed Cholesky);
     `valid` [B] False marks samples to refactorise at the next step's start; `iterations` [B]
     the last step's L-BFGS iterations (the next step's cost estimate)."""
@@ -176,16 +176,16 @@ class LaggedFactors:
 
 
 class LaggedNewton:
-    """r -> K_b^-1 r per sample with the lagged Newton factors of `model.lagged` (refactorised
+    """r -> K_b^-1 r per sample with the lagged Newton factors of `cache.lagged` (refactorised
     where stale, unless `refactorise` is False: solve.pd_solve's compiled path factorises
     inside its kernel); with `active` [B] only those samples are solved (the others are 0)."""
 
-    def __init__(self, model: SolidModel, X: np.ndarray, contraction: np.ndarray, E: np.ndarray,
-                 refactorise: bool = True):
+    def __init__(self, model: SolidModel, cache: SolverCache, X: np.ndarray, contraction: np.ndarray,
+                 E: np.ndarray, refactorise: bool = True):
         B = len(X)
-        if model.lagged is None or len(model.lagged.valid) != B:
-            model.lagged = LaggedFactors(model, B)
-        self.lagged, self.model = model.lagged, model
+        if cache.lagged is None or len(cache.lagged.valid) != B:
+            cache.lagged = LaggedFactors(model, B)
+        self.lagged, self.model = cache.lagged, model
         if refactorise:
             self.lagged.refactorise(model, X, contraction, E)
 

@@ -39,7 +39,7 @@ import numpy as np
 
 from fishsim.linalg.banded import lu_factor, spd_factor
 from fishsim.solid import elastic, kernels, packed
-from fishsim.solid.model import SolidModel
+from fishsim.solid.model import SolidModel, SolverCache
 from fishsim.solid.preconditioner import LaggedNewton, Preconditioner, newton_factors
 
 
@@ -143,8 +143,9 @@ def _two_loop(g: np.ndarray, history: History, precondition, active: np.ndarray)
 
 
 def pd_solve(model: SolidModel, Y: np.ndarray, X0: np.ndarray, contraction: np.ndarray,
-             E: np.ndarray) -> tuple[np.ndarray, ForwardInfo]:
-    """q+ = argmin Phi for every sample. Y, X0: [B, N, 2]; contraction [n_act, B]; E [B].
+             E: np.ndarray, cache: SolverCache) -> tuple[np.ndarray, ForwardInfo]:
+    """q+ = argmin Phi for every sample. Y, X0: [B, N, 2]; contraction [n_act, B]; E [B];
+    cache: the preconditioner's factors kept between steps (read and updated).
     Returns (X [B, N, 2], ForwardInfo). The preconditioner is built only if some sample needs an
     iteration (a start that is already converged, e.g. a checkpoint recomputation's, costs one
     residual evaluation). On models without the volume term, with the default preconditioner,
@@ -163,10 +164,10 @@ def pd_solve(model: SolidModel, Y: np.ndarray, X0: np.ndarray, contraction: np.n
         need = need & ~_solve_packed(objective, X, g, need, iterations)
     if need.any():
         if compiled:
-            precondition = _solve_compiled(objective, X0, X, g, need, iterations)
+            precondition = _solve_compiled(objective, cache, X0, X, g, need, iterations)
             rest = need & ~precondition.lagged.banded
         else:
-            precondition, rest = _preconditioner(model, X0, contraction, E), need
+            precondition, rest = _preconditioner(model, cache, X0, contraction, E), need
         if rest.any():
             X, g = _lbfgs(objective, precondition, X, phi, g, rest, iterations)
         if isinstance(precondition, LaggedNewton):
@@ -233,15 +234,15 @@ def _solve_packed(objective: Objective, X: np.ndarray, g: np.ndarray, need: np.n
     return solved
 
 
-def _solve_compiled(objective: Objective, X0: np.ndarray, X: np.ndarray, g: np.ndarray, need: np.ndarray,
-                    iterations: np.ndarray) -> LaggedNewton:
+def _solve_compiled(objective: Objective, cache: SolverCache, X0: np.ndarray, X: np.ndarray, g: np.ndarray,
+                    need: np.ndarray, iterations: np.ndarray) -> LaggedNewton:
     """kernels.lbfgs_samples on the `need` [B] samples, in place on X, g and iterations: each
     sample's stale lagged Newton factor is rebuilt at X0 and its whole L-BFGS solve run compiled,
     in parallel over the samples. Returns the lagged Newton preconditioner, whose `banded` [B]
     marks the samples solved (the others, whose Newton matrix was not banded-Cholesky
     factorisable, now have a sparse LU for the numpy iteration)."""
     model, opts = objective.model, objective.model.options
-    precondition = LaggedNewton(model, X0, objective.contraction, objective.E, refactorise=False)
+    precondition = LaggedNewton(model, cache, X0, objective.contraction, objective.E, refactorise=False)
     lagged = precondition.lagged
     rebuild = need & ~lagged.valid
     stale = np.flatnonzero(rebuild)
@@ -307,11 +308,11 @@ def _lbfgs(objective: Objective, precondition, X: np.ndarray, phi: np.ndarray, g
     return X, g
 
 
-def _preconditioner(model: SolidModel, X0: np.ndarray, contraction: np.ndarray, E: np.ndarray):
+def _preconditioner(model: SolidModel, cache: SolverCache, X0: np.ndarray, contraction: np.ndarray, E: np.ndarray):
     """The forward's initial inverse Hessian (options.preconditioner) at the start X0."""
     if model.options.preconditioner == "lagged_newton":
-        return LaggedNewton(model, X0, contraction, E)
-    return Preconditioner(model, E, X0, model.options.preconditioner)
+        return LaggedNewton(model, cache, X0, contraction, E)
+    return Preconditioner(model, cache, E, X0, model.options.preconditioner)
 
 
 def _remove_net_residual(model: SolidModel, X: np.ndarray, g: np.ndarray):
@@ -356,16 +357,16 @@ class NewtonOperator:
 
 
 def newton_solve(model: SolidModel, X: np.ndarray, contraction: np.ndarray, E: np.ndarray, b: np.ndarray,
-                 method: str | None = None) -> tuple[np.ndarray, int, int]:
+                 method: str | None = None, cache: SolverCache | None = None) -> tuple[np.ndarray, int, int]:
     """x = (A - dA)^-1 b for every sample (b, x: [B, N, 2]) with the Newton matrix at positions
-    X [B, N, 2] (contraction [n_act, B], E [B]). Returns (x, CG iterations, number of samples
-    solved directly)."""
+    X [B, N, 2] (contraction [n_act, B], E [B]); cache: where CG's preconditioner factors are
+    kept (default: a fresh one). Returns (x, CG iterations, number of samples solved directly)."""
     method = method or model.options.backward_method
     B = b.shape[0]
     if method == "direct":
         return _direct_solve(model, X, contraction, E, b, np.arange(B)), 0, B
     x, ok, its = _pcg(NewtonOperator(model, elastic.projections_at(model, X, contraction, E)),
-                      Preconditioner(model, E, X, "rest_newton"), b, model.options.backward_rtol,
+                      Preconditioner(model, cache or SolverCache(), E, X, "rest_newton"), b, model.options.backward_rtol,
                       model.options.backward_max_iter)
     failed = np.flatnonzero(~ok)
     if len(failed) and method == "auto":

@@ -21,7 +21,7 @@ import torch
 
 from fishsim.errors import SimulationBlowUp
 from fishsim.solid import elastic, kernels
-from fishsim.solid.model import SolidModel
+from fishsim.solid.model import SolidModel, SolverCache
 from fishsim.solid.solve import ForwardInfo, newton_solve, pd_solve
 
 
@@ -29,8 +29,10 @@ def _np(t: torch.Tensor) -> np.ndarray:
     return t.detach().to("cpu", torch.float64).numpy()
 
 
-def forward_step(model: SolidModel, q, qdot, contraction, f_ext, E, start=None) -> tuple[np.ndarray, np.ndarray, ForwardInfo]:
-    """numpy step: q, qdot, f_ext [B, N, 2] (or None), contraction [B, n_act], E [B] -> (q+, qdot+, info).
+def forward_step(model: SolidModel, cache: SolverCache, q, qdot, contraction, f_ext, E,
+                 start=None) -> tuple[np.ndarray, np.ndarray, ForwardInfo]:
+    """numpy step: q, qdot, f_ext [B, N, 2] (or None), contraction [B, n_act], E [B] -> (q+, qdot+, info);
+    cache: the solver's factors kept between steps (pd_solve).
 
     Target y = q + h qdot + h^2 M^-1 f_ext.  L-BFGS starts from ``start`` [B, N, 2] if given,
     else from the free flight q + h qdot, not from y: h^2 M^-1 f_ext moves single surface nodes
@@ -39,17 +41,18 @@ def forward_step(model: SolidModel, q, qdot, contraction, f_ext, E, start=None) 
     free = q + h * qdot
     y = free if f_ext is None else free + h * h * f_ext / model.mass[None, :, None]
     X0 = np.ascontiguousarray(free if start is None else start)
-    q_next, info = pd_solve(model, np.ascontiguousarray(y), X0, np.ascontiguousarray(contraction.T), E)
+    q_next, info = pd_solve(model, np.ascontiguousarray(y), X0, np.ascontiguousarray(contraction.T), E, cache)
     return q_next, (q_next - q) / h, info
 
 
-def adjoint_gradients(model: SolidModel, q_next, contraction, E, grad_q_next, grad_qdot_next):
-    """numpy backward of one step. Returns (dL/dq, dL/dqdot, dL/du [B, n_act], dL/df_ext, dL/dE [B])."""
+def adjoint_gradients(model: SolidModel, cache: SolverCache, q_next, contraction, E, grad_q_next, grad_qdot_next):
+    """numpy backward of one step (its statistics recorded in ``cache.stats``). Returns (dL/dq,
+    dL/dqdot, dL/du [B, n_act], dL/df_ext, dL/dE [B])."""
     h = model.h
     contraction = np.ascontiguousarray(contraction.T)
     b = np.ascontiguousarray(grad_q_next + grad_qdot_next / h)
-    lam, its, direct = newton_solve(model, q_next, contraction, E, b)
-    model.stats.record_backward(its, direct)
+    lam, its, direct = newton_solve(model, q_next, contraction, E, b, cache=cache)
+    cache.stats.record_backward(its, direct)
     grad_u, grad_E = parameter_gradients(model, q_next, contraction, E, lam)
     mass = model.mass[None, :, None]
     return mass / h**2 * lam - grad_qdot_next / h, mass / h * lam, grad_u, lam, grad_E
@@ -87,19 +90,20 @@ def muscle_weight_gradient(model: SolidModel, q_next: np.ndarray, contraction: n
 
 class PDStepFunction(torch.autograd.Function):
     """(q, qdot, contraction, f_ext, E, start, muscle_weight) -> (q+, qdot+); backward by the
-    adjoint (module doc). ``start`` (L-BFGS's initial guess, or None) is not differentiated;
+    adjoint (module doc), with the model and the SolverCache as leading non-tensor arguments.
+    ``start`` (L-BFGS's initial guess, or None) is not differentiated;
     ``muscle_weight`` ([n_act], or None) carries the model's muscle weights for their gradient."""
 
     @staticmethod
-    def forward(ctx, model, q, qdot, contraction, f_ext, E, start=None, muscle_weight=None):
+    def forward(ctx, model, cache, q, qdot, contraction, f_ext, E, start=None, muscle_weight=None):
         f = None if f_ext is None else _np(f_ext)
         start = None if start is None else _np(start)
-        q_next, qdot_next, info = forward_step(model, _np(q), _np(qdot), _np(contraction), f, _np(E), start)
-        model.stats.record_forward(info.iterations, info.residual)
+        q_next, qdot_next, info = forward_step(model, cache, _np(q), _np(qdot), _np(contraction), f, _np(E), start)
+        cache.stats.record_forward(info.iterations, info.residual)
         if not (np.isfinite(q_next).all() and np.isfinite(qdot_next).all()):
             raise SimulationBlowUp("PD step produced non-finite positions; reduce the time step, the "
                                    "activation or the external force, or raise E")
-        ctx.model, ctx.has_f_ext, ctx.weight_like = model, f_ext is not None, muscle_weight
+        ctx.model, ctx.cache, ctx.has_f_ext, ctx.weight_like = model, cache, f_ext is not None, muscle_weight
         out_q, out_qdot = (torch.as_tensor(x, dtype=q.dtype, device=q.device) for x in (q_next, qdot_next))
         ctx.save_for_backward(out_q, contraction, E)
         return out_q, out_qdot
@@ -109,7 +113,7 @@ class PDStepFunction(torch.autograd.Function):
     def backward(ctx, grad_q_next, grad_qdot_next):
         q_next, contraction, E = ctx.saved_tensors
         zeros = torch.zeros_like(q_next)
-        grads = adjoint_gradients(ctx.model, _np(q_next), _np(contraction), _np(E),
+        grads = adjoint_gradients(ctx.model, ctx.cache, _np(q_next), _np(contraction), _np(E),
                                   _np(grad_q_next if grad_q_next is not None else zeros),
                                   _np(grad_qdot_next if grad_qdot_next is not None else zeros))
         like = (q_next, q_next, contraction, q_next, E)
@@ -117,11 +121,11 @@ class PDStepFunction(torch.autograd.Function):
         if not ctx.has_f_ext:
             out[3] = None
         grad_w = None
-        if ctx.needs_input_grad[7]:
+        if ctx.needs_input_grad[8]:
             w = ctx.weight_like
             grad_w = torch.as_tensor(muscle_weight_gradient(ctx.model, _np(q_next), _np(contraction), grads[2]),
                                      dtype=w.dtype, device=w.device)
-        return (None, *out, None, grad_w)
+        return (None, None, *out, None, grad_w)
 
 
 def predicted_start(q: torch.Tensor, qdot: torch.Tensor, qdot_prev: torch.Tensor, h: float) -> torch.Tensor:
@@ -147,7 +151,8 @@ def _batch_E(model: SolidModel, E, B: int, like: torch.Tensor) -> torch.Tensor:
 
 def pd_step(model: SolidModel, q: torch.Tensor, qdot: torch.Tensor, contraction: torch.Tensor,
             f_ext: torch.Tensor | None = None, E=None, return_info: bool = False,
-            start: torch.Tensor | None = None, muscle_weight: torch.Tensor | None = None):
+            start: torch.Tensor | None = None, muscle_weight: torch.Tensor | None = None,
+            cache: SolverCache | None = None):
     """Advance a batch of fish by one implicit-Euler PD step of length model.h.
 
     q, qdot: [B, N, 2] positions (m) and velocities (m/s).
@@ -164,6 +169,9 @@ def pd_step(model: SolidModel, q: torch.Tensor, qdot: torch.Tensor, contraction:
         model's), passed to differentiate through the weights, e.g. muscles.layer_weights of a
         layer thickness that requires grad (the muscles are shared by the batch, so its gradient
         sums over the samples).
+    cache: the SolverCache of a sequence of steps (the preconditioner's factors, carried from
+        one step to the next, and the solver's statistics); pass the same one to every step of
+        a sequence. Default: a fresh one (the step then factorises its preconditioner anew).
     Raises SimulationBlowUp if the step produces non-finite values.
     """
     if q.ndim != 3 or q.shape[1:] != (model.n_nodes, 2) or qdot.shape != q.shape:
@@ -184,10 +192,11 @@ def pd_step(model: SolidModel, q: torch.Tensor, qdot: torch.Tensor, contraction:
             _np(muscle_weight), model.muscle_weight, rtol=1e-12, atol=0)):
         raise ValueError("muscle_weight must equal model.muscle_weight (shape [n_act]); build a model with "
                          "those muscles instead")
-    q_next, qdot_next = PDStepFunction.apply(model, q, qdot, contraction, f_ext, E,
+    cache = SolverCache() if cache is None else cache
+    q_next, qdot_next = PDStepFunction.apply(model, cache, q, qdot, contraction, f_ext, E,
                                              None if start is None else start.detach(), muscle_weight)
     if return_info:
-        stats = model.stats
+        stats = cache.stats
         return q_next, qdot_next, ForwardInfo(stats.forward_iterations, stats.forward_residual,
                                               stats.forward_residual <= model.options.atol)
     return q_next, qdot_next

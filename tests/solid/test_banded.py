@@ -8,7 +8,7 @@ import scipy.sparse as sp
 
 from fishsim.linalg.banded import BandedCholesky, band_factor, band_solve, spd_factor
 from fishsim.mesh import make_fish_mesh
-from fishsim.solid import SolidModel, elastic, kernels
+from fishsim.solid import SolidModel, SolverCache, elastic, kernels
 from fishsim.solid.preconditioner import LaggedNewton, newton_factors, pd_matrix, rest_newton_matrix
 from fishsim.solid.solve import Objective, _lbfgs, _remove_net_residual, balanced_order, pd_solve
 
@@ -99,14 +99,14 @@ def test_compiled_forward_equals_the_numpy_iteration(coarse_mesh):
     contraction, E = rng.uniform(0, 0.3, (model.n_muscles, B)), np.array([6e5, 3e5, 6e5])
     p = elastic.project(model, elastic.deformation_gradients(model, elastic.to_columns(X0)), contraction, E)
     assert not newton_factors(model, p, np.arange(B), model.newton_band.empty(B))[2]   # indefinite
-    X, info = pd_solve(model, Y, X0, contraction, E)
-    assert info.converged.all() and (info.iterations > 2).all() and model.lagged.banded.all()
+    cache = SolverCache()
+    X, info = pd_solve(model, Y, X0, contraction, E, cache)
+    assert info.converged.all() and (info.iterations > 2).all() and cache.lagged.banded.all()
 
-    model.lagged = None
     objective = Objective(model, Y, contraction, E)
     phi, g = objective(X0.copy())
     iterations = np.zeros(B, np.int64)
-    X_ref, g_ref = _lbfgs(objective, LaggedNewton(model, X0, contraction, E), X0.copy(), phi, g,
+    X_ref, g_ref = _lbfgs(objective, LaggedNewton(model, SolverCache(), X0, contraction, E), X0.copy(), phi, g,
                           np.ones(B, bool), iterations)
     X_ref, _ = _remove_net_residual(model, X_ref, g_ref)
     # the dot products' summation order differs (compiled loop vs numpy): round-off may decide
@@ -137,5 +137,5 @@ def test_compiled_forward_stops_a_blown_up_sample(coarse_mesh):
     Y = X0 + 1e-4 * rng.standard_normal(X0.shape)
     Y[1, 3, 0] = np.inf
     with pytest.warns(RuntimeWarning, match="did not converge"):
-        _, info = pd_solve(model, Y, X0, np.zeros((model.n_muscles, 2)), np.full(2, 6e5))
+        _, info = pd_solve(model, Y, X0, np.zeros((model.n_muscles, 2)), np.full(2, 6e5), SolverCache())
     assert info.converged.tolist() == [True, False] and info.iterations[1] <= 1

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from fishsim.solid import PDOptions, SolidModel, elastic, kernels, packed, pd_step, rest_state
+from fishsim.solid import PDOptions, SolidModel, SolverCache, elastic, kernels, packed, pd_step, rest_state
 from fishsim.solid.muscles import layer_muscles
 from fishsim.solid.preconditioner import newton_factors
 from fishsim.solid.simd import LANES, fma, isnan, lane, splat, vabs, vload, vmax, vsqrt, vstore, where
@@ -97,8 +97,7 @@ def test_packed_forward_equals_the_per_sample_compiled_path(coarse_mesh):
     _, g0 = objective(X0.copy())
     need = np.ones(B, bool)
     results = []
-    for solve in (_solve_packed, lambda *args: _solve_compiled(objective, X0, *args[1:])):
-        model.lagged = None
+    for solve in (_solve_packed, lambda *args: _solve_compiled(objective, SolverCache(), X0, *args[1:])):
         X, g, iterations = X0.copy(), g0.copy(), np.zeros(B, np.int64)
         solve(objective, X, g, need, iterations)
         results.append((_remove_net_residual(model, X, g)[0], iterations, max_nodal_norm(g)))
@@ -117,7 +116,7 @@ def test_packed_forward_stops_a_blown_up_lane(coarse_mesh):
     X0[2], Y[2] = X0[0], Y[0]                                     # no squashed sample here
     Y[1, 3, 0] = np.inf
     with pytest.warns(RuntimeWarning, match="did not converge"):
-        _, info = pd_solve(model, Y, X0, contraction, E)
+        _, info = pd_solve(model, Y, X0, contraction, E, SolverCache())
     assert info.converged.tolist() == [True, False, True, True, True] and info.iterations[1] <= 1
 
 
