@@ -30,6 +30,16 @@ from fishsim.solid.simd import maximum, select, sqrt
 
 
 @jit(inline="always")
+def deformation_gradient(x0, y0, x1, y1, x2, y2, grad, e):
+    """F = G_e X of element e from its three nodes' positions (x_k, y_k): (F00, F01, F10, F11),
+    F_aj = sum_k X_ka grad[e, k, j] (grad [T, 3, 2] the shape-function gradients)."""
+    return (x0 * grad[e, 0, 0] + x1 * grad[e, 1, 0] + x2 * grad[e, 2, 0],
+            x0 * grad[e, 0, 1] + x1 * grad[e, 1, 1] + x2 * grad[e, 2, 1],
+            y0 * grad[e, 0, 0] + y1 * grad[e, 1, 0] + y2 * grad[e, 2, 0],
+            y0 * grad[e, 0, 1] + y1 * grad[e, 1, 1] + y2 * grad[e, 2, 1])
+
+
+@jit(inline="always")
 def conformal(F00, F01, F10, F11):
     """(alpha, beta, gamma, delta) of F (module doc)."""
     return (F00 + F11) * 0.5, (F10 - F01) * 0.5, (F00 - F11) * 0.5, (F01 + F10) * 0.5

@@ -7,8 +7,8 @@ element.py's, shared with packed.py.
 
     Phi(X) = 1/(2 h^2) ||X - Y||_M^2 + E_int(X),   grad Phi = M/h^2 (X - Y) + G^T S(X)
 
-with E_int the co-rotated and muscle energies (element.py; elastic.py is their numpy reference). One pass over the elements
-computes F, the projections, the energy and the nodal gradient without numpy temporaries: on the
+with E_int the co-rotated and muscle energies (element.py; elastic.py is their numpy reference).
+One pass over the elements computes F, the projections, the energy and the nodal gradient without numpy temporaries: on the
 default fish (2142 elements) 0.05 ms instead of 0.29 ms per evaluation, which L-BFGS does ~11
 times per step. Models with the volume term use the numpy paths (solve.Objective,
 elastic.element_hessians), which stay the reference (tests/solid/test_kernels.py).
@@ -26,26 +26,14 @@ import numpy as np
 
 from fishsim.compiled import jit
 from fishsim.linalg.banded import band_factor, band_solve
-from fishsim.solid.element import (
-    clamped,
-    corotated_differential,
-    corotated_stress,
-    fiber_length,
-    muscle_differential,
-    muscle_stress,
-)
+from fishsim.solid import element
 
 
 @jit
 def _deformation_gradient(X, triangles, grad, e):
     """(F00, F01, F10, F11) of element e for one sample's nodal values X [N, 2] (F = G_e X)."""
     k0, k1, k2 = triangles[e, 0], triangles[e, 1], triangles[e, 2]
-    x0, x1, x2 = X[k0, 0], X[k1, 0], X[k2, 0]
-    y0, y1, y2 = X[k0, 1], X[k1, 1], X[k2, 1]
-    return (x0 * grad[e, 0, 0] + x1 * grad[e, 1, 0] + x2 * grad[e, 2, 0],
-            x0 * grad[e, 0, 1] + x1 * grad[e, 1, 1] + x2 * grad[e, 2, 1],
-            y0 * grad[e, 0, 0] + y1 * grad[e, 1, 0] + y2 * grad[e, 2, 0],
-            y0 * grad[e, 0, 1] + y1 * grad[e, 1, 1] + y2 * grad[e, 2, 1])
+    return element.deformation_gradient(X[k0, 0], X[k0, 1], X[k1, 0], X[k1, 1], X[k2, 0], X[k2, 1], grad, e)
 
 
 @jit
@@ -60,11 +48,11 @@ def _objective_sample(X, Y, mass_h2, triangles, grad, w_corotated, muscle_of, w_
             phi += 0.5 * mass_h2[i] * d * d
     for e in range(triangles.shape[0]):
         F00, F01, F10, F11 = _deformation_gradient(X, triangles, grad, e)
-        psi, S00, S01, S10, S11 = corotated_stress(F00, F01, F10, F11, w_corotated[e, b])
+        psi, S00, S01, S10, S11 = element.corotated_stress(F00, F01, F10, F11, w_corotated[e, b])
         phi += psi
         m = muscle_of[e]
         if m >= 0:
-            psi, M00, M10 = muscle_stress(F00, F10, stretch[m, b], w_muscle[m])
+            psi, M00, M10 = element.muscle_stress(F00, F10, stretch[m, b], w_muscle[m])
             phi += psi
             S00 += M00
             S10 += M10
@@ -142,12 +130,12 @@ def _element_newton(e, b, alpha_R, beta_R, c, w_corotated, muscle_of, w_muscle, 
     """Ke [6, 6] = G_e^T H_e G_e of element e, sample b (element DOF 2k + a), with H [4, 4]
     scratch for H_e = d vec(S) / d vec(F) of the co-rotated and muscle energies."""
     m = muscle_of[e]
-    ce = clamped(c[e, b], 1.0, projected)
-    L = clamped(length[m, b], stretch[m, b], projected) if m >= 0 else 1.0
+    ce = element.clamped(c[e, b], 1.0, projected)
+    L = element.clamped(length[m, b], stretch[m, b], projected) if m >= 0 else 1.0
     for col in range(4):                         # unit dF_aj, col = 2a + j
-        S00, S01, S10, S11 = corotated_differential(col, alpha_R[e, b], beta_R[e, b], ce, w_corotated[e, b])
+        S00, S01, S10, S11 = element.corotated_differential(col, alpha_R[e, b], beta_R[e, b], ce, w_corotated[e, b])
         if m >= 0:
-            M00, M10 = muscle_differential(col, n0[m, b], n1[m, b], L, stretch[m, b], w_muscle[m])
+            M00, M10 = element.muscle_differential(col, n0[m, b], n1[m, b], L, stretch[m, b], w_muscle[m])
             S00 += M00
             S10 += M10
         H[0, col], H[1, col], H[2, col], H[3, col] = S00, S01, S10, S11
@@ -341,10 +329,10 @@ def parameter_gradients(X: np.ndarray, lam: np.ndarray, triangles: np.ndarray, g
         for e in range(triangles.shape[0]):
             F00, F01, F10, F11 = _deformation_gradient(X[b], triangles, grad, e)
             D00, D01, D10, D11 = _deformation_gradient(lam[b], triangles, grad, e)
-            _, S00, S01, S10, S11 = corotated_stress(F00, F01, F10, F11, w_per_E[e])
+            _, S00, S01, S10, S11 = element.corotated_stress(F00, F01, F10, F11, w_per_E[e])
             total += D00 * S00 + D01 * S01 + D10 * S10 + D11 * S11
             m = muscle_of[e]
             if m >= 0:
-                length = fiber_length(F00, F10)
+                length = element.fiber_length(F00, F10)
                 grad_u[b, m] = -w_muscle[m] * (D00 * F00 + D10 * F10) / length
         grad_E[b] = -total

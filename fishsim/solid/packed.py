@@ -25,16 +25,7 @@ import numba
 import numpy as np
 
 from fishsim.compiled import jit
-from fishsim.solid.element import (
-    clamped,
-    conformal,
-    corotated_differential,
-    corotated_stress,
-    fiber_length,
-    muscle_differential,
-    muscle_stress,
-    rotation,
-)
+from fishsim.solid import element
 from fishsim.solid.simd import LANES, count, fma, isnan, lane, splat, vabs, vload, vmax, vsqrt, vstore, where
 
 # ---------------------------------------------------------------------------------------------
@@ -49,11 +40,7 @@ def _deformation_gradient(X, triangles, grad, e):
     x0, y0 = vload(X, 2 * k0 * LANES), vload(X, (2 * k0 + 1) * LANES)
     x1, y1 = vload(X, 2 * k1 * LANES), vload(X, (2 * k1 + 1) * LANES)
     x2, y2 = vload(X, 2 * k2 * LANES), vload(X, (2 * k2 + 1) * LANES)
-    F00 = x0 * grad[e, 0, 0] + x1 * grad[e, 1, 0] + x2 * grad[e, 2, 0]
-    F01 = x0 * grad[e, 0, 1] + x1 * grad[e, 1, 1] + x2 * grad[e, 2, 1]
-    F10 = y0 * grad[e, 0, 0] + y1 * grad[e, 1, 0] + y2 * grad[e, 2, 0]
-    F11 = y0 * grad[e, 0, 1] + y1 * grad[e, 1, 1] + y2 * grad[e, 2, 1]
-    return F00, F01, F10, F11
+    return element.deformation_gradient(x0, y0, x1, y1, x2, y2, grad, e)
 
 
 @jit
@@ -70,11 +57,11 @@ def _objective(X, Y, mass_h2, triangles, grad, w_corotated, muscle_of, w_muscle,
             phi += 0.5 * mass_h2[i] * d * d
     for e in range(triangles.shape[0]):
         F00, F01, F10, F11 = _deformation_gradient(X, triangles, grad, e)
-        psi, S00, S01, S10, S11 = corotated_stress(F00, F01, F10, F11, vload(w_corotated, e * LANES))
+        psi, S00, S01, S10, S11 = element.corotated_stress(F00, F01, F10, F11, vload(w_corotated, e * LANES))
         phi += psi
         m = muscle_of[e]
         if m >= 0:
-            psi, M00, M10 = muscle_stress(F00, F10, vload(stretch, m * LANES), w_muscle[m])
+            psi, M00, M10 = element.muscle_stress(F00, F10, vload(stretch, m * LANES), w_muscle[m])
             phi += psi
             S00 += M00
             S10 += M10
@@ -101,22 +88,22 @@ def _newton_band(X, triangles, grad, w_corotated, muscle_of, w_muscle, stretch, 
     zero = splat(0.0)
     for e in range(triangles.shape[0]):
         F00, F01, F10, F11 = _deformation_gradient(X, triangles, grad, e)
-        alpha, beta, _, _ = conformal(F00, F01, F10, F11)
-        alpha_R, beta_R, c = rotation(alpha, beta)
-        ce = clamped(c, 1.0, projected)
+        alpha, beta, _, _ = element.conformal(F00, F01, F10, F11)
+        alpha_R, beta_R, c = element.rotation(alpha, beta)
+        ce = element.clamped(c, 1.0, projected)
         w = vload(w_corotated, e * LANES)
         m = muscle_of[e]
         n0, n1, length, a_m, w_m = zero, zero, zero, zero, 0.0
         if m >= 0:
-            length = fiber_length(F00, F10)
+            length = element.fiber_length(F00, F10)
             n0, n1 = F00 / length, F10 / length
             a_m = vload(stretch, m * LANES)
-            length = clamped(length, a_m, projected)
+            length = element.clamped(length, a_m, projected)
             w_m = w_muscle[m]
         for col in range(4):                                        # unit dF_aj, col = 2a + j
-            S00, S01, S10, S11 = corotated_differential(col, alpha_R, beta_R, ce, w)
+            S00, S01, S10, S11 = element.corotated_differential(col, alpha_R, beta_R, ce, w)
             if m >= 0:
-                M00, M10 = muscle_differential(col, n0, n1, length, a_m, w_m)
+                M00, M10 = element.muscle_differential(col, n0, n1, length, a_m, w_m)
                 S00 += M00
                 S10 += M10
             vstore(H, col * LANES, S00)
