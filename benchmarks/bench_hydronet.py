@@ -15,9 +15,9 @@ import torch
 
 from fishsim.fields import Boundary, FluidParams, FluidState, Grid
 from fishsim.fluid.grid import closed_tank
-from fishsim.fluid.hydronet import train as T
 from fishsim.fluid.hydronet.config import NETWORK, NetConfig, TrainConfig
 from fishsim.fluid.hydronet.unet import HydroNet, HydroNetFluid
+from fishsim.learn import train as T
 
 GRID = Grid(100, 300, 2.5e-3)
 

@@ -99,7 +99,7 @@ def test_shipped_yaml_defaults_equal_the_code_defaults():
     be left behind in one of them)."""
     from fishsim.config import MeshCommandConfig, SimulateConfig, load_config
     from fishsim.fluid.hydronet.config import TrainConfig
-    from fishsim.fluid.hydronet.train import train_config
+    from fishsim.learn.train import train_config
 
     assert load_config("simulate") == SimulateConfig()
     assert load_config("mesh") == MeshCommandConfig()

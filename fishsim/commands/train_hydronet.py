@@ -1,4 +1,4 @@
-"""``fishsim train-hydronet``: train HydroNet on the scene pool (``fishsim.fluid.hydronet.train``)."""
+"""``fishsim train-hydronet``: train HydroNet on the scene pool (``fishsim.learn.train``)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ from rich.console import Console
 
 from fishsim.errors import Terminated
 from fishsim.fluid.hydronet.config import TrainConfig
-from fishsim.fluid.hydronet.train import run as train
+from fishsim.learn.train import run as train
 
 
 def run(cfg: TrainConfig) -> dict:

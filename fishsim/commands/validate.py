@@ -1,7 +1,7 @@
 """``fishsim validate``: comparisons against reference solutions.
 
 suite=hydronet: the HydroNet model against the numerical solver on held-out scenes
-(``fishsim.fluid.hydronet.evaluate``): metrics.json, a printed table, and a picture of the final
+(``fishsim.learn.evaluate``): metrics.json, a printed table, and a picture of the final
 vorticity of both models side by side (comparison.png/.svg).
 
 suite=solid: the solid's mesh convergence and its beam validation (``fishsim.solid_study``,
@@ -186,9 +186,9 @@ def run_hydronet(cfg: ValidateConfig) -> dict:
     from fishsim.fields import Grid
     from fishsim.fluid.factory import SHIPPED_HYDRONET
     from fishsim.fluid.hydronet import HydroNetFluid, load_hydronet
-    from fishsim.fluid.hydronet.evaluate import energy_checks, evaluate, summarise
     from fishsim.fluid.hydronet.trained_range import check_fluid
     from fishsim.fluid.numerical import NumericalFluid
+    from fishsim.learn.evaluate import energy_checks, evaluate, summarise
     from fishsim.render.plots import plot_fluid_comparison
 
     out_dir = make_out_dir("validate", cfg.out_dir)

@@ -101,7 +101,7 @@ def plot_fluid_comparison(final: Mapping, path: str | Path, labels: Sequence[str
     """One row per scene: ``field`` of the two models side by side on shared colour limits
     (99th percentile of |field| over the fluid of the reference), the body in grey.
 
-    final: ``fishsim.fluid.hydronet.evaluate.Evaluation.final`` (names, mask [B,H,W], net/ref
+    final: ``fishsim.learn.evaluate.Evaluation.final`` (names, mask [B,H,W], net/ref
     fields [B,H,W] or [B,H+1,W+1])."""
     names, mask = final["names"], final["mask"]
     fig = Figure(figsize=(10, 1.9 * len(names)), layout="constrained")

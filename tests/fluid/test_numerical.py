@@ -216,7 +216,7 @@ def _thin_ellipse_added_mass(model: NumericalFluid, g: Grid, a=0.03, b=0.004, am
 
     from fishsim.coupling.ibm import ibm_force
     from fishsim.coupling.mask import SIGMA
-    from fishsim.fluid.hydronet.pool import mask_from_distance
+    from fishsim.learn.pool import mask_from_distance
 
     tank = G.closed_tank(g, 2, 2, 1)
     params = FluidParams(torch.tensor([50.0]), torch.tensor([1.25e-4]), 0.01)

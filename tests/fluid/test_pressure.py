@@ -84,7 +84,7 @@ def _heave_added_mass(model, a=0.05, b=0.005, amplitude=5e-3, frequency=2.5, ste
     from fishsim.coupling.ibm import ibm_force
     from fishsim.coupling.mask import SIGMA
     from fishsim.fields import Boundary
-    from fishsim.fluid.hydronet.pool import mask_from_distance
+    from fishsim.learn.pool import mask_from_distance
 
     g = Grid(100, 300, 2.5e-3)
     tank = G.closed_tank(g, 3, 5, 1)

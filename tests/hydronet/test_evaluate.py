@@ -11,8 +11,8 @@ from typer.testing import CliRunner
 from fishsim.cli import app
 from fishsim.fields import Grid
 from fishsim.fluid.hydronet.config import EvalConfig
-from fishsim.fluid.hydronet.evaluate import Scenes, energy_checks, evaluate, kinetic_energy, summarise
 from fishsim.fluid.numerical import NumericalFluid
+from fishsim.learn.evaluate import Scenes, energy_checks, evaluate, kinetic_energy, summarise
 
 SMALL = EvalConfig(speeds=[0.2], frequencies=[5.0], warmup=3, steps=3, H=40, W=120, dx=5e-3, wall_y=2, wall_x=3,
                    still_steps=3, energy_steps=4)

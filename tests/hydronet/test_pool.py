@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from fishsim.fluid.hydronet.pool import (
+from fishsim.learn.pool import (
     Fish,
     Motion,
     Rigid,
@@ -171,7 +171,7 @@ def test_boundary_velocity_follows_the_coupling_contract(tiny_pool):
     translating cylinder has v_d = U in its soft edge cells too, and the pool's fish equals the
     coupling layer on the same surface."""
     from fishsim.coupling import CouplingConfig, solid_to_fluid
-    from fishsim.fluid.hydronet.pool import fish_boundaries, rigid_boundary
+    from fishsim.learn.pool import fish_boundaries, rigid_boundary
 
     grid = tiny_pool.grid
     body = Rigid("cylinder", (0.01, 0.01), _motion(rate=(3.0, 0.0), radius=(0.01, 0.0), phase=(0.0, 0.0)))

@@ -8,11 +8,12 @@ import torch
 
 from fishsim.fields import Grid
 from fishsim.fluid.factory import SHIPPED_HYDRONET
-from fishsim.fluid.hydronet import HydroNet, HydroNetFluid, PoolConfig, ScenePool, load_hydronet
+from fishsim.fluid.hydronet import HydroNet, HydroNetFluid, PoolConfig, load_hydronet
 from fishsim.fluid.hydronet.config import EvalConfig
-from fishsim.fluid.hydronet.evaluate import evaluate
-from fishsim.fluid.hydronet.train import export_model
 from fishsim.fluid.numerical import NumericalFluid
+from fishsim.learn.evaluate import evaluate
+from fishsim.learn.pool import ScenePool
+from fishsim.learn.train import export_model
 
 
 @pytest.fixture(scope="module")
@@ -49,7 +50,7 @@ def test_trained_model_beats_an_untrained_one_on_the_physics_loss(shipped):
     untrained -2.6 (a 50x smaller residual; the physics-only model shipped before 2026-11-26,
     trained on this loss alone: -7.5)."""
     from fishsim.fluid.hydronet.config import TrainConfig
-    from fishsim.fluid.hydronet.train import validate
+    from fishsim.learn.train import validate
 
     cfg = TrainConfig(bf16=False, val_scenes=4, val_steps=40)
     torch.manual_seed(0)

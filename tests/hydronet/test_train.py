@@ -9,11 +9,12 @@ import pytest
 import torch
 
 from fishsim.fields import FluidState
-from fishsim.fluid.hydronet import train as T
+from fishsim.fluid.hydronet import load_hydronet
 from fishsim.fluid.hydronet.config import TrainConfig
 from fishsim.fluid.hydronet.loss import hydronet_loss
-from fishsim.fluid.hydronet.pool import ScenePool
 from fishsim.fluid.hydronet.unet import HydroNet, HydroNetFluid
+from fishsim.learn import train as T
+from fishsim.learn.pool import ScenePool
 
 
 @pytest.fixture
@@ -125,7 +126,7 @@ def test_best_model_loads_as_fluid_model(cfg):
     assert best["val"] == out["best_val"] <= out["last_val"]
     assert best["training_range"] == {"rho": list(cfg.pool.rho), "mu": list(cfg.pool.mu), "dx": cfg.pool.dx,
                                       "h": cfg.pool.h}
-    fluid = HydroNetFluid(T.load_hydronet(os.path.join(cfg.out_dir, "best.pt")), cfg.pool.grid)
+    fluid = HydroNetFluid(load_hydronet(os.path.join(cfg.out_dir, "best.pt")), cfg.pool.grid)
     _, state, boundary, params = ScenePool(cfg.pool, 2, seed=5).ask(2)
     new = fluid.step(state, boundary, params)
     assert torch.isfinite(new.a).all() and new.p.shape == state.p.shape
@@ -302,8 +303,8 @@ def test_swim_check_keeps_the_weights_that_swim_closest_to_the_numerical_fluid(c
     from pathlib import Path
 
     from fishsim.fluid.factory import SHIPPED_HYDRONET
-    from fishsim.fluid.hydronet import swim_check
     from fishsim.fluid.hydronet.config import NetConfig
+    from fishsim.learn import swim_check
 
     cfg = replace(cfg, net=NetConfig(hidden=16), init_from=str(SHIPPED_HYDRONET), lr=1e-4,
                   swim_every=3, swim_frames=3, swim_frequencies=(4.0, 6.0))
@@ -319,4 +320,4 @@ def test_swim_check_keeps_the_weights_that_swim_closest_to_the_numerical_fluid(c
     best = torch.load(out / "best_swim.pt", weights_only=False)
     assert best["val"] == min(errors) and best["iteration"] == [3, 6][errors.index(min(errors))]
     assert torch.load(out / "ckpt.pt", weights_only=False)["best_swim"] == min(errors)
-    T.load_hydronet(out / "best_swim.pt")                       # a model file like best.pt
+    load_hydronet(out / "best_swim.pt")                       # a model file like best.pt

@@ -1,5 +1,5 @@
 """Ship a trained HydroNet:
-``python -m fishsim.fluid.hydronet.ship CHECKPOINT VALIDATE_DIR LINEAGE.json [SWIM_DIR ...]``.
+``python -m fishsim.learn.ship CHECKPOINT VALIDATE_DIR LINEAGE.json [SWIM_DIR ...]``.
 
 * ``fishsim/assets/hydronet.pt``: the weights of CHECKPOINT (a ckpt.pt or best.pt;
   ``export_model``), the model ``fishsim simulate fluid=hydronet`` uses by default;
@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from fishsim.fluid.factory import SHIPPED_HYDRONET
-from fishsim.fluid.hydronet.train import compact_checkpoint, export_model
+from fishsim.learn.train import compact_checkpoint, export_model
 
 TRAINING = Path("training/hydronet")
 TARGETS = {  # the fidelity targets of the surrogate (README, "The shipped HydroNet")
@@ -85,7 +85,7 @@ def ship(checkpoint: Path, validate_dir: Path, lineage: list, swim_dirs: tuple[P
                     "threads": config.get("threads")},
         "date": time.strftime("%Y-%m-%d"),
         "continue": continue_command(lineage),
-        "shipped_by": f"python -m fishsim.fluid.hydronet.ship {checkpoint} {validate_dir} LINEAGE.json "
+        "shipped_by": f"python -m fishsim.learn.ship {checkpoint} {validate_dir} LINEAGE.json "
                       + " ".join(str(d) for d in swim_dirs),
     }
     export_model(checkpoint, SHIPPED_HYDRONET, meta)

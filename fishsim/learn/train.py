@@ -38,15 +38,16 @@ import torch
 import torch.distributed as dist
 from torch import nn
 
-from fishsim.errors import ConfigError, InputFileError, Terminated
+from fishsim.errors import ConfigError, Terminated
 from fishsim.fields import Boundary, FluidParams, FluidState, rest_state
-from fishsim.fluid.hydronet import swim_check
-from fishsim.fluid.hydronet.config import RESUME_NEEDS_OUT_DIR, NetConfig, TrainConfig
+from fishsim.fluid.hydronet.config import RESUME_NEEDS_OUT_DIR, TrainConfig
 from fishsim.fluid.hydronet.loss import EPS, LossConfig, LossTerms, hydronet_loss, teacher_loss
-from fishsim.fluid.hydronet.pool import ScenePool, advance, random_scene, scene_boundaries
+from fishsim.fluid.hydronet.model_file import load_file, load_weights
 from fishsim.fluid.hydronet.trained_range import stored_range, training_range
 from fishsim.fluid.hydronet.unet import HydroNet
 from fishsim.io.atomic import atomic_save, atomic_text
+from fishsim.learn import swim_check
+from fishsim.learn.pool import ScenePool, advance, random_scene, scene_boundaries
 
 
 @dataclass
@@ -184,8 +185,8 @@ def load_checkpoint(run: Run, out: Path, rank: int, lr: float | None = None) -> 
     """Restore ``run`` from ckpt.pt (and ckpt_rank{r}.pt for rank r > 0); ``lr`` replaces the
     saved learning rate. A compact checkpoint (``compact_checkpoint``: no pool) keeps the freshly
     drawn pool: everything else continues exactly."""
-    main = _load_file(out / "ckpt.pt", "checkpoint")
-    own = main if rank == 0 else _load_file(out / f"ckpt_rank{rank}.pt", "checkpoint")
+    main = load_file(out / "ckpt.pt", "checkpoint")
+    own = main if rank == 0 else load_file(out / f"ckpt_rank{rank}.pt", "checkpoint")
     model = run.model.module if hasattr(run.model, "module") else run.model
     load_weights(model, main, out / "ckpt.pt")
     run.opt.load_state_dict(main["optimizer"])
@@ -235,25 +236,6 @@ def export_model(checkpoint: str | Path, dest: str | Path, metadata: dict) -> Pa
     meta = {**metadata, "training_range": trained}
     dest.with_suffix(".json").write_text(json.dumps(meta, indent=2, default=str) + "\n")
     return dest
-
-
-def load_hydronet(path: str | Path, device="cpu") -> HydroNet:
-    """A trained HydroNet (eval mode) from best.pt or ckpt.pt, with its ``training_range`` (None if
-    unknown; ``trained_range.check_fluid``); wrap it in ``HydroNetFluid``.
-
-    Raises InputFileError (one line, how to fix) for a missing, unreadable or foreign file, and
-    ConfigError naming the first tensor that does not fit the file's own network config."""
-    path = Path(path)
-    hint = "train one with `fishsim train-hydronet` or pass fluid.model_file=PATH to a best.pt"
-    sd = _load_file(path, "model", hint)
-    try:
-        model = HydroNet(NetConfig(**sd["net"]))
-    except (KeyError, TypeError) as err:
-        raise InputFileError(f"{path} is not a readable HydroNet model (no valid network config: "
-                             f"{type(err).__name__}); {hint}") from None
-    load_weights(model, sd, path)
-    model.training_range = stored_range(sd, path)     # checked against a run's fluid: trained_range.py
-    return model.to(device).eval()
 
 
 # ------------------------------------------------------------------------------ logging
@@ -423,37 +405,7 @@ def _restore(run: Run, cfg: TrainConfig, out: Path, rank: int, device: torch.dev
     if cfg.resume:
         load_checkpoint(run, out, rank, cfg.lr)
     elif cfg.init_from:
-        load_weights(run.model, _load_file(Path(cfg.init_from), "model (init_from)"), Path(cfg.init_from))
-
-
-def _load_file(path: Path, what: str, hint: str = "") -> dict:
-    """torch.load of a fishsim checkpoint or model (on the CPU), InputFileError (one line, ending
-    in ``hint``) if it is missing or not one."""
-    end = f"; {hint}" if hint else ""
-    if not path.is_file():
-        raise InputFileError(f"HydroNet {what} file {path} not found{end}")
-    try:
-        data = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as err:  # noqa: BLE001 - any failure here means the file is not ours
-        raise InputFileError(f"{path} is not a readable HydroNet {what} ({type(err).__name__}){end}") from None
-    if not isinstance(data, dict) or "model" not in data:
-        raise InputFileError(f"{path} is not a readable HydroNet {what} (no 'model' weights in it){end}")
-    return data
-
-
-def load_weights(model: nn.Module, data: dict, path: Path) -> None:
-    """Load data["model"] into ``model``; a network of another shape is a one-line error naming the
-    first tensor that differs and the file's network config."""
-    own, theirs = model.state_dict(), data["model"]
-    for name, tensor in own.items():
-        other = theirs.get(name)
-        if other is None or tuple(other.shape) != tuple(tensor.shape):
-            net = (data.get("config") or {}).get("net")
-            got = "missing" if other is None else f"{list(other.shape)}"
-            raise ConfigError(f"the weights in {path} do not fit this network: tensor '{name}' is {got} there and "
-                              f"{list(tensor.shape)} here" + (f"; the file's network is net={net}" if net else "")
-                              + " (set net.* to match, or train from scratch)")
-    model.load_state_dict(theirs)
+        load_weights(run.model, load_file(Path(cfg.init_from), "model (init_from)"), Path(cfg.init_from))
 
 
 class StopRequest:

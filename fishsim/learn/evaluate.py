@@ -42,8 +42,8 @@ from fishsim.fields import Boundary, FluidModel, FluidParams, FluidState, Grid
 from fishsim.fluid.grid import closed_tank, curl, divergence, union, vorticity
 from fishsim.fluid.hydronet.config import EvalConfig
 from fishsim.fluid.hydronet.loss import momentum_loss
-from fishsim.fluid.hydronet.pool import Fish, Motion, fish_boundaries, fish_surface, mask_from_distance
 from fishsim.fluid.residual import fluid_face_masks
+from fishsim.learn.pool import Fish, Motion, fish_boundaries, fish_surface, mask_from_distance
 
 
 class Scenes:
