@@ -167,7 +167,6 @@ class Swimmer:
             raise ConfigError("coupling.force=exchange needs the numerical fluid's momentum exchange "
                               "(fluid=numerical); use coupling.force=pressure with this fluid")
         self.added_mass = torch.as_tensor(solid.added_mass) if solid.added_mass.any() else None
-        self.timer = PhaseTimer()
 
     @property
     def h(self) -> float:
@@ -238,10 +237,10 @@ class Swimmer:
         return layer_weights(self.solid, thickness, params.muscle_x_range)
 
     def fluid_step(self, state: SwimState, fish: Boundary, boundary: Boundary, params: SwimParams,
-                   t: int, start: SwimState | None, mass: Tensor) -> tuple[FluidState, Tensor]:
+                   t: int, start: SwimState | None, mass: Tensor, timer: PhaseTimer) -> tuple[FluidState, Tensor]:
         """Steps 2-3: the fluid's step and the force it exerts on the fish's nodes, by the sampled
         pressure or (``coupling.force=exchange``) by momentum exchange (fishsim.coupling); mass:
-        the nodal masses [N] (how averaged forces are shared)."""
+        the nodal masses [N] (how averaged forces are shared); timer: where the phases' time goes."""
         t0, dev = time.perf_counter(), state.q.device
         if self.coupling.force == "exchange":
             fluid, diag = self.fluid.step_with_diagnostics(state.fluid, boundary, params.fluid)
@@ -249,7 +248,7 @@ class Swimmer:
             fluid = self.fluid.step(state.fluid, boundary, params.fluid,
                                     start=None if start is None else start.fluid.p)
         require_finite(fluid_vector_potential_a=fluid.a, fluid_pressure_p=fluid.p)
-        t0 = self.timer.add("fluid", t0, dev)
+        t0 = timer.add("fluid", t0, dev)
         if self.coupling.force == "exchange":
             share = diag.body_share(fish.mask, boundary.mask)
             f_ext = exchange_to_solid(state.q, diag.cell_forces(params.fluid.rho, share), self.surface,
@@ -261,25 +260,26 @@ class Swimmer:
                 viscous = (state.qdot, v, params.fluid.mu)
             f_ext = fluid_to_solid(state.q, fluid.p, boundary, self.surface, self.fluid.grid,
                                    self.coupling, step=t + 1, mass=mass, viscous=viscous)
-        self.timer.add("coupling", t0, dev)
+        timer.add("coupling", t0, dev)
         return fluid, f_ext
 
     def frame(self, state: SwimState, params: SwimParams, t: int,
               start: SwimState | None = None, muscles: tuple[Tensor, Tensor] | None = None,
-              cache: SolverCache | None = None) -> tuple[SwimState, FrameOutput]:
+              cache: SolverCache | None = None, timer: PhaseTimer | None = None) -> tuple[SwimState, FrameOutput]:
         """Advance one frame (module docstring); ``t`` is the index of the frame being left.
         ``start``: a guess of the new state (its q and fluid p) for the iterative solves
         (default: the PD step starts from ``predicted_start``, the fluid from p_t).
         ``muscles``: ``muscle_weights(params)`` if already computed (default: computed here).
-        ``cache``: the PD solve's SolverCache of the frames' sequence (default: a fresh one)."""
-        dev, clock = state.q.device, self.timer
+        ``cache``: the PD solve's SolverCache of the frames' sequence (default: a fresh one).
+        ``timer``: a PhaseTimer the frame adds its phases' wall time to (default: none kept)."""
+        dev, clock = state.q.device, PhaseTimer() if timer is None else timer
         t0 = time.perf_counter()
         fluid, boundary = state.fluid, None
         f_ext, mass = torch.zeros_like(state.q), self.node_mass(state.q)
         if self.fluid.exerts_force:
             fish, boundary = self.fish_and_boundary(state)
             t0 = clock.add("coupling", t0, dev)
-            fluid, f_ext = self.fluid_step(state, fish, boundary, params, t, start, mass)
+            fluid, f_ext = self.fluid_step(state, fish, boundary, params, t, start, mass, clock)
             t0 = time.perf_counter()
         if muscles is None:
             muscles = self.muscle_weights(params)
@@ -460,7 +460,8 @@ def _detached(state: SwimState) -> SwimState:
 def rollout(swimmer: Swimmer, state: SwimState, params: SwimParams, n_frames: int,
             segment: int = 0, on_frame: Callable[[int, SwimState, FrameOutput, dict], None] | None = None,
             start: int = 0, failures: dict[int, tuple[int, str]] | None = None,
-            truncate: int = 0, cache: SolverCache | None = None) -> tuple[SwimState, dict[str, Tensor]]:
+            truncate: int = 0, cache: SolverCache | None = None,
+            timer: PhaseTimer | None = None) -> tuple[SwimState, dict[str, Tensor]]:
     """Run ``n_frames`` frames from frame ``start``; return the final state and the per-frame
     metrics stacked to [n_frames, B] (differentiable w.r.t. the initial state and ``params``).
 
@@ -486,6 +487,8 @@ def rollout(swimmer: Swimmer, state: SwimState, params: SwimParams, n_frames: in
         statistics); default: a fresh one, so that a call never depends on what ran before it
         (a resumed optimisation repeats an uninterrupted one exactly). Pass one to read the
         statistics or to carry the preconditioner over consecutive calls.
+    timer: a PhaseTimer that the frames add their solid / fluid / coupling wall time to (a
+        checkpointed backward's recomputation too).
     Raises SimulationBlowUp naming the frame if a state goes non-finite.
     """
     recorded = [start - 1]
@@ -511,14 +514,14 @@ def rollout(swimmer: Swimmer, state: SwimState, params: SwimParams, n_frames: in
             s_in, p_in = park(s, p, mask, rest) if isolate else (s, p)
             try:
                 s_new, out = swimmer.frame(s_in, p_in, t, start=solutions.get(t) if replay else None,
-                                           muscles=muscles, cache=cache)
+                                           muscles=muscles, cache=cache, timer=timer)
             except SimulationBlowUp as err:
                 if not isolate or replay:
                     raise SimulationBlowUp(f"simulation blew up at frame {t + 1}: {err}") from None
                 mask = mask & ~failing_samples(swimmer, s_in, p_in, t, mask, failures, err)
                 alive[0] = mask
                 s_in, p_in = park(s, p, mask, rest)
-                s_new, out = swimmer.frame(s_in, p_in, t, muscles=muscles, cache=cache)
+                s_new, out = swimmer.frame(s_in, p_in, t, muscles=muscles, cache=cache, timer=timer)
             s = s_new
             m = frame_metrics(swimmer, s, out)
             if not replay:

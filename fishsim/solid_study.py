@@ -9,7 +9,7 @@ default material and controller (C calibrated per muscle model). Reported per ru
 tip's peak-to-peak lateral excursion over the second half of the episode (as `fishsim
 simulate`'s summary), the head's x displacement over the episode and its lateral peak-to-peak
 over the second half, the mesh size, and the solid's wall time per step (the PD step alone:
-`Swimmer.timer`'s solid phase over the frames, so the first compiled call is included once).
+the rollout's PhaseTimer's solid phase over the frames, so the first compiled call is included once).
 Deviations are relative to the finest mesh of the same muscle model.
 
 `beam_study`: a clamped 100 x 5 mm cantilever of the fish's material (fishsim/solid/beam.py)
@@ -37,7 +37,7 @@ def simulate_stroke(edge_length: float, muscles: str = "layer", fluid: str = "no
     solid_ms_per_step, wall_s."""
     from fishsim.config import load_config
     from fishsim.episode import build_episode
-    from fishsim.rollout import rollout
+    from fishsim.rollout import PhaseTimer, rollout
 
     cfg = load_config("simulate", [f"fluid={fluid}", f"frames={frames}", f"fish.edge_length={edge_length}",
                                    f"fish.muscles={muscles}", *overrides])
@@ -45,8 +45,9 @@ def simulate_stroke(edge_length: float, muscles: str = "layer", fluid: str = "no
     sw = episode.swimmer
     state = sw.initial_state(episode.params, episode.origin)
     t0 = time.perf_counter()
+    timer = PhaseTimer()
     with torch.no_grad():
-        _, metrics = rollout(sw, state, episode.params, cfg.frames)
+        _, metrics = rollout(sw, state, episode.params, cfg.frames, timer=timer)
     wall = time.perf_counter() - t0
     m = {k: v[:, 0].cpu().numpy() for k, v in metrics.items()}
     half = frames // 2
@@ -55,7 +56,7 @@ def simulate_stroke(edge_length: float, muscles: str = "layer", fluid: str = "no
             "n_act": sw.solid.n_muscles, "tail_p2p_mm": 1e3 * float(tail.max() - tail.min()),
             "head_dx_mm": 1e3 * float(m["head_x"][-1] - episode.origin[0] - sw.solid.mesh.length),
             "head_y_p2p_mm": 1e3 * float(head_y.max() - head_y.min()),
-            "solid_ms_per_step": 1e3 * sw.timer.seconds["solid"] / frames, "wall_s": wall}
+            "solid_ms_per_step": 1e3 * timer.seconds["solid"] / frames, "wall_s": wall}
 
 
 def stroke_study(edges: Sequence[float] = EDGES, models: Sequence[str] = MUSCLE_MODELS, fluid: str = "none",

@@ -21,7 +21,7 @@ from fishsim.io.outdir import make_out_dir, output_file
 from fishsim.io.trajectory import TrajectoryWriter, trajectory_series
 from fishsim.io.xdmf import write_xdmf
 from fishsim.resources import announce_time, check_time
-from fishsim.rollout import METRICS, rollout
+from fishsim.rollout import METRICS, PhaseTimer, rollout
 
 
 def open_writer(cfg: SimulateConfig, episode: Episode, path) -> TrajectoryWriter:
@@ -75,7 +75,7 @@ def run(cfg: SimulateConfig) -> dict:
     writer = open_writer(cfg, episode, path)
     state = sw.initial_state(episode.params, episode.origin)
     history = {k: [] for k in METRICS}
-    t_start = time.perf_counter()
+    t_start, timer = time.perf_counter(), PhaseTimer()
 
     near_wall: dict[int, int] = {}                 # fish -> first frame within a body width of a wall
     bounds = wall_bounds(cfg, sw.solid.mesh)
@@ -104,14 +104,14 @@ def run(cfg: SimulateConfig) -> dict:
         failures = {} if episode.params.E.shape[0] > 1 else None
         try:
             with torch.no_grad():
-                rollout(sw, state, episode.params, cfg.frames, on_frame=on_frame, failures=failures)
+                rollout(sw, state, episode.params, cfg.frames, on_frame=on_frame, failures=failures, timer=timer)
         except (FishsimError, KeyboardInterrupt) as err:
             writer.close(complete=False, message=f"stopped: {err}", attrs=_grid_attrs(cfg))
             write_xdmf(path)
             raise type(err)(f"{err} (partial trajectory kept in {path}, marked incomplete)") from None
     wall = time.perf_counter() - t_start
     rows = fish_summaries(cfg, episode, history)
-    summary = summarise(episode, rows, len(history["head_x"]), wall)
+    summary = summarise(rows, len(history["head_x"]), wall, timer)
     write_summary_csv(rows, out_dir / "summary.csv")
     failed = {str(b): {"frame": f, "reason": why} for b, (f, why) in sorted((failures or {}).items())}
     writer.close(complete=True, attrs={**_grid_attrs(cfg), "failed_fish": json.dumps(failed),
@@ -150,10 +150,10 @@ def _grid_attrs(cfg: SimulateConfig) -> dict:
     return {"grid_h": cfg.fluid.H, "grid_w": cfg.fluid.W, "grid_dx": cfg.fluid.dx, "fluid_model": cfg.fluid.model}
 
 
-def summarise(episode: Episode, rows: list[dict], n_frames: int, wall: float) -> dict:
+def summarise(rows: list[dict], n_frames: int, wall: float, timer: PhaseTimer) -> dict:
     """The run's summary: fish 0's numbers (``rows`` from ``fish_summaries``), the batch size and
-    the wall time split solid/fluid/coupling."""
-    split = episode.swimmer.timer.seconds
+    the wall time split solid/fluid/coupling (``timer``, the rollout's)."""
+    split = timer.seconds
     return {"frames": n_frames, "batch": len(rows), **{k: v for k, v in rows[0].items() if k != "fish"},
             "wall time [s]": wall, "solid [s]": split["solid"], "fluid [s]": split["fluid"],
             "coupling [s]": split["coupling"]}
