@@ -86,12 +86,10 @@ class PDOptions:
         step (A penalises the element rotations of bending as much as stretching), 'rest_newton'
         ~10 at small amplitude but 20-80 at the calibrated amplitude, 'lagged_newton' a few.
         The adjoint CG is always preconditioned with 'rest_newton' (shared by the batch).
-    refresh_iterations: see 'lagged_newton'. 8 (was 15 while factorising cost SuperLU's ~9 ms; the
-        banded Cholesky takes ~0.8 ms): with the rollout's predicted start, B = 1 takes 10.1
-        iterations per step, B = 16 10.7 per sample (20 for the slowest) when it still used
-        lagged factors (its packs now take 8.8, 13.5 for the slowest); 12 and 16 measured
-        within this machine's 10-30 % noise (B = 1 4.5 / 5.1 ms, B = 16 42 / 44 ms against
-        5.1 / 41 ms at 8).
+    refresh_iterations: see 'lagged_newton'. 8: a refactorisation (banded Cholesky, ~0.8 ms)
+        costs less than the iterations a staler factor adds; with the rollout's predicted start
+        B = 1 takes 10.1 iterations per step (B >= 4 runs in packs, which refactorise every step);
+        12 and 16 measured within this machine's 10-30 % noise.
     """
 
     atol: float = 1e-5
