@@ -290,7 +290,7 @@ class Swimmer:
             None if state.qdot_prev is None else predicted_start(state.q, state.qdot, state.qdot_prev, self.h))
         q, qdot = pd_step(self.solid, state.q, state.qdot, contraction, f_ext + self.added_mass_force(state),
                           params.E, start=solid_start, muscle_weight=weight, cache=cache)
-        if self.fluid.exerts_force and self.coupling.force_mode == AVERAGE:
+        if self.fluid.exerts_force and self.coupling.force_mode == AVERAGE and state.qdot_prev is not None:
             free = (not self.hold[0], not self.hold[1])
             q, qdot = stabilise_translation(q, qdot, state.qdot, state.qdot_prev, mass,
                                             self.coupling.added_mass_ratio, self.h, free)
