@@ -61,6 +61,7 @@ from fishsim.fluid.grid import Faces, divergence, gradient
 from fishsim.fluid.residual import fluid_face_masks, momentum_residual
 from fishsim.linalg.banded import BandedCholesky, BandLayout
 from fishsim.linalg.dct import neumann_inverse, solve_neumann_poisson
+from fishsim.linalg.pcg import pcg
 
 
 @dataclass(frozen=True)
@@ -71,11 +72,6 @@ class RecoveryConfig:
     eps: float = 1e-3
     tol: float = 1e-6
     max_iter: int = 500
-
-
-def _dot(a: Tensor, b: Tensor) -> Tensor:
-    """Per-sample inner product [B, 1, 1, 1]."""
-    return (a * b).flatten(1).sum(1).view(-1, 1, 1, 1)
 
 
 def _mean_free(x: Tensor) -> Tensor:
@@ -152,25 +148,10 @@ def solve_weighted_poisson(weights: Faces, f: Tensor, dx: float, tol: float, max
         return -divergence(tuple(w * g for w, g in zip(weights, gradient(p, dx))), dx)
 
     f = _mean_free(f)
-    stop = tol * f.flatten(1).norm(dim=1)
-    if start is None:
-        p, r = torch.zeros_like(f), f
-    else:                                  # a sample with f = 0 has p = 0, whatever its start
-        p = _mean_free(start.detach().to(f.dtype)) * (stop > 0).to(f.dtype).view(-1, 1, 1, 1)
-        r = f - A(p)
-    tiny = torch.finfo(f.dtype).tiny
-    d = rz = None
-    it = 0
-    while it < max_iter and (r.flatten(1).norm(dim=1) > stop).any():
-        z = precondition(r)
-        rz_new = _dot(r, z)
-        d = z if d is None else z + rz_new / rz.clamp_min(tiny) * d
-        rz = rz_new
-        Ad = A(d)
-        alpha = rz / _dot(d, Ad).clamp_min(tiny)
-        p, r = p + alpha * d, r - alpha * Ad
-        it += 1
-    return _mean_free(p), it
+    if start is not None:                  # a sample with f = 0 has p = 0, whatever its start
+        start = _mean_free(start.detach().to(f.dtype)) * (f.flatten(1).norm(dim=1) > 0).to(f.dtype).view(-1, 1, 1, 1)
+    p, _, iterations = pcg(A, precondition, f, lambda r: r.flatten(1).norm(dim=1), tol, max_iter, start)
+    return _mean_free(p), iterations
 
 
 class WeightedPoisson(torch.autograd.Function):

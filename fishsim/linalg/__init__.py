@@ -1,2 +1,3 @@
 """Generic linear algebra the solid and the fluid share: banded Cholesky factors and solves of
-sparse SPD matrices (`banded`) and the DCT-diagonalised Neumann Poisson solves (`dct`)."""
+sparse SPD matrices (`banded`), the DCT-diagonalised Neumann Poisson solves (`dct`) and batched
+preconditioned conjugate gradients (`pcg`)."""

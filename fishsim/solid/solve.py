@@ -36,8 +36,10 @@ from dataclasses import dataclass
 
 import numba
 import numpy as np
+import torch
 
 from fishsim.linalg.banded import lu_factor, spd_factor
+from fishsim.linalg.pcg import pcg
 from fishsim.solid import elastic, kernels, packed
 from fishsim.solid.model import SolidModel, SolverCache
 from fishsim.solid.preconditioner import LaggedNewton, Preconditioner, newton_factors
@@ -365,47 +367,19 @@ def newton_solve(model: SolidModel, X: np.ndarray, contraction: np.ndarray, E: n
     B = b.shape[0]
     if method == "direct":
         return _direct_solve(model, X, contraction, E, b, np.arange(B)), 0, B
-    x, ok, its = _pcg(NewtonOperator(model, elastic.projections_at(model, X, contraction, E)),
-                      Preconditioner(model, cache or SolverCache(), E, X, "rest_newton"), b, model.options.backward_rtol,
-                      model.options.backward_max_iter)
+    apply_K = NewtonOperator(model, elastic.projections_at(model, X, contraction, E))
+    precondition = Preconditioner(model, cache or SolverCache(), E, X, "rest_newton")
+    on_numpy = lambda f: lambda t: torch.from_numpy(np.ascontiguousarray(f(t.numpy())))
+    x, ok, its = pcg(on_numpy(apply_K), on_numpy(precondition), torch.from_numpy(np.ascontiguousarray(b)),
+                     lambda r: torch.from_numpy(max_nodal_norm(r.numpy())), model.options.backward_rtol,
+                     model.options.backward_max_iter)
+    x, ok = x.numpy(), ok.numpy()
     failed = np.flatnonzero(~ok)
     if len(failed) and method == "auto":
         x[failed] = _direct_solve(model, X, contraction, E, b, failed)[failed]
     elif len(failed):
         warnings.warn(f"adjoint PCG did not converge for {len(failed)} samples", RuntimeWarning, stacklevel=3)
     return x, its, len(failed) if method == "auto" else 0
-
-
-def _pcg(apply_K, precondition, b: np.ndarray, rtol: float, max_iter: int):
-    """Batched preconditioned CG; a sample stops at |r|_max <= rtol |b|_max, fails on
-    p^T K p <= 0 (indefinite) or after max_iter. Returns (x, converged [B], iterations)."""
-    B = b.shape[0]
-    x = np.zeros_like(b)
-    target = rtol * max_nodal_norm(b)
-    r = b.copy()
-    z = precondition(r)
-    d = z.copy()
-    rz = sample_dot(r, z)
-    done = max_nodal_norm(r) <= target
-    broken = np.zeros(B, bool)
-    it = 0
-    for it in range(1, max_iter + 1):
-        active = ~(done | broken)
-        if not active.any():
-            break
-        Kd = apply_K(d)
-        dKd = sample_dot(d, Kd)
-        broken |= active & (dKd <= 0)
-        active &= ~broken
-        step = np.where(active, rz / np.where(active, dKd, 1.0), 0.0)
-        x += per_sample(step) * d
-        r -= per_sample(step) * Kd
-        done |= active & (max_nodal_norm(r) <= target)
-        z = precondition(r)
-        rz_new = sample_dot(r, z)
-        d = z + per_sample(np.where(active, rz_new / np.where(rz != 0, rz, 1.0), 0.0)) * d
-        rz = rz_new
-    return x, done, it
 
 
 def _direct_solve(model: SolidModel, X: np.ndarray, contraction: np.ndarray, E: np.ndarray, b: np.ndarray,
