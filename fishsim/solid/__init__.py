@@ -1,8 +1,10 @@
 """Differentiable projective-dynamics solid (docs/physics.md section 3; DiffPD, Du et al. 2021).
 
-    model = SolidModel(mesh, SolidMaterial(), h=0.01)
+    model = SolidModel(mesh, SolidMaterial(), h=0.01)              # never changes afterwards
     q, qdot = rest_state(model, batch=B)
-    q, qdot = pd_step(model, q, qdot, contraction, f_ext, E)     # [B, N, 2] each
+    cache = SolverCache()                                           # what the solve carries between steps
+    for k in range(steps):
+        q, qdot = pd_step(model, q, qdot, contraction, f_ext, E, cache=cache)   # [B, N, 2] each
 
 `controller.muscle_contraction` turns the paper's travelling-wave controller into `contraction`.
 """
