@@ -68,7 +68,8 @@ class SwimState:
     def with_tensors(self, tensors) -> SwimState:
         """The same kind of state (fluid state, tunnel or not) from ``tensors()``'s tuple."""
         if len(tensors) != len(self.tensors()):
-            raise ValueError(f"a {type(self.fluid).__name__} swim state has {len(self.tensors())} tensors, got {len(tensors)}")
+            raise ValueError(f"a {type(self.fluid).__name__} swim state has {len(self.tensors())} tensors, "
+                             f"got {len(tensors)}")
         q, qdot, qdot_prev, *rest = tensors
         n = len(self.fluid.tensors())
         return SwimState(q, qdot, self.fluid.with_tensors(rest[:n]), qdot_prev,

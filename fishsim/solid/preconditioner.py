@@ -127,8 +127,9 @@ def newton_factors(model: SolidModel, p: elastic.Projections, samples: np.ndarra
 
 
 class LaggedFactors:
-    """The lagged Newton factors of a batch of B samples, kept between steps (SolverCache.lagged): banded factors L [B, n, w + 1] where `banded`, else a SuperLU object in
-    `other` (models with the volume term, or a projected matrix that failed Cholesky);
+    """The lagged Newton factors of a batch of B samples, kept between steps (SolverCache.lagged):
+    banded factors L [B, n, w + 1] where `banded`, else a SuperLU object in `other` (models
+    with the volume term, or a projected matrix that failed Cholesky);
     `valid` [B] False marks samples to refactorise at the next step's start; `iterations` [B]
     the last step's L-BFGS iterations (the next step's cost estimate)."""
 
