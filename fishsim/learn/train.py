@@ -1,7 +1,7 @@
 """Training HydroNet on the scene pool: ``run(TrainConfig(...))`` (the CLI's ``train-hydronet``).
 
 One iteration (Wandel et al. 2021): ask the pool for a batch (state at t, boundary at t + h),
-step it once with the network, minimise mean_B log(beta L_p + gamma L_b) (``loss.py``) with Adam,
+step it once with the network, minimise mean_B log(beta L_p + gamma L_b) (``fluid/hydronet/loss.py``) with Adam,
 and tell the pool the new (detached) states, so the network trains on its own rollouts.
 With ``teacher > 0`` the numerical solver steps the same batch too and the objective becomes
 mean_B log(beta L_p + gamma L_b + teacher L_t) (``loss.teacher_loss``); with ``unroll = k`` an
@@ -68,7 +68,7 @@ class Run:
 
 def make_loss_fn(cfg: TrainConfig):
     """(a_t, p_t, a_t+1, p_t+1, b, v_d, rho, mu, h) -> (L_p [B], L_b [B], L [B], objective), the
-    loss of ``loss.py`` on plain tensors, compiled when ``cfg.compile_loss``."""
+    loss of ``fluid/hydronet/loss.py`` on plain tensors, compiled when ``cfg.compile_loss``."""
     grid, loss_cfg = cfg.pool.grid, LossConfig(cfg.beta, cfg.gamma, scheme=cfg.advection)
 
     def loss_fn(a0, p0, a1, p1, b, vd, rho, mu, h):

@@ -1,8 +1,9 @@
 """HydroNet settings that the CLI's config (``fishsim.config``) needs without torch, for the
 commands' help: the pressures a ``HydroNetFluid`` can give (unet.py; "recovered" is computed by
-fishsim/fluid/pressure.py), ``EvalConfig``, the held-out evaluation's (evaluate.py), and
-``TrainConfig``, train-hydronet's (train.py), with its network's ``NetConfig`` (unet.py) and its
-scene pool's ``PoolConfig`` (pool.py).
+fishsim/fluid/pressure.py), ``EvalConfig``, the held-out evaluation's
+(fishsim/learn/evaluate.py), and ``TrainConfig``, train-hydronet's (fishsim/learn/train.py),
+with its network's ``NetConfig`` (unet.py) and its scene pool's ``PoolConfig``
+(fishsim/learn/pool.py).
 """
 
 from __future__ import annotations
