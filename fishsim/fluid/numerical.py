@@ -349,7 +349,6 @@ class NumericalFluid:
         self.cfl, self.diffusion, self.brinkman = cfl, diffusion, brinkman
         self.substeps, self.max_substeps = int(substeps), max_substeps
         self.penalization_iterations = int(penalization_iterations)
-        self._inv: dict = {}
 
     # -- contract ------------------------------------------------------------------------------
 
@@ -453,10 +452,7 @@ class NumericalFluid:
         return _prolong_vertices(state.a, r)
 
     def _inverse(self, like: Tensor) -> Tensor:
-        key = (like.device, like.dtype)
-        if key not in self._inv:
-            self._inv[key] = neumann_inverse(self.fine.H, self.fine.W, self.fine.dx, like.device, like.dtype)
-        return self._inv[key]
+        return neumann_inverse(self.fine.H, self.fine.W, self.fine.dx, like.device, like.dtype)
 
     def _count_substeps(self, v: Faces, b: Faces, v_d: Faces, nu: Tensor, h: float) -> Tensor:
         """n_b [B] (int64, on the CPU): the largest of r * substeps and the counts that keep sample

@@ -10,6 +10,7 @@ transforms and a division: exact to round-off, O(N log N).
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -79,8 +80,10 @@ class NeumannInverse:
     dx: float
 
 
+@functools.lru_cache(maxsize=16)
 def neumann_inverse(H: int, W: int, dx: float, device=None, dtype=torch.float64) -> NeumannInverse:
-    """L^+ of ``grid.laplacian_centres`` (``NeumannInverse``) in ``dtype`` on ``device``."""
+    """L^+ of ``grid.laplacian_centres`` (``NeumannInverse``) in ``dtype`` on ``device``; one per
+    grid, device and dtype, built once (its tensors are shared: read them, never write)."""
     lam = neumann_eigenvalues(H, W, dx, device, dtype)
     inv = torch.where(lam < 0, 1 / torch.where(lam < 0, lam, -torch.ones_like(lam)), torch.zeros_like(lam))
     pivots = _thomas_pivots(H, W, dx).astype(torch.empty(0, dtype=dtype).numpy().dtype)
