@@ -67,11 +67,11 @@ class SwimState:
 
     def with_tensors(self, tensors) -> SwimState:
         """The same kind of state (fluid state, tunnel or not) from ``tensors()``'s tuple."""
-        if len(tensors) != len(self.tensors()):
-            raise ValueError(f"a {type(self.fluid).__name__} swim state has {len(self.tensors())} tensors, "
-                             f"got {len(tensors)}")
-        q, qdot, qdot_prev, *rest = tensors
         n = len(self.fluid.tensors())
+        expected = 3 + n + (self.tunnel is not None)
+        if len(tensors) != expected:
+            raise ValueError(f"a {type(self.fluid).__name__} swim state has {expected} tensors, got {len(tensors)}")
+        q, qdot, qdot_prev, *rest = tensors
         return SwimState(q, qdot, self.fluid.with_tensors(rest[:n]), qdot_prev,
                          rest[n] if self.tunnel is not None else None)
 

@@ -34,3 +34,12 @@ def test_pcg_from_the_solution_takes_no_iteration():
     x, converged, iterations = pcg(lambda x: (A @ x.unsqueeze(-1)).squeeze(-1), lambda r: r, b,
                                    lambda r: r.norm(dim=1), 1e-8, 500, x0=exact)
     assert iterations == 0 and bool(converged.all()) and torch.equal(x, exact)
+
+
+def test_a_sample_with_zero_right_hand_side_stays_at_zero_whatever_its_start():
+    A, b, _, _ = _systems()
+    A, b = A[:2], b[:2].clone()
+    b[1] = 0.0
+    x, converged, _ = pcg(lambda x: (A @ x.unsqueeze(-1)).squeeze(-1), lambda r: r, b,
+                          lambda r: r.norm(dim=1), 1e-8, 500, x0=torch.ones_like(b))
+    assert bool(converged.all()) and float(x[1].abs().max()) == 0.0

@@ -148,8 +148,7 @@ def solve_weighted_poisson(weights: Faces, f: Tensor, dx: float, tol: float, max
         return -divergence(tuple(w * g for w, g in zip(weights, gradient(p, dx))), dx)
 
     f = _mean_free(f)
-    if start is not None:                  # a sample with f = 0 has p = 0, whatever its start
-        start = _mean_free(start.detach().to(f.dtype)) * (f.flatten(1).norm(dim=1) > 0).to(f.dtype).view(-1, 1, 1, 1)
+    start = None if start is None else _mean_free(start.detach().to(f.dtype))
     p, _, iterations = pcg(A, precondition, f, lambda r: r.flatten(1).norm(dim=1), tol, max_iter, start)
     return _mean_free(p), iterations
 

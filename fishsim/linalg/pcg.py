@@ -17,15 +17,16 @@ def pcg(apply_A: Callable[[Tensor], Tensor], precondition: Callable[[Tensor], Te
     symmetric positive (semi-)definite per sample on the range b lies in.
 
     apply_A, precondition: [B, ...] -> [B, ...] (the preconditioner symmetric positive definite);
-    norm: [B, ...] -> [B], the stopping norm; x0: the start (None: 0). Each sample stops on its
+    norm: [B, ...] -> [B], the stopping norm; x0: the start (None: 0; a sample with b = 0 starts,
+    and stays, at its solution 0 whatever x0 says). Each sample stops on its
     own, its x then frozen: converged at the tolerance, or failed when a search direction has
     d^T A d <= 0 (A not positive definite for it). Returns (x, converged [B] bool, iterations of
     the slowest sample)."""
     dot = lambda u, v: (u * v).flatten(1).sum(1)
     per_sample = lambda s: s.view(-1, *[1] * (b.ndim - 1))
-    x = torch.zeros_like(b) if x0 is None else x0.clone()
-    r = b.clone() if x0 is None else b - apply_A(x)
     target = rtol * norm(b)
+    x = torch.zeros_like(b) if x0 is None else x0 * per_sample(target > 0).to(b.dtype)
+    r = b.clone() if x0 is None else b - apply_A(x)
     done = norm(r) <= target
     failed = torch.zeros_like(done)
     z = precondition(r)
