@@ -32,10 +32,16 @@ CONFIG = typer.Option(None, "--config", help="A YAML config to start from (e.g. 
 def describe(defaults, prefix: str = "") -> str:
     """Help text listing a command's config groups and keys with their defaults (``defaults``: the
     command's default config instance), one paragraph per group."""
+    from fishsim.config import FLUID_MODELS, FluidConfig
+
     keys, groups = [], []
     for f in dataclasses.fields(defaults):
         default = getattr(defaults, f.name)
-        if dataclasses.is_dataclass(default):
+        if isinstance(default, FluidConfig) and not prefix:          # every fluid model's own keys
+            groups.append(f"{f.name}: " + describe(default, f.name + "."))
+            groups += [f"{f.name}={model}: " + describe(kind(), f.name + ".")
+                       for model, kind in FLUID_MODELS.items() if model != default.model]
+        elif dataclasses.is_dataclass(default):
             groups.append(f"{prefix}{f.name}: " + describe(default, prefix + f.name + "."))
         else:
             keys.append(f"{prefix}{f.name}={default}")

@@ -21,6 +21,7 @@ from omegaconf.errors import OmegaConfBaseException
 from fishsim.coupling.config import CouplingConfig
 from fishsim.errors import ConfigError
 from fishsim.fluid.hydronet.config import PRESSURES, EvalConfig, TrainConfig
+from fishsim.fluid.tank import TankConfig
 from fishsim.optimize.config import ObjectiveConfig, ParamSpec
 from fishsim.render.config import RenderConfig
 from fishsim.solid.config import PDOptions, SolidMaterial
@@ -158,73 +159,79 @@ class BatchConfig:
 
 @dataclass
 class FluidConfig:
-    """The fluid and its tank (docs/physics.md section 4).
+    """The fluid in the tank (docs/physics.md section 4), one config per model (the ``fluid``
+    config group; ``FLUID_MODELS``): ``fluid=numerical`` (the reference solver), ``hydronet`` (the
+    trained U-Net) or ``none`` (the vacuum). Here the keys every model has:
 
-    model: none (vacuum) | numerical (the reference solver) | hydronet (the trained U-Net).
-    rho: density, kg/m^3 (per unit area in 2D), in [10, 50]; mu: dynamic viscosity, Pa s.
-    H, W, dx: tank cells (rows along y, columns along x) and cell size (m).
-    wall_y, wall_x: thickness of the solid wall bands in cells (bottom/top, left/right).
-    inflow: x-velocity (m/s) imposed in the left/right bands (0: closed tank).
-    refinement: numerical solver only, internal grid dx / r and sub-steps h / r.
-    substeps: numerical solver only, sub-steps per frame on the r = 1 grid (r times more on the
-        refined one); a floor that the CFL safety net raises per fish only for runaway speeds.
-    cfl: numerical solver only, the safety net's largest advective Courant number max|v| dt / dx
-        per sub-step. 0.8 keeps 8 sub-steps up to 1.6 m/s on the 2.5 mm grid: the frequency
-        study's 7 Hz fish peaks at 1.14 m/s, which at 0.5 raised it to 9 sub-steps on 20 of 100
-        frames, each change a jump of the frame map; the scheme stays stable beyond it (that fish
-        ran 120 frames at 4 sub-steps, Courant number 1.04).
-    penalization_iterations: numerical solver only, penalize -> project passes per stage (K) of
-        the split scheme. 3 with 8 sub-steps: one sub-step more or less moves the frequency study
-        by <= 0.5 % (2 passes: 0.76 %), for ~1.2x a coupled frame's forward time (1.3-1.4x the
-        fluid step's).
-    brinkman: numerical solver only, lambda (1/s) of the rate penalisation solved jointly with the
-        projection, which converges in sub-steps (fishsim/fluid/numerical.py); null: the split
-        scheme.
-    scheme: numerical solver only, advection interpolation: "koren" (third order, TVD limited by
-        min/max: a piecewise-smooth frame map) | "albada" (second order, van Albada limiter and
-        upwinding written as smooth functions: smoother gradients; fishsim.fluid.grid.albada).
-    model_file: hydronet only, a trained model (best.pt); null: the shipped fishsim/assets/hydronet.pt.
-    bf16: hydronet only, run the U-Net trunk in bfloat16 (faster on CPUs with AMX and on GPUs).
-    pressure: hydronet only, "network" (the network's own output, the paper's method) or "recovered"
-        (the pressure that best satisfies the momentum equation for the network's velocities,
-        fishsim/fluid/pressure.py).
-    pressure_tol: hydronet only, relative residual of the pressure recovery's PCG solve.
-    strict_range: hydronet only, refuse a run whose rho, mu, dx or h lies outside the range the
-        model was trained for (default: a one-line warning; fishsim/fluid/hydronet/trained_range.py).
+    model: none | numerical | hydronet.
     dtype: precision of the fluid fields and the coupling's fluid side, "float32" (default, fast)
         or "float64" (for finite-difference checks of gradients; HydroNet's weights are cast too).
     """
 
-    model: str = "numerical"
+    model: str = "none"
+    dtype: str = "float32"
+
+    def validate(self) -> None:
+        _require(self.dtype in ("float32", "float64"), f"fluid.dtype must be float32 or float64 (got '{self.dtype}')")
+        _require(self.model in FLUID_MODELS, f"fluid.model must be one of {tuple(FLUID_MODELS)} (got '{self.model}')")
+        _require(isinstance(self, FLUID_MODELS[self.model]),
+                 f"fluid.model={self.model} needs a {FLUID_MODELS[self.model].__name__} (got a {type(self).__name__})")
+
+
+@dataclass
+class VacuumConfig(FluidConfig):
+    """No fluid: no hydrodynamic force, the solid alone (``fishsim.fluid.vacuum.Vacuum``)."""
+
+    model: str = "none"
+
+
+@dataclass
+class WaterConfig(FluidConfig):
+    """A fluid with a density and a viscosity.
+
+    rho: density, kg/m^3 (per unit area in 2D), in [10, 50]; mu: dynamic viscosity, Pa s.
+    """
+
     rho: float = 50.0
     mu: float = 1.25e-4
-    H: int = 100
-    W: int = 300
-    dx: float = 2.5e-3
-    wall_y: int = 3
-    wall_x: int = 5
-    inflow: float = 0.0
+
+    def validate(self) -> None:
+        super().validate()
+        _positive(**{"fluid.rho": self.rho, "fluid.mu": self.mu})
+
+
+@dataclass
+class NumericalConfig(WaterConfig):
+    """The numerical Navier-Stokes reference (``fishsim.fluid.numerical.NumericalFluid``).
+
+    refinement: internal grid dx / r and sub-steps h / r (1, 2 or 4).
+    substeps: sub-steps per frame on the r = 1 grid (r times more on the refined one); a floor
+        that the CFL safety net raises per fish only for runaway speeds.
+    cfl: the safety net's largest advective Courant number max|v| dt / dx per sub-step. 0.8 keeps
+        8 sub-steps up to 1.6 m/s on the 2.5 mm grid: the frequency study's 7 Hz fish peaks at
+        1.14 m/s, which at 0.5 raised it to 9 sub-steps on 20 of 100 frames, each change a jump of
+        the frame map; the scheme stays stable beyond it (that fish ran 120 frames at 4 sub-steps,
+        Courant number 1.04).
+    penalization_iterations: penalize -> project passes per stage (K) of the split scheme. 3 with
+        8 sub-steps: one sub-step more or less moves the frequency study by <= 0.5 % (2 passes:
+        0.76 %), for ~1.2x a coupled frame's forward time (1.3-1.4x the fluid step's).
+    brinkman: lambda (1/s) of the rate penalisation solved jointly with the projection, which
+        converges in sub-steps (fishsim/fluid/numerical.py); null: the split scheme.
+    scheme: advection interpolation, "koren" (third order, TVD limited by min/max: a
+        piecewise-smooth frame map) | "albada" (second order, van Albada limiter and upwinding
+        written as smooth functions: smoother gradients; fishsim.fluid.grid.albada).
+    """
+
+    model: str = "numerical"
     refinement: int = 1
     substeps: int = 8
     cfl: float = 0.8
     penalization_iterations: int = 3
     brinkman: float | None = None
     scheme: str = "koren"
-    model_file: str | None = None
-    bf16: bool = False
-    pressure: str = "network"
-    pressure_tol: float = 1e-6
-    strict_range: bool = False
-    dtype: str = "float32"
 
     def validate(self) -> None:
-        _require(self.dtype in ("float32", "float64"), f"fluid.dtype must be float32 or float64 (got '{self.dtype}')")
-        _require(self.model in ("none", "numerical", "hydronet"),
-                 f"fluid.model must be none, numerical or hydronet (got '{self.model}')")
-        _positive(**{"fluid.rho": self.rho, "fluid.mu": self.mu, "fluid.dx": self.dx})
-        _require(self.H >= 16 and self.W >= 16, f"fluid grid must be at least 16 x 16 cells (got {self.H} x {self.W})")
-        _require(0 <= self.wall_y < self.H // 4 and 0 <= self.wall_x < self.W // 4,
-                 "fluid.wall_y / fluid.wall_x must be >= 0 and leave room for the fluid")
+        super().validate()
         _require(self.refinement in (1, 2, 4), f"fluid.refinement must be 1, 2 or 4 (got {self.refinement})")
         _require(1 <= self.substeps <= 64, f"fluid.substeps must be in [1, 64] (got {self.substeps})")
         _require(0 < self.cfl <= 1.5, f"fluid.cfl must be in (0, 1.5] (got {self.cfl})")
@@ -233,9 +240,38 @@ class FluidConfig:
                  f"fluid.penalization_iterations must be in [1, 16] (got {self.penalization_iterations})")
         _require(self.brinkman is None or self.brinkman > 0,
                  f"fluid.brinkman must be > 0 (1/s) or null (got {self.brinkman})")
+
+
+@dataclass
+class HydroNetConfig(WaterConfig):
+    """HydroNet, the trained U-Net surrogate (``fishsim.fluid.hydronet.HydroNetFluid``).
+
+    model_file: a trained model (best.pt); null: the shipped fishsim/assets/hydronet.pt.
+    bf16: run the U-Net trunk in bfloat16 (faster on CPUs with AMX and on GPUs).
+    pressure: "network" (the network's own output, the paper's method) or "recovered" (the
+        pressure that best satisfies the momentum equation for the network's velocities,
+        fishsim/fluid/pressure.py).
+    pressure_tol: relative residual of the pressure recovery's PCG solve.
+    strict_range: refuse a run whose rho, mu, dx or h lies outside the range the model was
+        trained for (default: a one-line warning; fishsim/fluid/hydronet/trained_range.py).
+    """
+
+    model: str = "hydronet"
+    model_file: str | None = None
+    bf16: bool = False
+    pressure: str = "network"
+    pressure_tol: float = 1e-6
+    strict_range: bool = False
+
+    def validate(self) -> None:
+        super().validate()
         _require(self.pressure in PRESSURES,
                  f"fluid.pressure must be recovered or network (got '{self.pressure}')")
         _require(0 < self.pressure_tol < 1, f"fluid.pressure_tol must be in (0, 1) (got {self.pressure_tol})")
+
+
+FLUID_MODELS: dict[str, type[FluidConfig]] = {"none": VacuumConfig, "numerical": NumericalConfig,
+                                              "hydronet": HydroNetConfig}
 
 
 @dataclass
@@ -249,6 +285,8 @@ class SimulateConfig:
     tunnel: a swim tunnel: the fish held in x while the water flows past it at its own
         swimming speed U(t), set by its x momentum (``fishsim.rollout.Swimmer``): steady swimming
         for any number of frames; the speed and distances count the water swum through.
+    tank: the tank's grid, walls and inflow (the ``tank`` config group, ``fishsim.fluid.tank``).
+    fluid: the fluid model's config (the ``fluid`` config group: ``FLUID_MODELS``).
     fluid_stride: store the fluid fields every k frames.
     flush_every: HDF5 write period (frames). ParaView opens the run through the XDMF sidecar
     written beside the trajectory (fishsim.io.xdmf).
@@ -261,7 +299,8 @@ class SimulateConfig:
     solid: SolidConfig = field(default_factory=SolidConfig)
     controller: ControllerConfig = field(default_factory=ControllerConfig)
     batch: BatchConfig = field(default_factory=BatchConfig)
-    fluid: FluidConfig = field(default_factory=FluidConfig)
+    tank: TankConfig = field(default_factory=TankConfig)
+    fluid: FluidConfig = field(default_factory=NumericalConfig)
     coupling: CouplingConfig = field(default_factory=CouplingConfig)
     frames: int = 200
     h: float = 0.01
@@ -278,7 +317,7 @@ class SimulateConfig:
     check_resources: bool = True
 
     def validate(self) -> None:
-        for part in (self.fish, self.controller, self.batch, self.fluid):
+        for part in (self.fish, self.controller, self.batch, self.tank, self.fluid):
             part.validate()
         _require(self.frames >= 1, f"frames must be >= 1 (got {self.frames})")
         _positive(h=self.h)
@@ -287,10 +326,10 @@ class SimulateConfig:
                  f"device must be cpu or cuda (got '{self.device}')")
         if self.tunnel:
             _require(self.fluid.model != "none", "tunnel=true needs a fluid (fluid=numerical or fluid=hydronet)")
-            _require(self.fluid.inflow == 0.0, f"tunnel=true sets the inflow itself (the fish's speed); "
-                     f"drop fluid.inflow={self.fluid.inflow}")
+            _require(self.tank.inflow == 0.0, f"tunnel=true sets the inflow itself (the fish's speed); "
+                     f"drop tank.inflow={self.tank.inflow}")
         if self.fluid.model != "none":
-            Lx, Ly = self.fluid.W * self.fluid.dx, self.fluid.H * self.fluid.dx
+            Lx, Ly = self.tank.size
             x0, y0 = self.origin
             _require(0 < x0 and x0 + self.fish.length < Lx and 0 < y0 < Ly,
                      f"origin={list(self.origin)} puts the fish outside the {Lx:.3f} x {Ly:.3f} m tank")
@@ -457,11 +496,13 @@ class ValidateConfig:
         if self.pressure not in PRESSURES:
             raise ConfigError(f"pressure must be recovered or network (got '{self.pressure}')")
         s = self.scenes
-        if not (s.H >= 32 and s.W >= 32 and s.dx > 0 and s.rho > 0 and s.mu > 0):
-            raise ConfigError(f"scenes need a grid of at least 32 x 32 cells (HydroNet's U-Net pools it 4 times) and "
-                              f"dx, rho, mu > 0 (got {s.H} x {s.W}, dx {s.dx}, rho {s.rho}, mu {s.mu})")
-        if not s.radius < min(s.H, s.W) * s.dx / 4:
-            raise ConfigError(f"scenes.radius = {s.radius} m does not fit the {s.H} x {s.W} grid of {s.dx} m cells")
+        s.tank.validate()
+        if not (s.tank.H >= 32 and s.tank.W >= 32 and s.rho > 0 and s.mu > 0):
+            raise ConfigError(f"scenes need a tank of at least 32 x 32 cells (HydroNet's U-Net pools it 4 times) and "
+                              f"rho, mu > 0 (got {s.tank.H} x {s.tank.W}, rho {s.rho}, mu {s.mu})")
+        if not s.radius < min(s.tank.size) / 4:
+            raise ConfigError(f"scenes.radius = {s.radius} m does not fit the {s.tank.H} x {s.tank.W} tank of "
+                              f"{s.tank.dx} m cells")
         if not (s.warmup >= 0 and s.steps >= 1 and s.radius > 0 and s.fish_amp > 0 and s.h > 0):
             raise ConfigError("scenes.warmup >= 0, scenes.steps >= 1 and radius, fish_amp, h > 0 are required")
         if not (s.speeds or s.frequencies):
@@ -557,7 +598,9 @@ def _refuse_hydra_runner_keys(overrides: list[str]) -> None:
 
 
 def _merge_file(raw: Any, path: str, dotted: list[str]) -> Any:
-    """raw <- the YAML file <- the ``key=value`` overrides (later wins)."""
+    """raw <- the YAML file <- the ``key=value`` overrides (later wins). A file whose fluid is
+    another model than the composed one replaces the composed ``fluid`` node (the models' keys
+    differ)."""
     from pathlib import Path
 
     import yaml
@@ -565,17 +608,45 @@ def _merge_file(raw: Any, path: str, dotted: list[str]) -> Any:
     if not Path(path).is_file():
         raise ConfigError(f"config file {path} does not exist (give the path of a YAML config, e.g. a run's best.yaml)")
     try:
-        loaded = OmegaConf.load(path)
+        loaded = _upgraded(OmegaConf.load(path))
         dots = OmegaConf.from_dotlist([o.lstrip("+") for o in dotted if not o.startswith("~")])
         OmegaConf.set_struct(raw, False)          # the file may hold keys of other groups; the schema checks them
+        model = OmegaConf.select(loaded, "fluid.model")
+        if "fluid" in raw and model is not None and model != raw.fluid.get("model"):
+            raw.fluid = {}
         return OmegaConf.merge(raw, loaded, dots)
     except (OmegaConfBaseException, ValueError, OSError, yaml.YAMLError) as err:
         raise ConfigError(f"config file {path} is not a readable YAML config: {_one_line(err)}") from None
 
 
+TANK_KEYS = tuple(f.name for f in dataclasses.fields(TankConfig))
+
+
+def _upgraded(loaded: DictConfig) -> DictConfig:
+    """A config stored before the ``tank`` group and the per-model fluid configs (2026-11-27: one
+    flat ``fluid`` node holding the grid, walls, inflow and every model's keys) in today's
+    layout: the tank's keys moved to ``tank``, the keys of other fluid models dropped (they were
+    ignored by the model the file names)."""
+    fluid = loaded.get("fluid") if isinstance(loaded, DictConfig) else None
+    if not isinstance(fluid, DictConfig) or not any(k in fluid for k in TANK_KEYS):
+        return loaded
+    tank = {k: fluid[k] for k in TANK_KEYS if k in fluid}
+    own = {f.name for f in dataclasses.fields(FLUID_MODELS.get(fluid.get("model", "numerical"), NumericalConfig))}
+    rest = {k: v for k, v in OmegaConf.to_container(fluid).items() if k in own}
+    upgraded = OmegaConf.to_container(loaded)
+    upgraded["fluid"], upgraded["tank"] = rest, {**upgraded.get("tank", {}), **tank}
+    return OmegaConf.create(upgraded)
+
+
 def to_dataclass(command: str, raw: Any) -> Any:
-    """Merge a composed config into the command's schema, build the dataclasses, validate."""
+    """Merge a composed config into the command's schema, build the dataclasses, validate. The
+    ``fluid`` node's schema is that of its ``model`` (``FLUID_MODELS``)."""
     schema = OmegaConf.structured(ROOTS[command])
+    if "fluid" in schema:
+        model = OmegaConf.select(raw, "fluid.model", default=schema.fluid.model)
+        if model not in FLUID_MODELS:
+            raise ConfigError(f"config error: fluid.model must be one of {tuple(FLUID_MODELS)} (got '{model}')")
+        schema.fluid = OmegaConf.structured(FLUID_MODELS[model])
     _writable(schema)
     try:
         merged = OmegaConf.merge(schema, raw)
@@ -607,9 +678,18 @@ def to_yaml(cfg: Any) -> str:
 def _one_line(err: Exception) -> str:
     """Condense an OmegaConf/Hydra error into one line with a hint on how to fix it."""
     text = " ".join(str(err).split()) or type(err).__name__
+    foreign = re.search(r"Key '([^']+)' not in '(\w+Config)' full_key: (fluid\.\S+)", text)
+    if foreign and foreign.group(2) in {c.__name__ for c in FLUID_MODELS.values()}:
+        model = next(m for m, c in FLUID_MODELS.items() if c.__name__ == foreign.group(2))
+        return (f"config error: {foreign.group(3)} is not a setting of fluid={model} (each fluid model has its own "
+                f"keys, conf/fluid/{model}.yaml: switch models with the group, fluid={model}, not fluid.model; "
+                "the tank's grid, walls and inflow are tank.*)")
     unknown = re.search(r"Could not override '([^']+)'", text) or re.search(r"Key '([^']+)' not in", text)
     if unknown and ("not in struct" in text or "Could not override" in text):
-        return (f"config error: unknown config key '{unknown.group(1)}' (check the spelling; "
+        key = unknown.group(1)
+        if key.startswith("fluid.") and key.split(".", 1)[1] in TANK_KEYS:
+            return f"config error: '{key}' is a setting of the tank: use tank.{key.split('.', 1)[1]}"
+        return (f"config error: unknown config key '{key}' (check the spelling; "
                 "`fishsim <command> --help` lists the config groups and keys)")
     for tail in (" full_key:", " Config search path:", " See https:"):
         text = text.split(tail)[0]

@@ -11,7 +11,7 @@ import torch
 
 from fishsim.config import FishConfig, SimulateConfig
 from fishsim.errors import ConfigError
-from fishsim.fluid.factory import SHIPPED_HYDRONET, fluid_dtype, fluid_params, make_fluid, make_tank
+from fishsim.fluid.factory import SHIPPED_HYDRONET, fluid_dtype, fluid_params, make_fluid, make_walls
 from fishsim.fluid.hydronet.trained_range import check_fluid
 from fishsim.resources import check_memory
 from fishsim.rollout import Swimmer, SwimParams
@@ -69,14 +69,14 @@ def build_episode(cfg: SimulateConfig) -> Episode:
     if device.type == "cuda":
         full_float32_on_cuda()
     mesh = build_fish_mesh(cfg.fish)
-    fluid = make_fluid(cfg.fluid, device)
+    fluid = make_fluid(cfg.fluid, cfg.tank, device)
     if cfg.fluid.model == "hydronet":
         check_fluid(fluid.model, cfg.fluid.model_file or SHIPPED_HYDRONET, cfg.fluid.rho, cfg.fluid.mu,
-                    cfg.fluid.dx, cfg.h, cfg.fluid.strict_range)
+                    cfg.tank.dx, cfg.h, cfg.fluid.strict_range)
     solid = SolidModel(mesh, cfg.solid.material, h=cfg.h, options=cfg.solid.pd,
                        added_mass_ratio=cfg.coupling.stabilisation_ratio if fluid.exerts_force else 0.0,
                        muscles=build_muscles(cfg.fish, mesh))
-    walls = make_tank(cfg.fluid, device, unit_inflow=cfg.tunnel) if fluid.exerts_force else None
+    walls = make_walls(cfg.tank, fluid_dtype(cfg.fluid), device, unit_inflow=cfg.tunnel) if fluid.exerts_force else None
     swimmer = Swimmer(solid, fluid, cfg.coupling, walls, fluid_dtype=fluid_dtype(cfg.fluid),
                       hold_x=cfg.hold_x, hold_y=cfg.hold_y, tunnel=cfg.tunnel)
     params = batch_params(cfg, mesh.length, device)

@@ -49,13 +49,17 @@ def estimated_nodes(length: float, edge_length: float) -> int:
 
 def episode_bytes(cfg, batch: int, gradient_frames: int = 0, segment: int = 25) -> float:
     """The module docstring's estimate for a SimulateConfig-like ``cfg``."""
-    f = cfg.fluid
-    cells = 0 if f.model == "none" else f.H * f.W * (f.refinement if f.model == "numerical" else 1) ** 2
+    cells = 0 if cfg.fluid.model == "none" else cfg.tank.H * cfg.tank.W * refinement(cfg.fluid) ** 2
     nodes = estimated_nodes(cfg.fish.length, cfg.fish.edge_length)
     total = 0.6e9 + batch * cells * 400 + batch * nodes * 16 * math.sqrt(nodes)
     if gradient_frames:
         total += batch * gradient_frames * (4 * cells + 16 * nodes) + batch * min(segment, gradient_frames) * cells * 1e3
     return total
+
+
+def refinement(fluid) -> int:
+    """The internal grid's refinement r of a fluid config (1 but for the numerical fluid's)."""
+    return getattr(fluid, "refinement", 1)
 
 
 def available_bytes() -> float | None:
@@ -71,12 +75,11 @@ def available_bytes() -> float | None:
 
 def episode_seconds(cfg, batch: int, frames: int, gradient: bool = False) -> float:
     """The module docstring's time estimate [s] of ``frames`` frames of ``batch`` fish."""
-    f = cfg.fluid
-    r = f.refinement if f.model == "numerical" else 1
+    f, r = cfg.fluid, refinement(cfg.fluid)
     nodes = estimated_nodes(cfg.fish.length, cfg.fish.edge_length)
     per_frame = SOLID_FRAME_S * (nodes / NODES_DEFAULT) ** 1.5
     if f.model != "none":
-        per_frame += FLUID_CELL_FRAME_S[f.model] * f.H * f.W * r**3
+        per_frame += FLUID_CELL_FRAME_S[f.model] * cfg.tank.H * cfg.tank.W * r**3
     return frames * batch * per_frame * (GRADIENT_FACTOR[f.model] if gradient else 1.0)
 
 
@@ -113,7 +116,7 @@ def check_memory(cfg, batch: int, gradient_frames: int = 0, segment: int = 25) -
     need, have = episode_bytes(cfg, batch, gradient_frames, segment), available_bytes()
     if have is not None and need > 0.9 * have:
         raise ConfigError(f"this run needs about {need / 1e9:.3g} GB of memory and {have / 1e9:.3g} GB are available "
-                          f"(grid {cfg.fluid.H} x {cfg.fluid.W}, refinement {cfg.fluid.refinement}, "
+                          f"(grid {cfg.tank.H} x {cfg.tank.W}, refinement {refinement(cfg.fluid)}, "
                           f"~{estimated_nodes(cfg.fish.length, cfg.fish.edge_length)} mesh nodes, {batch} fish); "
                           "use a smaller grid, a coarser fish.edge_length or fewer fish, or check_resources=false")
 

@@ -73,7 +73,7 @@ def episode(overrides: list[str], frequencies, frames: int, device: str = "cpu")
         dx_mm[b] = drift_mm[b] = thrust[b] = math.nan
     return {"displacement_mm": dx_mm.tolist(), "lateral_drift_mm": drift_mm.tolist(),
             "mean_thrust_mN": thrust.tolist(), "wall_s": wall,
-            "dx_mm": 1e3 * sim.fluid.dx, "s_per_fish_frame": wall / (len(frequencies) * sim.frames),
+            "dx_mm": 1e3 * sim.tank.dx, "s_per_fish_frame": wall / (len(frequencies) * sim.frames),
             "failures": {str(frequencies[b]): {"frame": f, "reason": why} for b, (f, why) in failures.items()}}
 
 

@@ -56,6 +56,41 @@ def test_fluid_precision_is_float32_or_float64():
         load_config("simulate", ["fluid.dtype=float16"])
 
 
+def test_each_fluid_model_has_its_own_keys_and_the_tank_its_group():
+    """fluid=<model> picks that model's config class; another model's key, or a tank key under
+    fluid, is refused in one line that says where it belongs."""
+    from fishsim.config import HydroNetConfig, NumericalConfig, VacuumConfig
+
+    kinds = {m: type(load_config("simulate", [f"fluid={m}"]).fluid) for m in ("numerical", "hydronet", "none")}
+    assert kinds == {"numerical": NumericalConfig, "hydronet": HydroNetConfig, "none": VacuumConfig}
+    cfg = load_config("simulate", ["tank=long", "tank.wall_x=4", "origin=[0.06,0.25]"])
+    assert (cfg.tank.H, cfg.tank.W, cfg.tank.wall_x, cfg.tank.dx) == (200, 800, 4, 2.5e-3)
+    for overrides, fragment in ((["fluid.H=40"], "is a setting of the tank: use tank.H"),
+                                (["fluid=hydronet", "fluid.substeps=4"], "unknown config key 'fluid.substeps'"),
+                                (["fluid.model=hydronet"], "fluid.refinement is not a setting of fluid=hydronet"),
+                                (["tank.H=8"], "at least 16 x 16 cells"),
+                                (["tank.inflow=0.1", "tunnel=true"], "drop tank.inflow=0.1")):
+        with pytest.raises(ConfigError) as err:
+            load_config("simulate", overrides)
+        assert fragment in str(err.value) and "\n" not in str(err.value), (overrides, str(err.value))
+
+
+def test_config_files_of_either_layout_and_any_fluid_load(tmp_path):
+    """A stored config names its fluid model (a HydroNet run's replaces the default numerical
+    fluid), and one written before the tank group (the grid, walls and inflow inside one flat
+    fluid node with every model's keys) loads into today's layout."""
+    hydronet = tmp_path / "hydronet.yaml"
+    hydronet.write_text(to_yaml(load_config("simulate", ["fluid=hydronet", "fluid.bf16=true", "tank.W=200"])))
+    cfg = load_config("simulate", ["frames=3"], str(hydronet))
+    assert (cfg.fluid.model, cfg.fluid.bf16, cfg.tank.W, cfg.frames) == ("hydronet", True, 200, 3)
+    legacy = tmp_path / "legacy.yaml"
+    legacy.write_text("fluid:\n  model: hydronet\n  H: 64\n  W: 128\n  dx: 0.003\n  wall_y: 2\n  wall_x: 4\n"
+                      "  inflow: 0.0\n  substeps: 8\n  pressure: recovered\n  rho: 40.0\norigin: [0.05, 0.08]\n")
+    cfg = load_config("simulate", [], str(legacy))
+    assert (cfg.tank.H, cfg.tank.W, cfg.tank.dx, cfg.tank.wall_y, cfg.tank.wall_x) == (64, 128, 0.003, 2, 4)
+    assert (cfg.fluid.model, cfg.fluid.pressure, cfg.fluid.rho) == ("hydronet", "recovered", 40.0)
+
+
 def test_brinkman_is_positive_or_null():
     assert load_config("simulate", ["fluid.brinkman=1e4"]).fluid.brinkman == 1e4
     with pytest.raises(ConfigError, match=r"fluid.brinkman must be > 0 \(1/s\) or null"):
@@ -102,6 +137,10 @@ def test_shipped_yaml_defaults_equal_the_code_defaults():
     from fishsim.learn.train import train_config
 
     assert load_config("simulate") == SimulateConfig()
+    from fishsim.config import FLUID_MODELS
+
+    for model, kind in FLUID_MODELS.items():
+        assert load_config("simulate", [f"fluid={model}"]).fluid == kind()
     assert load_config("mesh") == MeshCommandConfig()
     assert train_config(load_config("train-hydronet")) == TrainConfig()
     from fishsim.config import ValidateConfig

@@ -16,8 +16,8 @@ from fishsim.config import load_config
 from fishsim.io.trajectory import read_trajectory
 
 runner = CliRunner()
-SMALL = ["fish.edge_length=5e-3", "fluid.H=40", "fluid.W=120", "fluid.dx=5e-3", "origin=[0.15,0.1]",
-         "fluid.wall_x=3", "fluid.wall_y=2"]
+SMALL = ["fish.edge_length=5e-3", "tank.H=40", "tank.W=120", "tank.dx=5e-3", "origin=[0.15,0.1]",
+         "tank.wall_x=3", "tank.wall_y=2"]
 NUMERICAL = [*SMALL, "fluid=numerical"]  # the reference solver: deterministic, no model file
 
 
@@ -36,8 +36,8 @@ def test_simulate_writes_valid_trajectory(tmp_path):
     assert tr.attrs["grid_w"] == 120
     # the stored config reproduces the run's config
     from omegaconf import OmegaConf
-    assert OmegaConf.create(tr.config_yaml).fluid.W == 120
-    assert load_config("simulate", SMALL).fluid.W == 120
+    assert OmegaConf.create(tr.config_yaml).tank.W == 120
+    assert load_config("simulate", SMALL).tank.W == 120
 
 
 def test_simulate_killed_leaves_incomplete_readable_file(tmp_path):
@@ -407,5 +407,5 @@ def test_debug_preset_is_a_tiny_episode(tmp_path):
     from fishsim.config import load_config
 
     cfg = load_config("simulate", ["experiment=debug"])
-    assert (cfg.fluid.H, cfg.fluid.W, cfg.frames, cfg.fish.edge_length) == (40, 120, 20, 5e-3)
+    assert (cfg.tank.H, cfg.tank.W, cfg.frames, cfg.fish.edge_length) == (40, 120, 20, 5e-3)
     assert load_config("optimize", ["experiment=debug"]).frames == 20

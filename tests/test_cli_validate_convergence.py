@@ -14,7 +14,7 @@ from fishsim.swim_study import observed_order
 from fishsim.swim_study_config import Knob
 
 runner = CliRunner()
-SMALL = ["fluid=numerical", "fluid.H=32", "fluid.W=96", "fish.length=0.06", "fish.edge_length=4e-3",
+SMALL = ["fluid=numerical", "tank.H=32", "tank.W=96", "fish.length=0.06", "fish.edge_length=4e-3",
          "origin=[0.05,0.04]"]
 
 

@@ -30,7 +30,7 @@ def test_compare_mismatch_and_argmax():
 
 
 def test_validate_swim_small(tmp_path):
-    small = "['fluid.H=32','fluid.W=96','fish.length=0.06','fish.edge_length=4e-3','origin=[0.05,0.04]']"
+    small = "['tank.H=32','tank.W=96','fish.length=0.06','fish.edge_length=4e-3','origin=[0.05,0.04]']"
     result = runner.invoke(app, ["validate", "suite=swim", "swim.frequencies=[4,8]", "swim.frames=6",
                                  "swim.fluids=[numerical_r2,numerical]", f"swim.overrides={small}",
                                  f"out_dir={tmp_path}"])
@@ -56,7 +56,7 @@ def test_validate_swim_judges_the_given_model_file(tmp_path):
     result = runner.invoke(app, ["validate", "suite=swim", "swim.fluids=[hydronet]", "swim.reference=hydronet",
                                  "swim.frames=2", f"model_file={tmp_path / 'missing.pt'}", f"out_dir={tmp_path / 'o'}"])
     assert result.exit_code == 2 and "missing.pt" in result.output, result.output
-    small = "['fluid.H=32','fluid.W=96','fish.length=0.06','fish.edge_length=4e-3','origin=[0.05,0.04]']"
+    small = "['tank.H=32','tank.W=96','fish.length=0.06','fish.edge_length=4e-3','origin=[0.05,0.04]']"
     numerical = runner.invoke(app, ["validate", "suite=swim", "swim.frequencies=[4,8]", "swim.frames=2",
                                     "swim.fluids=[numerical]", "swim.reference=numerical", f"swim.overrides={small}",
                                     f"model_file={tmp_path / 'missing.pt'}", f"out_dir={tmp_path / 'n'}"])

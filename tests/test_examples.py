@@ -6,8 +6,8 @@ from pathlib import Path
 import pytest
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
-SMALL = ["fish.edge_length=5e-3", "fluid.H=40", "fluid.W=150", "fluid.dx=5e-3", "origin=[0.25,0.1]",
-         "fluid.wall_x=2", "fluid.wall_y=2", "fluid=numerical", "frames=8"]
+SMALL = ["fish.edge_length=5e-3", "tank.H=40", "tank.W=150", "tank.dx=5e-3", "origin=[0.25,0.1]",
+         "tank.wall_x=2", "tank.wall_y=2", "fluid=numerical", "frames=8"]
 
 
 def _load(name: str):

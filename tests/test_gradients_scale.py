@@ -20,9 +20,9 @@ from fishsim.config import load_config
 from fishsim.optimize.problem import Problem, Space
 
 COMMON = ["frames=60", "params.frequency.lower=0.5", "params.frequency.upper=20", "solid.pd.atol=1e-9"]
-FLUIDS = {"numerical": ["fluid=numerical", "fluid.H=48", "fluid.W=144", "fluid.dx=5e-3", "origin=[0.2,0.12]",
+FLUIDS = {"numerical": ["fluid=numerical", "tank.H=48", "tank.W=144", "tank.dx=5e-3", "origin=[0.2,0.12]",
                         "coupling.sigma=2e-6", "coupling.xi=2e-6", "coupling.tau=2e-6", "coupling.sigma_prime=2.5e-5"],
-          "hydronet": ["fluid=hydronet", "fluid.H=48", "fluid.W=144", "origin=[0.1,0.06]"]}
+          "hydronet": ["fluid=hydronet", "tank.H=48", "tank.W=144", "origin=[0.1,0.06]"]}
 F0 = 5.0                      # Hz; central differences at a 1e-5 relative step (the episode's J is
                               # curved enough that 1e-4 is 0.16 % off, 1e-3 0.9 %)
 STEPS = (1e-4, 1e-5, 1e-6)    # HydroNet's relative steps (its central differences scatter, below)

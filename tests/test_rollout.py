@@ -17,8 +17,8 @@ from fishsim.fluid.numerical import NumericalFluid, RefinedState
 from fishsim.rollout import Swimmer, SwimState, rollout
 from fishsim.solid import SolverCache
 
-SMALL = ["fish.edge_length=4e-3", "fluid.H=32", "fluid.W=96", "fluid.dx=6e-3", "origin=[0.2,0.096]",
-         "fluid.wall_x=2", "fluid.wall_y=2", "coupling.n_burn_in=2", "solid.pd.atol=1e-8"]
+SMALL = ["fish.edge_length=4e-3", "tank.H=32", "tank.W=96", "tank.dx=6e-3", "origin=[0.2,0.096]",
+         "tank.wall_x=2", "tank.wall_y=2", "coupling.n_burn_in=2", "solid.pd.atol=1e-8"]
 
 
 def small_swimmer(overrides=(), dtype=torch.float64):
@@ -138,7 +138,7 @@ def test_averaged_forces_leave_a_held_fish_its_heading():
     HydroNet in a 16 x 32 cm tank: the averaged fluid force moves no rotation, so the solid gets no
     artificial added mass (a per-node M^ = 5 M was negative damping for the rotation: the fish
     spun from frame ~100 and left the tank at frame 136)."""
-    cfg = load_config("simulate", ["fluid=hydronet", "fluid.H=64", "fluid.W=128", "origin=[0.05,0.08]",
+    cfg = load_config("simulate", ["fluid=hydronet", "tank.H=64", "tank.W=128", "origin=[0.05,0.08]",
                                    "hold_x=true", "hold_y=true", "coupling.force_mode=average",
                                    "controller.frequency=2"])
     ep = build_episode(cfg)
@@ -156,7 +156,7 @@ def test_averaged_forces_stabilise_the_free_heave():
     """Averaged forces, free in y, numerical fluid (heave added mass 8.75 M > M): the
     stabilisation on the rigid translation keeps the centroid within 1 mm over 60 frames at 5 Hz;
     without it (ratio 0) the explicit coupling throws the fish out of the tank within 20 frames."""
-    base = ["fluid.H=64", "fluid.W=128", "origin=[0.05,0.08]", "hold_x=true", "coupling.force_mode=average",
+    base = ["tank.H=64", "tank.W=128", "origin=[0.05,0.08]", "hold_x=true", "coupling.force_mode=average",
             "controller.frequency=5"]
     ep = build_episode(load_config("simulate", base))
     with torch.no_grad():
@@ -172,8 +172,8 @@ def test_fish_swims_forward_and_beats_at_the_controller_frequency():
     """Numerical fluid, 5 Hz, 1 s on a 5 mm grid: after the activation ramp the head's x,
     averaged over each stroke period, advances every period (the fish swims head first), and the
     tail's lateral motion peaks at the controller frequency."""
-    args = ["fish.edge_length=5e-3", "fluid.H=40", "fluid.W=150", "fluid.dx=5e-3", "origin=[0.25,0.1]",
-            "fluid.wall_x=2", "fluid.wall_y=2", "fluid=numerical"]
+    args = ["fish.edge_length=5e-3", "tank.H=40", "tank.W=150", "tank.dx=5e-3", "origin=[0.25,0.1]",
+            "tank.wall_x=2", "tank.wall_y=2", "fluid=numerical"]
     ep = build_episode(load_config("simulate", args))
     with torch.no_grad():
         _, m = rollout(ep.swimmer, ep.swimmer.initial_state(ep.params, ep.origin), ep.params, 100)

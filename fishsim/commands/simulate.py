@@ -28,7 +28,7 @@ def open_writer(cfg: SimulateConfig, episode: Episode, path) -> TrajectoryWriter
     """Declare every series of the run and write the static data (mesh, controller, config)."""
     sw, p = episode.swimmer, episode.params
     mesh, B = sw.solid.mesh, p.E.shape[0]
-    fluid_shape = (cfg.fluid.H, cfg.fluid.W) if sw.fluid.exerts_force else None
+    fluid_shape = (cfg.tank.H, cfg.tank.W) if sw.fluid.exerts_force else None
     series = trajectory_series(mesh.n_nodes, B, sw.solid.n_muscles, METRICS, fluid_shape)
     static = {
         "mesh/points": mesh.points, "mesh/triangles": mesh.triangles, "mesh/surface": mesh.surface,
@@ -38,7 +38,7 @@ def open_writer(cfg: SimulateConfig, episode: Episode, path) -> TrajectoryWriter
         "controller/wave_number": p.controller.gamma.cpu().numpy(),
         "controller/youngs_modulus": p.E.cpu().numpy(),
     }
-    return TrajectoryWriter(path, series, static, to_yaml(cfg), cfg.h, cfg.flush_every, dx=cfg.fluid.dx)
+    return TrajectoryWriter(path, series, static, to_yaml(cfg), cfg.h, cfg.flush_every, dx=cfg.tank.dx)
 
 
 def frame_record(t: int, state, out, metrics: dict, h: float) -> dict:
@@ -91,7 +91,7 @@ def run(cfg: SimulateConfig) -> dict:
                                                f"frame {t + 1}; from here on its motion is wall-dominated[/]")
             writer.append(frame_record(t, s, out, metrics, cfg.h))
             if sw.fluid.exerts_force and (t + 1) % cfg.fluid_stride == 0:
-                writer.append(fluid_record(t, s, out, cfg.fluid.dx))
+                writer.append(fluid_record(t, s, out, cfg.tank.dx))
             writer.end_frame()
             for k, v in metrics.items():
                 history[k].append(v.detach().cpu().numpy())
@@ -134,9 +134,9 @@ def wall_bounds(cfg: SimulateConfig, mesh) -> tuple[list[float], list[float]]:
     """(lo, hi) corners (x, y in m) of the region farther than one body width (the mesh's largest
     thickness) from the fluid region's edge (the inner side of the wall bands)."""
     width = float(np.ptp(mesh.points[:, 1]))
-    f, dx = cfg.fluid, cfg.fluid.dx
-    return ([f.wall_x * dx + width, f.wall_y * dx + width],
-            [(f.W - f.wall_x) * dx - width, (f.H - f.wall_y) * dx - width])
+    t, dx = cfg.tank, cfg.tank.dx
+    return ([t.wall_x * dx + width, t.wall_y * dx + width],
+            [(t.W - t.wall_x) * dx - width, (t.H - t.wall_y) * dx - width])
 
 
 def wall_proximity(bounds: tuple[list[float], list[float]], q: torch.Tensor) -> list[int]:
@@ -147,7 +147,7 @@ def wall_proximity(bounds: tuple[list[float], list[float]], q: torch.Tensor) -> 
 
 
 def _grid_attrs(cfg: SimulateConfig) -> dict:
-    return {"grid_h": cfg.fluid.H, "grid_w": cfg.fluid.W, "grid_dx": cfg.fluid.dx, "fluid_model": cfg.fluid.model}
+    return {"grid_h": cfg.tank.H, "grid_w": cfg.tank.W, "grid_dx": cfg.tank.dx, "fluid_model": cfg.fluid.model}
 
 
 def summarise(rows: list[dict], n_frames: int, wall: float, timer: PhaseTimer) -> dict:

@@ -10,9 +10,9 @@ from fishsim.fields import Boundary, FluidModel, FluidParams, Grid
 from fishsim.fluid.grid import channel, closed_tank
 
 
-def make_grid(cfg) -> Grid:
-    """The tank grid of a ``FluidConfig``."""
-    return Grid(H=cfg.H, W=cfg.W, dx=cfg.dx)
+def make_grid(tank) -> Grid:
+    """The grid of a ``TankConfig`` (fishsim.fluid.tank)."""
+    return Grid(H=tank.H, W=tank.W, dx=tank.dx)
 
 
 SHIPPED_HYDRONET = Path(__file__).resolve().parents[1] / "assets" / "hydronet.pt"
@@ -23,19 +23,20 @@ def fluid_dtype(cfg) -> torch.dtype:
     return getattr(torch, cfg.dtype)
 
 
-def make_fluid(cfg, device=None) -> FluidModel:
-    """The ``FluidModel`` of a ``FluidConfig`` (``model=none``: the Vacuum) on ``device``.
+def make_fluid(cfg, tank, device=None) -> FluidModel:
+    """The ``FluidModel`` of a fluid config (fishsim.config.FLUID_MODELS; ``model=none``: the
+    Vacuum) in the tank of a ``TankConfig``, on ``device``.
 
     hydronet: the model in ``cfg.model_file`` or, when unset, the shipped one, with the pressure
     ``cfg.pressure``; a missing or corrupt file raises InputFileError saying how to train one."""
     if cfg.model == "none":
         from fishsim.fluid.vacuum import Vacuum
 
-        return Vacuum(make_grid(cfg))
+        return Vacuum(make_grid(tank))
     if cfg.model == "numerical":
         from fishsim.fluid.numerical import NumericalFluid
 
-        return NumericalFluid(make_grid(cfg), refinement=cfg.refinement, substeps=cfg.substeps, cfl=cfg.cfl,
+        return NumericalFluid(make_grid(tank), refinement=cfg.refinement, substeps=cfg.substeps, cfl=cfg.cfl,
                               penalization_iterations=cfg.penalization_iterations, scheme=cfg.scheme,
                               brinkman=cfg.brinkman)
     if cfg.model == "hydronet":
@@ -43,22 +44,24 @@ def make_fluid(cfg, device=None) -> FluidModel:
         from fishsim.fluid.pressure import RecoveryConfig
 
         model = load_hydronet(cfg.model_file or SHIPPED_HYDRONET, device=device or "cpu").to(fluid_dtype(cfg))
-        return HydroNetFluid(model, make_grid(cfg), bf16=cfg.bf16, pressure=cfg.pressure,
+        return HydroNetFluid(model, make_grid(tank), bf16=cfg.bf16, pressure=cfg.pressure,
                              recovery=RecoveryConfig(tol=cfg.pressure_tol))
     raise ValueError(f"unknown fluid model {cfg.model!r}")
 
 
-def make_tank(cfg, device=None, unit_inflow: bool = False) -> Boundary:
-    """The tank's walls [1, ., H, W] in ``cfg.dtype``: closed, or a channel with ``cfg.inflow``
-    m/s at the ends (``unit_inflow``: 1 m/s, a swim tunnel's walls that the rollout scales)."""
-    grid, dtype = make_grid(cfg), fluid_dtype(cfg)
-    if cfg.inflow != 0.0 or unit_inflow:
-        return channel(grid, 1.0 if unit_inflow else cfg.inflow, cfg.wall_y, cfg.wall_x, 1, device, dtype)
-    return closed_tank(grid, cfg.wall_y, cfg.wall_x, 1, device, dtype)
+def make_walls(tank, dtype: torch.dtype, device=None, unit_inflow: bool = False) -> Boundary:
+    """The walls [1, ., H, W] of a ``TankConfig`` in ``dtype``: closed, or a channel with
+    ``tank.inflow`` m/s at the ends (``unit_inflow``: 1 m/s, a swim tunnel's walls that the rollout
+    scales)."""
+    grid = make_grid(tank)
+    if tank.inflow != 0.0 or unit_inflow:
+        return channel(grid, 1.0 if unit_inflow else tank.inflow, tank.wall_y, tank.wall_x, 1, device, dtype)
+    return closed_tank(grid, tank.wall_y, tank.wall_x, 1, device, dtype)
 
 
 def fluid_params(cfg, batch: int, h: float, device=None) -> FluidParams:
     """rho, mu as [B] tensors (in the fluid's ``cfg.dtype``; 0 in the vacuum) and the time step h."""
     vacuum = cfg.model == "none"
-    full = lambda v: torch.full((batch,), 0.0 if vacuum else float(v), device=device, dtype=fluid_dtype(cfg))
-    return FluidParams(rho=full(cfg.rho), mu=full(cfg.mu), h=h)
+    full = lambda name: torch.full((batch,), 0.0 if vacuum else float(getattr(cfg, name)), device=device,
+                                   dtype=fluid_dtype(cfg))
+    return FluidParams(rho=full("rho"), mu=full("mu"), h=h)

@@ -38,7 +38,8 @@ from torch import Tensor
 
 from fishsim.coupling.ibm import ibm_force
 from fishsim.coupling.mask import SIGMA
-from fishsim.fields import Boundary, FluidModel, FluidParams, FluidState, Grid
+from fishsim.fields import Boundary, FluidModel, FluidParams, FluidState
+from fishsim.fluid.factory import make_grid
 from fishsim.fluid.grid import closed_tank, curl, divergence, union, vorticity
 from fishsim.fluid.hydronet.config import EvalConfig
 from fishsim.fluid.hydronet.loss import momentum_loss
@@ -50,18 +51,18 @@ class Scenes:
     """The held-out scenes' boundaries and body surfaces at step k (time k h)."""
 
     def __init__(self, cfg: EvalConfig, device=None):
-        self.cfg, self.grid, self.device = cfg, Grid(cfg.H, cfg.W, cfg.dx), device
+        self.cfg, self.grid, self.device = cfg, make_grid(cfg.tank), device
         self.names = [f"cylinder_{u:g}" for u in cfg.speeds] + [f"fish_{f:g}Hz" for f in cfg.frequencies]
-        still = Motion((cfg.W * cfg.dx / 2, cfg.H * cfg.dx / 2), (0.0, 0.0), (0.0, 0.0), (0.0, 0.0), (0.0, 0.0),
+        still = Motion(_middle(cfg.tank), (0.0, 0.0), (0.0, 0.0), (0.0, 0.0), (0.0, 0.0),
                        0.0, 0.0, 0.0, 0.0, 0.0, 0.0, (0.1, 0.03))
         self.fish = [Fish(0.2, cfg.fish_amp * 0.2, f, 2 * math.pi / 0.2, 0.0, 0.2, still) for f in cfg.frequencies]
-        self.tank = closed_tank(self.grid, cfg.wall_y, cfg.wall_x, 1, device)
+        self.tank = closed_tank(self.grid, cfg.tank.wall_y, cfg.tank.wall_x, 1, device)
         n = 64
         th = torch.arange(n, dtype=torch.float32, device=device) * (2 * math.pi / n)
         self.circle = cfg.radius * torch.stack([torch.cos(th), torch.sin(th)], -1)  # ccw [n, 2]
 
     def centre(self, u: float, k: int) -> tuple[float, float]:
-        return 0.1 + u * k * self.cfg.h, self.cfg.H * self.cfg.dx / 2
+        return 0.1 + u * k * self.cfg.h, _middle(self.cfg.tank)[1]
 
     def boundary(self, k: int) -> Boundary:
         """b, v_d [B, ., H, W] of every scene at step k (walls included)."""
@@ -86,6 +87,12 @@ class Scenes:
         out += [torch.as_tensor(fish_surface(f, t)[0], dtype=torch.float32, device=self.device)[None]
                 for f in self.fish]
         return out
+
+
+def _middle(tank) -> tuple[float, float]:
+    """The centre (x, y) in m of a TankConfig's box."""
+    length, height = tank.size
+    return length / 2, height / 2
 
 
 def relative_errors(net: FluidState, ref: FluidState, mask: Tensor, dx: float) -> tuple[Tensor, Tensor]:
@@ -185,9 +192,9 @@ def kinetic_energy(state: FluidState, mask: Tensor, rho: float, dx: float) -> Te
 @torch.no_grad()
 def energy_checks(net: FluidModel, reference: FluidModel, cfg: EvalConfig = EvalConfig(), device=None) -> dict:
     """The still-fish and kinetic-energy checks of the module docstring, as a dict of numbers."""
-    grid = Grid(cfg.H, cfg.W, cfg.dx)
-    tank = closed_tank(grid, cfg.wall_y, cfg.wall_x, 1, device)
-    centre = Motion((cfg.W * cfg.dx / 2, cfg.H * cfg.dx / 2), (0.0, 0.0), (0.0, 0.0), (0.0, 0.0), (0.0, 0.0),
+    grid = make_grid(cfg.tank)
+    tank = closed_tank(grid, cfg.tank.wall_y, cfg.tank.wall_x, 1, device)
+    centre = Motion(_middle(cfg.tank), (0.0, 0.0), (0.0, 0.0), (0.0, 0.0), (0.0, 0.0),
                     0.0, 0.0, 0.0, 0.0, 0.0, 0.0, (0.1, 0.03))
     params = FluidParams(torch.full((1,), cfg.rho, device=device), torch.full((1,), cfg.mu, device=device), cfg.h)
 

@@ -158,17 +158,19 @@ def test_default_safety_net_keeps_the_floor_at_swimming_speeds():
     1.6 m/s on the 2.5 mm grid: the frequency study's 7 Hz fish peaks at 1.14 m/s, where the
     solver's own bound 0.5 raised it to 9 on some frames, a jump in the frame map (each count
     change moves the fish by ~1e-4 of its distance, far above a finite difference's step)."""
-    from fishsim.config import FluidConfig
+    from fishsim.config import NumericalConfig
     from fishsim.fluid.factory import make_fluid
+    from fishsim.fluid.tank import TankConfig
 
-    cfg = FluidConfig(H=24, W=40)
-    m = make_fluid(cfg)
-    y = torch.arange(cfg.H + 1, dtype=D).view(1, 1, -1, 1) * cfg.dx
+    cfg, tank = NumericalConfig(), TankConfig(H=24, W=40)
+    m = make_fluid(cfg, tank)
+    H, W = tank.H, tank.W
+    y = torch.arange(H + 1, dtype=D).view(1, 1, -1, 1) * tank.dx
     counts = []
     for speed in (1.14, 1.55, 1.7):
-        s = FluidState(a=(speed * y).expand(1, 1, cfg.H + 1, cfg.W + 1).contiguous(),
-                       p=torch.zeros(1, 1, cfg.H, cfg.W, dtype=D))       # uniform flow (speed, 0)
-        still = Boundary(torch.zeros(1, 1, cfg.H, cfg.W, dtype=D), torch.zeros(1, 2, cfg.H, cfg.W, dtype=D))
+        s = FluidState(a=(speed * y).expand(1, 1, H + 1, W + 1).contiguous(),
+                       p=torch.zeros(1, 1, H, W, dtype=D))       # uniform flow (speed, 0)
+        still = Boundary(torch.zeros(1, 1, H, W, dtype=D), torch.zeros(1, 2, H, W, dtype=D))
         _, diag = m.step_with_diagnostics(s, still, FluidParams(torch.tensor([cfg.rho], dtype=D),
                                                                 torch.tensor([cfg.mu], dtype=D)))
         counts.append(int(diag.substeps[0]))

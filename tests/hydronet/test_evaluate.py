@@ -9,21 +9,22 @@ import torch
 from typer.testing import CliRunner
 
 from fishsim.cli import app
-from fishsim.fields import Grid
+from fishsim.fluid.factory import make_grid
 from fishsim.fluid.hydronet.config import EvalConfig
 from fishsim.fluid.numerical import NumericalFluid
+from fishsim.fluid.tank import TankConfig
 from fishsim.learn.evaluate import Scenes, energy_checks, evaluate, kinetic_energy, summarise
 
-SMALL = EvalConfig(speeds=[0.2], frequencies=[5.0], warmup=3, steps=3, H=40, W=120, dx=5e-3, wall_y=2, wall_x=3,
-                   still_steps=3, energy_steps=4)
-SMALL_ARGS = ["scenes.speeds=[0.2]", "scenes.frequencies=[5]", "scenes.warmup=3", "scenes.steps=3", "scenes.H=40",
-              "scenes.W=120", "scenes.dx=5e-3", "scenes.wall_y=2", "scenes.wall_x=3", "scenes.still_steps=3",
-              "scenes.energy_steps=4"]
+SMALL = EvalConfig(speeds=[0.2], frequencies=[5.0], warmup=3, steps=3,
+                   tank=TankConfig(H=40, W=120, dx=5e-3, wall_y=2, wall_x=3), still_steps=3, energy_steps=4)
+SMALL_ARGS = ["scenes.speeds=[0.2]", "scenes.frequencies=[5]", "scenes.warmup=3", "scenes.steps=3",
+              "scenes.tank.H=40", "scenes.tank.W=120", "scenes.tank.dx=5e-3", "scenes.tank.wall_y=2",
+              "scenes.tank.wall_x=3", "scenes.still_steps=3", "scenes.energy_steps=4"]
 
 
 def test_reference_against_itself_has_zero_error_and_equal_forces():
     """The metrics compare matching states: the numerical solver judged against itself scores 0."""
-    grid = Grid(SMALL.H, SMALL.W, SMALL.dx)
+    grid = make_grid(SMALL.tank)
     out = evaluate(NumericalFluid(grid), NumericalFluid(grid), SMALL)
     for m in out.metrics.values():
         for key, value in m.items():
@@ -41,10 +42,10 @@ def test_scenes_move_as_prescribed():
     c0, c1 = sc.surfaces(0)[0].mean(1), sc.surfaces(10)[0].mean(1)
     torch.testing.assert_close(c1 - c0, torch.tensor([[0.2 * 10 * SMALL.h, 0.0]]), atol=1e-6, rtol=0)
     f0, f1 = sc.surfaces(40)[1], sc.surfaces(45)[1]
-    assert abs(f0[..., 0].mean().item() - SMALL.W * SMALL.dx / 2) < 0.01
+    assert abs(f0[..., 0].mean().item() - SMALL.tank.size[0] / 2) < 0.01
     assert (f1 - f0).abs().max() > 1e-3
     bd = sc.boundary(10)
-    assert bd.mask.shape == (2, 1, SMALL.H, SMALL.W) and math.isclose(bd.mask.max().item(), 1.0, abs_tol=1e-6)
+    assert bd.mask.shape == (2, 1, SMALL.tank.H, SMALL.tank.W) and math.isclose(bd.mask.max().item(), 1.0, abs_tol=1e-6)
 
 
 def test_validate_command_writes_metrics_and_picture(tmp_path):
@@ -70,7 +71,8 @@ def test_impossible_scene_grids_are_one_line(tmp_path):
 
     from fishsim.cli import app
 
-    for args, words in ((["scenes.H=4"], "at least 32 x 32"), (["scenes.dx=-1"], "dx, rho, mu > 0"),
+    for args, words in ((["scenes.tank.H=20"], "at least 32 x 32"), (["scenes.tank.dx=-1"], "tank.dx must be > 0"),
+                        (["scenes.rho=-1"], "rho, mu > 0"),
                         (["scenes.radius=1"], "does not fit")):
         result = CliRunner().invoke(app, ["validate", *args, f"out_dir={tmp_path}"])
         assert result.exit_code == 2 and words in result.output, result.output
@@ -80,7 +82,7 @@ def test_energy_checks_are_exact_for_the_reference_itself():
     """The numerical solver judged against itself: a still fish leaves the water at rest (max |v|
     = 0 exactly) and the swimming fish's kinetic energy ratio is 1; E of a uniform stream U over
     a fluid of area A is rho U^2 A / 2."""
-    grid = Grid(SMALL.H, SMALL.W, SMALL.dx)
+    grid = make_grid(SMALL.tank)
     checks = energy_checks(NumericalFluid(grid), NumericalFluid(grid), SMALL)
     assert checks["still_fish_max_speed_3"] == 0.0
     assert checks["kinetic_energy_ref_4"] > 0 and checks["kinetic_energy_ratio"] == pytest.approx(1.0, rel=1e-6)

@@ -66,7 +66,7 @@ def test_unusable_out_dir_is_one_line(tmp_path, make_bad, words):
     assert result.exit_code == 2 and words in result.output, result.output
 
 
-@pytest.mark.parametrize("override", [["fluid.H=20000", "fluid.W=20000"], ["fluid.H=100000", "fluid.W=100000"],
+@pytest.mark.parametrize("override", [["tank.H=20000", "tank.W=20000"], ["tank.H=100000", "tank.W=100000"],
                                       ["fish.edge_length=1e-5"]])
 def test_a_run_too_large_for_memory_is_refused_up_front(tmp_path, override):
     t0 = time.perf_counter()

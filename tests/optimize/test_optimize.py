@@ -17,7 +17,7 @@ from fishsim.optimize.problem import Problem, Space
 from fishsim.rollout import Swimmer
 
 runner = CliRunner()
-SMALL = ["fluid.H=32", "fluid.W=96", "fish.length=0.06", "fish.edge_length=4e-3", "origin=[0.05,0.04]"]
+SMALL = ["tank.H=32", "tank.W=96", "fish.length=0.06", "fish.edge_length=4e-3", "origin=[0.05,0.04]"]
 
 
 def problem(*overrides: str) -> Problem:
@@ -45,7 +45,7 @@ def test_hold_x_keeps_the_centroid_while_the_fish_pushes(hold_y):
 
 
 def test_swim_tunnel_inflow_costs_thrust_and_keeps_the_fish_in_place():
-    """The swim tunnel (hold_x + fluid.inflow): the fish stays put against the flow, and the same
+    """The swim tunnel (hold_x + tank.inflow): the fish stays put against the flow, and the same
     gait makes less net thrust the faster the water comes at it (its drag grows), so the steady
     swimming speed is where the thrust crosses zero."""
     from fishsim.rollout import rollout
@@ -53,7 +53,7 @@ def test_swim_tunnel_inflow_costs_thrust_and_keeps_the_fish_in_place():
     J = {}
     for U in (0.0, -0.1):                    # the fish faces +x: the tunnel's water flows in -x
         pb = problem("hold_x=true", "objective=thrust", "coupling.force_mode=average", "frames=25",
-                     "controller.frequency=8", f"fluid.inflow={U}")
+                     "controller.frequency=8", f"tank.inflow={U}")
         ep = pb.episode
         with torch.no_grad():
             _, m = rollout(ep.swimmer, ep.swimmer.initial_state(ep.params, ep.origin), ep.params, 25)
@@ -74,7 +74,7 @@ def test_swim_tunnel_fish_swims_through_the_water_as_fast_as_a_free_fish():
 
     speed = {}
     for tunnel in (True, False):
-        cfg = load_config("simulate", ["fluid.H=60", "fluid.W=180", "origin=[0.06,0.075]", "frames=80",
+        cfg = load_config("simulate", ["tank.H=60", "tank.W=180", "origin=[0.06,0.075]", "frames=80",
                                        "controller.frequency=5", f"tunnel={tunnel}"])
         ep = build_episode(cfg)
         state = ep.swimmer.initial_state(ep.params, ep.origin)

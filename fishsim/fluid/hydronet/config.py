@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 from fishsim.errors import ConfigError
+from fishsim.fluid.tank import TankConfig
 
 if TYPE_CHECKING:
     from fishsim.fields import Grid
@@ -33,11 +34,7 @@ class EvalConfig:
     rho: float = 50.0
     mu: float = 1.25e-4
     h: float = 0.01
-    H: int = 100
-    W: int = 300
-    dx: float = 2.5e-3
-    wall_y: int = 3
-    wall_x: int = 5
+    tank: TankConfig = field(default_factory=TankConfig)
     still_steps: int = 300
     energy_steps: int = 150
     energy_frequency: float = 5.0
