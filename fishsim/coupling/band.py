@@ -84,8 +84,9 @@ def _band_cells(qs: Tensor, grid: Grid, margin: int) -> tuple[Tensor, Tensor, tu
     j = j0[:, None, None] + torch.arange(w, device=qs.device)[None, None, :]
     i, j = torch.broadcast_tensors(i, j)
     flat = (i * grid.W + j).flatten(1)
+    i, j = i.to(qs.dtype), j.to(qs.dtype)
     centres = torch.stack([(j + 0.5) * grid.dx, (i + 0.5) * grid.dx], dim=-1).flatten(1, 2)
-    return flat, centres.to(qs.dtype), (h, w)
+    return flat, centres, (h, w)
 
 
 def _all_squared_distances(x: Tensor, qs: Tensor, distance: str) -> Tensor:
@@ -129,24 +130,39 @@ def surface_band(qs: Tensor, grid: Grid, margin: int, k_nearest: int = 24,
                  distance: str = SEGMENT) -> SurfaceBand:
     """Band cells, inside flags and K + 1 nearest segments/nodes of the surface ``qs`` [B, S, 2].
 
-    The selection runs in float32 relative to each fish's centre (|x| < 0.15 m: the squared
-    distances are off by < 1e-9 m^2 = xi / 500); it only selects, it is never differentiated.
+    The selection runs relative to each fish's centre, compiled in float64 on the CPU
+    (fishsim.coupling.kernels), else in float32 (|x| < 0.15 m: the squared distances are off by
+    < 1e-9 m^2 = xi / 500); it only selects, it is never differentiated.
     """
     if distance not in (SEGMENT, NODE):
         raise ValueError(f"distance must be 'segment' or 'node', got {distance!r}")
     flat, centres, (h, w) = _band_cells(qs, grid, margin)
     origin = 0.5 * (qs.amin(1, keepdim=True) + qs.amax(1, keepdim=True))
     centres = centres - origin
-    q32, x32 = (qs - origin).float(), centres.float()
-    B, P, S = flat.shape[0], flat.shape[1], qs.shape[1]
+    S, k = qs.shape[1], min(k_nearest + 1, qs.shape[1])
+    truncated = k_nearest + 1 < S
+    if qs.device.type == "cpu":                      # compiled, in float64 (fishsim.coupling.kernels)
+        from fishsim.coupling.kernels import nearest_and_inside
+
+        nearest, inside = nearest_and_inside(qs - origin, centres, k, distance == SEGMENT, w)
+    else:
+        nearest, inside = torch_nearest_and_inside(qs - origin, centres, k, distance, (h, w))
+    return SurfaceBand(flat, origin, centres, inside, nearest, distance, truncated)
+
+
+def torch_nearest_and_inside(qs: Tensor, centres: Tensor, k: int, distance: str,
+                             window: tuple[int, int]) -> tuple[Tensor, Tensor]:
+    """The k nearest elements [B, P, k] (long) and inside flags [B, P] of the window's cells
+    ``centres`` [B, P = h w, 2] for the polylines ``qs`` [B, S, 2] (both relative to the band's
+    origin), in float32 torch operations (CUDA; the reference of the compiled CPU version)."""
+    q32, x32 = qs.float(), centres.float()
+    B, P, S = centres.shape[0], centres.shape[1], qs.shape[1]
     chunk = max(1, _CHUNK_ELEMENTS // (B * S))
     nearest = [  # blocks of cells, bounded memory
-        _all_squared_distances(x32[:, i:i + chunk], q32, distance)
-        .topk(min(k_nearest + 1, S), dim=-1, largest=False).indices
+        _all_squared_distances(x32[:, i:i + chunk], q32, distance).topk(k, dim=-1, largest=False).indices
         for i in range(0, P, chunk)
     ]
-    inside = _inside(x32, q32, h, w)
-    return SurfaceBand(flat, origin, centres, inside, torch.cat(nearest, 1), distance, truncated=k_nearest + 1 < S)
+    return torch.cat(nearest, 1), _inside(x32, q32, *window)
 
 
 def scatter_band(values: Tensor, band: SurfaceBand, grid: Grid) -> Tensor:

@@ -92,8 +92,8 @@ def kernel_cells(qs: Tensor, grid: Grid, radius: int) -> tuple[Tensor, Tensor, T
     i = centre[..., 1, None] + di.flatten()
     valid = (i >= 0) & (i < grid.H) & (j >= 0) & (j < grid.W)
     flat = i.clamp(0, grid.H - 1) * grid.W + j.clamp(0, grid.W - 1)
-    ox = ((j + 0.5) * grid.dx).to(qs.dtype) - qs[..., 0, None]
-    oy = ((i + 0.5) * grid.dx).to(qs.dtype) - qs[..., 1, None]
+    ox = (j.to(qs.dtype) + 0.5) * grid.dx - qs[..., 0, None]      # in qs.dtype (float32 lost 1e-8 m)
+    oy = (i.to(qs.dtype) + 0.5) * grid.dx - qs[..., 1, None]
     return flat, valid, ox, oy
 
 
@@ -262,7 +262,25 @@ def ibm_force(qs: Tensor, p: Tensor, mask: Tensor, grid: Grid, sigma_prime: floa
     sigma_prime (m^2), weight ("outside" | "fluid" | "body" | "none"), fit ("linear" | "mean"),
     area ("chord" | "paper"): see the module docstring; the traction needs "outside".
     Differentiable in every tensor input; sampling runs in p.dtype, the result is in qs.dtype.
+    On the CPU the defaults (weight "outside", area "chord", no traction) run compiled, in
+    float64 (fishsim.coupling.kernels.OutsidePressureForce); ``torch_ibm_force`` is the reference.
     """
+    if viscous is not None and weight != OUTSIDE:
+        raise ValueError(f"the viscous traction samples the cells beyond the band: weight 'outside', got {weight!r}")
+    if qs.device.type == "cpu" and weight == OUTSIDE and area == CHORD and viscous is None:
+        from fishsim.coupling.kernels import OutsidePressureForce  # the same formulas, compiled
+
+        if fit not in (LINEAR, MEAN):
+            raise ValueError(f"fit must be 'mean' or 'linear', got {fit!r}")
+        radius = math.ceil(KERNEL_RADIUS * math.sqrt(sigma_prime) / grid.dx)
+        return OutsidePressureForce.apply(qs, p, mask, OUTSIDE_MASK, grid.dx, sigma_prime, radius, fit == LINEAR)
+    return torch_ibm_force(qs, p, mask, grid, sigma_prime, weight, fit, area, viscous)
+
+
+def torch_ibm_force(qs: Tensor, p: Tensor, mask: Tensor, grid: Grid, sigma_prime: float = 6.25e-6,
+                    weight: str = OUTSIDE, fit: str = LINEAR, area: str = CHORD,
+                    viscous: tuple[Tensor, Tensor, Tensor | float] | None = None) -> Tensor:
+    """``ibm_force`` in torch operations (any device, every option)."""
     if viscous is not None and weight != OUTSIDE:
         raise ValueError(f"the viscous traction samples the cells beyond the band: weight 'outside', got {weight!r}")
     elements = surface_elements(qs, area)

@@ -130,6 +130,20 @@ def soft_mask(qs: Tensor, grid: Grid, xi: float = XI, sigma: float = SIGMA,
     return scatter_band(b.unsqueeze(1), band, grid)
 
 
+def band_boundary(qs: Tensor, qdots: Tensor, band: SurfaceBand, grid: Grid, xi: float = XI, sigma: float = SIGMA,
+                  tau: float = TAU, mean: str = HARMONIC, dtype: torch.dtype | None = None) -> tuple[Tensor, Tensor]:
+    """``soft_mask`` and ``boundary_velocity(weighted=False)`` on one band in one compiled pass
+    over its cells (CPU; fishsim.coupling.kernels.BandBoundary, float64 inside): (b [B, 1, H, W],
+    v_d [B, 2, H, W]) in ``dtype`` (default qs.dtype), differentiable in qs and qdots [B, S, 2]."""
+    from fishsim.coupling.kernels import BandBoundary
+
+    if mean not in (HARMONIC, ARITHMETIC):
+        raise ValueError(f"mean must be 'harmonic' or 'arithmetic', got {mean!r}")
+    b, u = BandBoundary.apply(qs - band.origin, qdots, band.centres, band.nearest, band.inside, xi, sigma, tau,
+                              mean == HARMONIC, band.distance == SEGMENT, band.truncated, dtype or qs.dtype)
+    return scatter_band(b.unsqueeze(1), band, grid), scatter_band(u.transpose(1, 2), band, grid)
+
+
 def element_velocities(qdots: Tensor, band: SurfaceBand, t: Tensor | None) -> Tensor:
     """Velocity [B, P, K, 2] of each band cell's K nearest elements: the node velocity, or
     (1 - t) qdot^l + t qdot^{l+1} at the closest point of segment l."""

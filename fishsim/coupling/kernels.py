@@ -1,0 +1,646 @@
+"""Compiled (numba) coupling on the CPU: the band's nearest surface elements and inside flags
+(``nearest_and_inside``, no gradient), the mask and boundary velocity of every band cell
+(``BandBoundary``) and the IBM pressure force with ibm.py's default sampling
+(``OutsidePressureForce``), both with hand-written adjoints. They compute band.py's, mask.py's
+and ibm.py's formulas, which stay as the reference (tests/coupling/test_kernels.py) and run on
+CUDA and for the other options. Solid -> fluid:
+
+    e_l  = |x - c_l|^2,  c_l = a_l + t_l (a_l' - a_l),  t_l = clamp((x - a_l).(a_l' - a_l) / |a_l' - a_l|^2, 0, 1)
+    w_l  = softmin weights of e / T over the cell's K' nearest elements (mask.softmin_weights)
+    d    = 1 / sum_l (w_l(xi) / max(e_l, 1e-8 xi))   (harmonic)   |   sum_l w_l(xi) e_l   (arithmetic)
+    b    = sigmoid(delta d / sigma),   u = sum_l w_l(tau) ((1 - t_l) qdot^l + t_l qdot^l')
+
+with a_l = q^l, a_l' = q^(l+1) (segments; nodes: c_l = q^l, t_l = 0). One pass over a cell's K'
+elements replaces ~100 torch operations on [B, P, K'] tensors; the adjoint recomputes e, t and
+the weights and scatters dL/dq and dL/dqdot into the surface nodes.
+
+The arithmetic is float64 whatever the fluid's dtype. A batch's fish run in parallel (prange), a
+single fish in the calling thread. The band's selection ranks elements by the same squared
+distances in float64 (band.py ranks float32 ones), so near-ties at the K'-th element may pick
+another one; its weight is ~0 there by the tapered softmin's construction.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+from numba import prange
+from torch import Tensor
+
+from fishsim.compiled import jit
+
+# ---------------------------------------------------------------------------------------------
+# The band's nearest elements and inside flags
+
+
+@jit
+def _select(d, index, n, k):
+    """Partially order index[:n] (and d[:n] alike) so that its first k entries hold the k
+    smallest d (quickselect, Hoare partition)."""
+    lo, hi = 0, n - 1
+    while lo < hi:
+        pivot = d[(lo + hi) // 2]
+        i, j = lo, hi
+        while i <= j:
+            while d[i] < pivot:
+                i += 1
+            while d[j] > pivot:
+                j -= 1
+            if i <= j:
+                d[i], d[j] = d[j], d[i]
+                index[i], index[j] = index[j], index[i]
+                i += 1
+                j -= 1
+        if k - 1 <= j:
+            hi = j
+        elif k - 1 >= i:
+            lo = i
+        else:
+            return
+
+
+_CHUNK = 8   # consecutive surface elements sharing one bounding box in the nearest-element search
+
+
+@jit
+def _fish_nearest(q, centres, width, segment, nearest, inside):
+    """For each cell p of one fish's window (rows of ``width`` cells, row-major): its
+    nearest.shape[1] nearest elements and whether its centre is inside the polyline (even-odd
+    rule: crossings of the horizontal ray to +x, found once per row).
+
+    The distance to the polyline is 1-Lipschitz, so the k-th nearest squared distance of a cell
+    is at most (sqrt(D) + |x - x'|)^2 with D that of the previous cell x' of its row (of the
+    previous row for a row's first cell): only elements
+    within it are ranked (~k + a few of S), and chunks of _CHUNK elements whose bounding box lies
+    beyond it are skipped."""
+    S, k = q.shape[0], nearest.shape[1]
+    ax, ay, abx, aby, inv = np.empty(S), np.empty(S), np.empty(S), np.empty(S), np.empty(S)
+    for l in range(S):
+        m = l + 1 if l + 1 < S else 0
+        ax[l], ay[l] = q[l, 0], q[l, 1]
+        abx[l], aby[l] = q[m, 0] - q[l, 0], q[m, 1] - q[l, 1]
+        inv[l] = 1.0 / (abx[l] * abx[l] + aby[l] * aby[l]) if segment else 0.0
+    chunks = -(-S // _CHUNK)
+    box = np.empty((chunks, 4))                                 # x_min, x_max, y_min, y_max
+    for c in range(chunks):
+        box[c, 0], box[c, 1], box[c, 2], box[c, 3] = np.inf, -np.inf, np.inf, -np.inf
+        for l in range(c * _CHUNK, min(S, (c + 1) * _CHUNK)):
+            for x, y in ((ax[l], ay[l]), (ax[l] + abx[l], ay[l] + aby[l])):
+                box[c, 0], box[c, 1] = min(box[c, 0], x), max(box[c, 1], x)
+                box[c, 2], box[c, 3] = min(box[c, 2], y), max(box[c, 3], y)
+    d, index, crossing = np.empty(S), np.empty(S, np.int64), np.empty(S)
+    first_kth, last_y = np.inf, 0.0                             # the previous row's first cell
+    for row in range(centres.shape[0] // width):
+        y = centres[row * width, 1]
+        n_cross = 0
+        for l in range(S):
+            if (ay[l] > y) != (ay[l] + aby[l] > y):
+                crossing[n_cross] = ax[l] + (y - ay[l]) * abx[l] / aby[l]
+                n_cross += 1
+        kth = (math.sqrt(first_kth) + abs(y - last_y)) ** 2
+        for col in range(width):
+            p = row * width + col
+            x0 = centres[p, 0]
+            right = 0
+            for j in range(n_cross):
+                right += crossing[j] > x0
+            inside[p] = right % 2 == 1
+            bound = kth if col == 0 else (math.sqrt(kth) + abs(x0 - centres[p - 1, 0])) ** 2
+            n = 0
+            for c in range(chunks):
+                gx = max(box[c, 0] - x0, 0.0, x0 - box[c, 1])
+                gy = max(box[c, 2] - y, 0.0, y - box[c, 3])
+                if gx * gx + gy * gy > bound:
+                    continue
+                for l in range(c * _CHUNK, min(S, (c + 1) * _CHUNK)):
+                    rx, ry = x0 - ax[l], y - ay[l]
+                    t = min(max((rx * abx[l] + ry * aby[l]) * inv[l], 0.0), 1.0)
+                    e = (rx - t * abx[l]) ** 2 + (ry - t * aby[l]) ** 2
+                    if e <= bound:
+                        d[n], index[n] = e, l
+                        n += 1
+            if n < k:                                   # round-off in the bound: rank them all
+                n = S
+                for l in range(S):
+                    rx, ry = x0 - ax[l], y - ay[l]
+                    t = min(max((rx * abx[l] + ry * aby[l]) * inv[l], 0.0), 1.0)
+                    d[l], index[l] = (rx - t * abx[l]) ** 2 + (ry - t * aby[l]) ** 2, l
+            if k < n:
+                _select(d, index, n, k)
+            kth = 0.0
+            for j in range(k):
+                nearest[p, j] = index[j]
+                kth = max(kth, d[j])
+            if col == 0:
+                first_kth, last_y = kth, y
+
+
+@jit(parallel=True)
+def _nearest_parallel(q, centres, width, segment, nearest, inside):
+    for b in prange(q.shape[0]):
+        _fish_nearest(q[b], centres[b], width, segment, nearest[b], inside[b])
+
+
+def nearest_and_inside(qs: Tensor, centres: Tensor, k: int, segment: bool, width: int) -> tuple[Tensor, Tensor]:
+    """The k nearest elements [B, P, k] (long, in no particular order) and inside flags [B, P] of
+    the band cells ``centres`` [B, P, 2] (a row-major window ``width`` cells wide) for the
+    polylines ``qs`` [B, S, 2] (both relative to the band's origin, m; CPU)."""
+    q = np.ascontiguousarray(qs.detach().to(torch.float64).numpy())
+    x = np.ascontiguousarray(centres.detach().to(torch.float64).numpy())
+    B, P = x.shape[:2]
+    nearest, inside = np.empty((B, P, k), np.int64), np.empty((B, P), np.bool_)
+    if B == 1:                       # one fish: no parallel region (its start costs more than it saves)
+        _fish_nearest(q[0], x[0], width, segment, nearest[0], inside[0])
+    else:
+        _nearest_parallel(q, x, width, segment, nearest, inside)
+    return torch.from_numpy(nearest), torch.from_numpy(inside)
+
+
+# ---------------------------------------------------------------------------------------------
+# The mask and boundary velocity of the band cells, and their adjoint
+
+
+@jit
+def _elements(q, x0, x1, nearest, segment, e, t, raw):
+    """e, t (clamped) and the unclamped t of the cell's elements ``nearest`` [K]."""
+    S = q.shape[0]
+    for k in range(nearest.shape[0]):
+        l = nearest[k]
+        ax, ay = q[l, 0], q[l, 1]
+        if segment:
+            m = l + 1 if l + 1 < S else 0
+            abx, aby = q[m, 0] - ax, q[m, 1] - ay
+            r = ((x0 - ax) * abx + (x1 - ay) * aby) / (abx * abx + aby * aby)
+            c = min(max(r, 0.0), 1.0)
+            raw[k], t[k] = r, c
+            ax, ay = ax + c * abx, ay + c * aby
+        e[k] = (x0 - ax) ** 2 + (x1 - ay) ** 2
+
+
+# exp(-40) = 4e-18: a weight below this fraction of the nearest element's (exp(0) = 1) is set to
+# 0 without evaluating exp (most of a cell's K' elements are that far); below float64 round-off.
+_NEGLIGIBLE = 40.0
+
+
+@jit
+def _weights(e, temperature, truncated, w, g):
+    """mask.softmin_weights of one cell into w [K]: w_k = (g_k - G) / Z with g_k = exp(-(e_k -
+    min e) / T) (kept in g) and G = g of the farthest (truncated; else 0). Returns (Z, G)."""
+    lo, hi = e.min(), e.max()
+    floor = math.exp(-(hi - lo) / temperature) if truncated and hi - lo < _NEGLIGIBLE * temperature else 0.0
+    total = 0.0
+    for k in range(e.shape[0]):
+        s = (e[k] - lo) / temperature
+        g[k] = math.exp(-s) if s < _NEGLIGIBLE else 0.0
+        w[k] = max(g[k] - floor, 0.0)
+        total += w[k]
+    total = max(total, np.finfo(np.float64).tiny)
+    for k in range(e.shape[0]):
+        w[k] /= total
+    return total, floor
+
+
+@jit
+def _weights_adjoint(e, temperature, w, g, total, floor, gw, ge):
+    """ge += (dw/de)^T gw for _weights' w, g, Z, G of e:
+    dL/dg_k = (gw_k - sum_j gw_j w_j) / Z, dL/dG = -sum_k dL/dg_k, dg_k/de_k = -g_k / T
+    (G is g of the farthest element; min e cancels)."""
+    mean = 0.0
+    for k in range(e.shape[0]):
+        mean += gw[k] * w[k]
+    g_floor = 0.0
+    for k in range(e.shape[0]):
+        gv = (gw[k] - mean) / total
+        ge[k] -= gv * g[k] / temperature
+        g_floor -= gv
+    if floor != 0.0:
+        ge[e.argmax()] -= g_floor * floor / temperature
+
+
+@jit
+def _soft_distance(e, w, xi, harmonic):
+    """mask.soft_distance of one cell from its weights w (temperature xi)."""
+    if not harmonic:
+        return (w * e).sum()
+    floor, total = 1e-8 * xi, 0.0
+    for k in range(e.shape[0]):
+        total += w[k] / max(e[k], floor)
+    return 1.0 / total
+
+
+@jit
+def _velocity(qdot, nearest, t, w):
+    """sum_k w_k ((1 - t_k) qdot^l + t_k qdot^l') of one cell's elements (l = nearest[k])."""
+    S = qdot.shape[0]
+    u0, u1 = 0.0, 0.0
+    for k in range(nearest.shape[0]):
+        l = nearest[k]
+        m = l + 1 if l + 1 < S else 0
+        s = t[k]
+        u0 += w[k] * ((1.0 - s) * qdot[l, 0] + s * qdot[m, 0])
+        u1 += w[k] * ((1.0 - s) * qdot[l, 1] + s * qdot[m, 1])
+    return u0, u1
+
+
+@jit
+def _fish_forward(q, qdot, centres, nearest, inside, xi, sigma, tau, harmonic, segment, truncated, b, u):
+    """b [P] and u [P, 2] of one fish's band cells (module docstring)."""
+    K = nearest.shape[1]
+    e, t, raw, w, g = np.empty(K), np.zeros(K), np.zeros(K), np.empty(K), np.empty(K)
+    for p in range(centres.shape[0]):
+        _elements(q, centres[p, 0], centres[p, 1], nearest[p], segment, e, t, raw)
+        _weights(e, xi, truncated, w, g)
+        d = _soft_distance(e, w, xi, harmonic)
+        b[p] = 1.0 / (1.0 + math.exp(-(d if inside[p] else -d) / sigma))
+        if tau != xi:
+            _weights(e, tau, truncated, w, g)
+        u[p, 0], u[p, 1] = _velocity(qdot, nearest[p], t, w)
+
+
+@jit
+def _fish_backward(q, qdot, centres, nearest, inside, xi, sigma, tau, harmonic, segment, truncated, b, gb, gu,
+                   gq, gqdot):
+    """gq, gqdot [S, 2] += the adjoint of _fish_forward for the cotangents gb [P], gu [P, 2]."""
+    S, K = q.shape[0], nearest.shape[1]
+    e, t, raw, w, g = np.empty(K), np.zeros(K), np.zeros(K), np.empty(K), np.empty(K)
+    gw, ge, gt = np.empty(K), np.empty(K), np.empty(K)
+    floor = 1e-8 * xi
+    for p in range(centres.shape[0]):
+        x0, x1 = centres[p, 0], centres[p, 1]
+        _elements(q, x0, x1, nearest[p], segment, e, t, raw)
+        ge[:] = 0.0
+        gt[:] = 0.0
+        gw[:] = 0.0
+        total, far = _weights(e, xi, truncated, w, g)
+        sign = 1.0 if inside[p] else -1.0                   # mask: b = sigmoid(delta d / sigma)
+        gd = gb[p] * b[p] * (1.0 - b[p]) * sign / sigma
+        if gd != 0.0:
+            if harmonic:
+                d = _soft_distance(e, w, xi, harmonic)
+                gH = -gd * d * d
+                for k in range(K):
+                    clamped = max(e[k], floor)
+                    gw[k] = gH / clamped
+                    if e[k] >= floor:
+                        ge[k] -= gH * w[k] / (clamped * clamped)
+            else:
+                for k in range(K):
+                    gw[k] = gd * e[k]
+                    ge[k] += gd * w[k]
+            if tau != xi:
+                _weights_adjoint(e, xi, w, g, total, far, gw, ge)
+                gw[:] = 0.0
+        g0, g1 = gu[p, 0], gu[p, 1]                         # velocity: u = sum_k w_k V_k
+        if g0 != 0.0 or g1 != 0.0:
+            if tau != xi:
+                total, far = _weights(e, tau, truncated, w, g)
+            for k in range(K):
+                l = nearest[p, k]
+                m = l + 1 if l + 1 < S else 0
+                s = t[k]
+                gw[k] += g0 * ((1.0 - s) * qdot[l, 0] + s * qdot[m, 0]) + g1 * ((1.0 - s) * qdot[l, 1] + s * qdot[m, 1])
+                gt[k] = w[k] * (g0 * (qdot[m, 0] - qdot[l, 0]) + g1 * (qdot[m, 1] - qdot[l, 1]))
+                gqdot[l, 0] += w[k] * (1.0 - s) * g0
+                gqdot[l, 1] += w[k] * (1.0 - s) * g1
+                if segment:
+                    gqdot[m, 0] += w[k] * s * g0
+                    gqdot[m, 1] += w[k] * s * g1
+        _weights_adjoint(e, tau, w, g, total, far, gw, ge)
+        for k in range(K):                                  # e, t -> the element's nodes
+            l = nearest[p, k]
+            ax, ay = q[l, 0], q[l, 1]
+            if not segment:
+                gq[l, 0] -= 2.0 * ge[k] * (x0 - ax)
+                gq[l, 1] -= 2.0 * ge[k] * (x1 - ay)
+                continue
+            m = l + 1 if l + 1 < S else 0
+            abx, aby = q[m, 0] - ax, q[m, 1] - ay
+            s = t[k]
+            dx_, dy_ = x0 - ax - s * abx, x1 - ay - s * aby        # x - c
+            gq[l, 0] -= 2.0 * ge[k] * (1.0 - s) * dx_
+            gq[l, 1] -= 2.0 * ge[k] * (1.0 - s) * dy_
+            gq[m, 0] -= 2.0 * ge[k] * s * dx_
+            gq[m, 1] -= 2.0 * ge[k] * s * dy_
+            if gt[k] != 0.0 and 0.0 <= raw[k] <= 1.0:             # dt/da, dt/da' inside the segment
+                length2 = abx * abx + aby * aby
+                rx, ry = x0 - ax, x1 - ay
+                gq[l, 0] += gt[k] * (-abx - rx + 2.0 * s * abx) / length2
+                gq[l, 1] += gt[k] * (-aby - ry + 2.0 * s * aby) / length2
+                gq[m, 0] += gt[k] * (rx - 2.0 * s * abx) / length2
+                gq[m, 1] += gt[k] * (ry - 2.0 * s * aby) / length2
+
+
+@jit(parallel=True)
+def _forward_parallel(q, qdot, centres, nearest, inside, xi, sigma, tau, harmonic, segment, truncated, b, u):
+    for n in prange(q.shape[0]):
+        _fish_forward(q[n], qdot[n], centres[n], nearest[n], inside[n], xi, sigma, tau, harmonic, segment,
+                      truncated, b[n], u[n])
+
+
+@jit(parallel=True)
+def _backward_parallel(q, qdot, centres, nearest, inside, xi, sigma, tau, harmonic, segment, truncated, b, gb, gu,
+                       gq, gqdot):
+    for n in prange(q.shape[0]):
+        _fish_backward(q[n], qdot[n], centres[n], nearest[n], inside[n], xi, sigma, tau, harmonic, segment,
+                       truncated, b[n], gb[n], gu[n], gq[n], gqdot[n])
+
+
+def _f64(t: Tensor) -> np.ndarray:
+    return np.ascontiguousarray(t.detach().to(torch.float64).numpy())
+
+
+class BandBoundary(torch.autograd.Function):
+    """(b [B, P], u [B, P, 2]) of the band cells (module docstring) in ``dtype``, from the surface
+    positions qs and velocities qdots [B, S, 2] (m, m/s; relative to the band's origin), the cell
+    centres [B, P, 2] (same origin), the elements nearest [B, P, K'] and inside [B, P] of
+    band.py's SurfaceBand; xi, sigma, tau in m^2; CPU tensors. Differentiable in qs and qdots."""
+
+    @staticmethod
+    def forward(ctx, qs: Tensor, qdots: Tensor, centres: Tensor, nearest: Tensor, inside: Tensor, xi: float,
+                sigma: float, tau: float, harmonic: bool, segment: bool, truncated: bool, dtype: torch.dtype):
+        args = (_f64(qs), _f64(qdots), _f64(centres), np.ascontiguousarray(nearest.numpy()),
+                np.ascontiguousarray(inside.numpy()), float(xi), float(sigma), float(tau), bool(harmonic),
+                bool(segment), bool(truncated))
+        B, P = nearest.shape[:2]
+        b, u = np.empty((B, P)), np.empty((B, P, 2))
+        if B == 1:
+            _fish_forward(*(a[0] for a in args[:5]), *args[5:], b[0], u[0])
+        else:
+            _forward_parallel(*args, b, u)
+        ctx.args, ctx.b, ctx.dtypes = args, b, (qs.dtype, qdots.dtype)
+        return torch.from_numpy(b).to(dtype), torch.from_numpy(u).to(dtype)
+
+    @staticmethod
+    def backward(ctx, gb: Tensor, gu: Tensor):
+        args, b = ctx.args, ctx.b
+        gb = np.zeros(b.shape) if gb is None else _f64(gb)
+        gu = np.zeros((*b.shape, 2)) if gu is None else _f64(gu)
+        gq, gqdot = np.zeros(args[0].shape), np.zeros(args[1].shape)
+        if b.shape[0] == 1:
+            _fish_backward(*(a[0] for a in args[:5]), *args[5:], b[0], gb[0], gu[0], gq[0], gqdot[0])
+        else:
+            _backward_parallel(*args, b, gb, gu, gq, gqdot)
+        q_dtype, qdot_dtype = ctx.dtypes
+        return (torch.from_numpy(gq).to(q_dtype), torch.from_numpy(gqdot).to(qdot_dtype),
+                *([None] * 10))
+
+
+# ---------------------------------------------------------------------------------------------
+# Fluid -> solid: the IBM pressure force f_k = -p_k a_k with ibm.py's default sampling ("outside"
+# weights, "chord" elements; "linear" or "mean" fit), and its adjoint
+
+
+@jit
+def _taper(u, inner, outer):
+    """ibm.taper(u, inner, outer) and its derivative in u."""
+    s = (outer - abs(u)) / (outer - inner)
+    if s <= 0.0:
+        return 0.0, 0.0
+    if s >= 1.0:
+        return 1.0, 0.0
+    slope = 30.0 * s * s * (1.0 - s) * (1.0 - s)
+    return s * s * s * (10.0 - 15.0 * s + 6.0 * s * s), -slope * np.sign(u) / (outer - inner)
+
+
+@jit
+def _chord(q, k):
+    """The chord element a_k = J (q^(k+1) - q^(k-1)) / 2 of node k and the ends' indices."""
+    S = q.shape[0]
+    after, before = (k + 1) % S, (k - 1) % S
+    return 0.5 * (q[after, 1] - q[before, 1]), -0.5 * (q[after, 0] - q[before, 0]), after, before
+
+
+@jit
+def _samples(q, k, nx, ny, mask, outside, shape, dx, sigma_prime, radius, cell, ox, oy, weight):
+    """The (2r+1)^2 cells around node k: flat index (cell, -1 outside the grid), offsets
+    x_ij - q^k (ox, oy) and weights g_ij S(b_ij) H(n.(x_ij - q^k)) (ibm.sample_weights); returns
+    their sum."""
+    H, W = shape
+    cj, ci = math.floor(q[k, 0] / dx), math.floor(q[k, 1] / dx)
+    inner, outer = (radius - 1) * dx, (radius + 0.5) * dx
+    total, c = 0.0, 0
+    for di in range(-radius, radius + 1):
+        for dj in range(-radius, radius + 1):
+            i, j = ci + di, cj + dj
+            x, y = (j + 0.5) * dx - q[k, 0], (i + 0.5) * dx - q[k, 1]
+            ox[c], oy[c], cell[c], weight[c] = x, y, -1, 0.0
+            if 0 <= i < H and 0 <= j < W:
+                cell[c] = i * W + j
+                side = _taper(min(nx * x + ny * y - dx, 0.0), 0.0, dx)[0]
+                if side == 0.0:                                 # the body's side of the node: no sample
+                    c += 1
+                    continue
+                side *= _taper(mask[cell[c]], 0.0, outside)[0]
+                if side == 0.0:
+                    c += 1
+                    continue
+                weight[c] = (math.exp(-(x * x + y * y) * (0.5 / sigma_prime)) * _taper(x, inner, outer)[0]
+                             * _taper(y, inner, outer)[0] * side)
+                total += weight[c]
+            c += 1
+    return total
+
+
+@jit
+def _fit(p, cell, ox, oy, wn, sigma_prime, linear, d):
+    """p_k (ibm.fit_at_node) from the normalised weights wn; with ``linear`` also d (the plane
+    fit's coefficients, ibm.linear_fit_correction) and returns (p_k, pbar, rx, ry, ux, uy, det,
+    cxx, cyy, cxy)."""
+    pbar, rx, ry = 0.0, 0.0, 0.0
+    for c in range(cell.shape[0]):
+        if cell[c] >= 0:
+            pbar += wn[c] * p[cell[c]]
+            rx += wn[c] * ox[c]
+            ry += wn[c] * oy[c]
+    if not linear:
+        return pbar, pbar, rx, ry, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0
+    cxx, cyy, cxy = 1e-6 * sigma_prime, 1e-6 * sigma_prime, 0.0
+    for c in range(cell.shape[0]):
+        ex, ey = ox[c] - rx, oy[c] - ry
+        cxx += wn[c] * ex * ex
+        cyy += wn[c] * ey * ey
+        cxy += wn[c] * ex * ey
+    det = cxx * cyy - cxy * cxy
+    ux, uy = (cyy * rx - cxy * ry) / det, (cxx * ry - cxy * rx) / det
+    p_k = pbar
+    for c in range(cell.shape[0]):
+        d[c] = -wn[c] * (ux * (ox[c] - rx) + uy * (oy[c] - ry))
+        if cell[c] >= 0:
+            p_k += d[c] * (p[cell[c]] - pbar)
+    return p_k, pbar, rx, ry, ux, uy, det, cxx, cyy, cxy
+
+
+@jit
+def _fish_ibm(q, p, mask, outside, shape, dx, sigma_prime, radius, linear, f):
+    """f [S, 2] = -p_k a_k of one fish (p, mask: its flat [H W] fields)."""
+    M = (2 * radius + 1) ** 2
+    cell, ox, oy, wn, d = np.empty(M, np.int64), np.empty(M), np.empty(M), np.empty(M), np.empty(M)
+    for k in range(q.shape[0]):
+        ax, ay, _, _ = _chord(q, k)
+        norm = math.sqrt(ax * ax + ay * ay)
+        total = max(_samples(q, k, ax / norm, ay / norm, mask, outside, shape, dx, sigma_prime, radius, cell, ox, oy, wn),
+                    np.finfo(np.float64).tiny)
+        wn /= total
+        p_k = _fit(p, cell, ox, oy, wn, sigma_prime, linear, d)[0]
+        f[k, 0], f[k, 1] = -p_k * ax, -p_k * ay
+
+
+@jit
+def _fish_ibm_backward(q, p, mask, outside, shape, dx, sigma_prime, radius, linear, gf, gq, gp, gmask):
+    """gq [S, 2], gp and gmask [H W] += the adjoint of _fish_ibm for the cotangent gf [S, 2]."""
+    M = (2 * radius + 1) ** 2
+    cell, ox, oy, wn, d = np.empty(M, np.int64), np.empty(M), np.empty(M), np.empty(M), np.empty(M)
+    g_wn, g_ox, g_oy = np.empty(M), np.empty(M), np.empty(M)
+    inner, outer = (radius - 1) * dx, (radius + 0.5) * dx
+    for k in range(q.shape[0]):
+        ax, ay, after, before = _chord(q, k)
+        norm = math.sqrt(ax * ax + ay * ay)
+        nx, ny = ax / norm, ay / norm
+        raw = _samples(q, k, nx, ny, mask, outside, shape, dx, sigma_prime, radius, cell, ox, oy, wn)
+        total = max(raw, np.finfo(np.float64).tiny)
+        wn /= total
+        p_k, pbar, rx, ry, ux, uy, det, cxx, cyy, cxy = _fit(p, cell, ox, oy, wn, sigma_prime, linear, d)
+        g_pk = -(gf[k, 0] * ax + gf[k, 1] * ay)                     # f = -p_k a
+        g_ax, g_ay = -p_k * gf[k, 0], -p_k * gf[k, 1]
+        g_wn[:] = 0.0
+        g_ox[:] = 0.0
+        g_oy[:] = 0.0
+        g_pbar = g_pk
+        if linear:                                                  # p_k = pbar + sum d (p - pbar)
+            g_ux, g_uy, g_rx, g_ry = 0.0, 0.0, 0.0, 0.0
+            g_cxx, g_cyy, g_cxy = 0.0, 0.0, 0.0
+            sum_d, sum_gex, sum_gey = 0.0, 0.0, 0.0
+            for c in range(M):
+                if cell[c] < 0:
+                    continue
+                sum_d += d[c]
+                g_d = g_pk * (p[cell[c]] - pbar)
+                gp[cell[c]] += g_pk * d[c]
+                ex, ey = ox[c] - rx, oy[c] - ry                     # d = -(ux wn ex + uy wn ey)
+                g_ux -= g_d * wn[c] * ex
+                g_uy -= g_d * wn[c] * ey
+                g_ax_c, g_ay_c = -g_d * ux, -g_d * uy               # cotangents of wn ex, wn ey
+                g_wn[c] += g_ax_c * ex + g_ay_c * ey
+                g_ox[c] += g_ax_c * wn[c]
+                g_oy[c] += g_ay_c * wn[c]
+                sum_gex += g_ax_c * wn[c]
+                sum_gey += g_ay_c * wn[c]
+            g_pbar = g_pk * (1.0 - sum_d)
+            g_cyy += g_ux * rx / det                                # u = C^-1 r
+            g_rx += g_ux * cyy / det
+            g_cxy -= g_ux * ry / det
+            g_ry -= g_ux * cxy / det
+            g_det = -g_ux * ux / det
+            g_cxx += g_uy * ry / det
+            g_ry += g_uy * cxx / det
+            g_cxy -= g_uy * rx / det
+            g_rx -= g_uy * cxy / det
+            g_det -= g_uy * uy / det
+            g_cxx += g_det * cyy                                    # det = cxx cyy - cxy^2
+            g_cyy += g_det * cxx
+            g_cxy -= 2.0 * g_det * cxy
+            for c in range(M):                                      # C = sum wn e e^T (+ eps I)
+                ex, ey = ox[c] - rx, oy[c] - ry
+                g_wn[c] += g_cxx * ex * ex + g_cyy * ey * ey + g_cxy * ex * ey
+                g_ex = wn[c] * (2.0 * g_cxx * ex + g_cxy * ey)
+                g_ey = wn[c] * (2.0 * g_cyy * ey + g_cxy * ex)
+                g_ox[c] += g_ex
+                g_oy[c] += g_ey
+                sum_gex += g_ex
+                sum_gey += g_ey
+            g_rx -= sum_gex                                         # e = o - r
+            g_ry -= sum_gey
+            for c in range(M):                                      # r = sum wn o
+                g_wn[c] += g_rx * ox[c] + g_ry * oy[c]
+                g_ox[c] += g_rx * wn[c]
+                g_oy[c] += g_ry * wn[c]
+        mean = 0.0
+        for c in range(M):                                          # pbar = sum wn p
+            if cell[c] >= 0:
+                g_wn[c] += g_pbar * p[cell[c]]
+                gp[cell[c]] += g_pbar * wn[c]
+            mean += g_wn[c] * wn[c]
+        g_nx, g_ny, g_qx, g_qy = 0.0, 0.0, 0.0, 0.0
+        for c in range(M):                                          # wn = W / Z, W = g S(b) H(h)
+            if cell[c] < 0 or wn[c] == 0.0:                         # (S, H and their slopes vanish there)
+                continue
+            g_w = (g_wn[c] - mean) / total if raw >= np.finfo(np.float64).tiny else g_wn[c] / total
+            x, y = ox[c], oy[c]
+            gauss = math.exp(-(x * x + y * y) * (0.5 / sigma_prime))
+            tx, dtx = _taper(x, inner, outer)
+            ty, dty = _taper(y, inner, outer)
+            sb, dsb = _taper(mask[cell[c]], 0.0, outside)
+            h = nx * x + ny * y
+            side, dside = _taper(min(h - dx, 0.0), 0.0, dx)
+            if h - dx > 0.0:
+                dside = 0.0
+            kernel = gauss * tx * ty
+            gmask[cell[c]] += g_w * kernel * side * dsb
+            g_h = g_w * kernel * sb * dside
+            g_x = g_ox[c] + g_w * sb * side * gauss * (-x / sigma_prime * tx * ty + dtx * ty) + g_h * nx
+            g_y = g_oy[c] + g_w * sb * side * gauss * (-y / sigma_prime * tx * ty + tx * dty) + g_h * ny
+            g_nx += g_h * x
+            g_ny += g_h * y
+            g_qx -= g_x                                             # o = x_ij - q^k
+            g_qy -= g_y
+        gq[k, 0] += g_qx
+        gq[k, 1] += g_qy
+        along = nx * g_nx + ny * g_ny                               # n = a / |a|
+        g_ax += (g_nx - nx * along) / norm
+        g_ay += (g_ny - ny * along) / norm
+        gq[after, 0] -= 0.5 * g_ay                                  # a = (c_y, -c_x) / 2
+        gq[before, 0] += 0.5 * g_ay
+        gq[after, 1] += 0.5 * g_ax
+        gq[before, 1] -= 0.5 * g_ax
+
+
+@jit(parallel=True)
+def _ibm_parallel(q, p, mask, outside, shape, dx, sigma_prime, radius, linear, f):
+    for n in prange(q.shape[0]):
+        _fish_ibm(q[n], p[n], mask[n], outside, shape, dx, sigma_prime, radius, linear, f[n])
+
+
+@jit(parallel=True)
+def _ibm_backward_parallel(q, p, mask, outside, shape, dx, sigma_prime, radius, linear, gf, gq, gp, gmask):
+    for n in prange(q.shape[0]):
+        _fish_ibm_backward(q[n], p[n], mask[n], outside, shape, dx, sigma_prime, radius, linear, gf[n], gq[n], gp[n],
+                           gmask[n])
+
+
+class OutsidePressureForce(torch.autograd.Function):
+    """f [B, S, 2] = -p_k a_k (ibm.ibm_force with weight "outside", area "chord", no traction) in
+    qs's dtype from the surface qs [B, S, 2] (m), the pressure p and mask b [B, 1, H, W] (Pa, 1)
+    on the grid (H, W) of cells dx (m), the mask level above which cells are not sampled
+    (``outside``, ibm.OUTSIDE_MASK), the kernel variance sigma_prime (m^2) and window radius
+    (cells), ``linear`` or mean fit; CPU tensors. Differentiable in qs, p and b."""
+
+    @staticmethod
+    def forward(ctx, qs: Tensor, p: Tensor, b: Tensor, outside: float, dx: float, sigma_prime: float, radius: int,
+                linear: bool):
+        B, H, W = p.shape[0], p.shape[-2], p.shape[-1]
+        args = (_f64(qs), _f64(p).reshape(B, H * W), _f64(b).reshape(B, H * W), float(outside), (H, W), float(dx),
+                float(sigma_prime), int(radius), bool(linear))
+        f = np.empty(args[0].shape)
+        if B == 1:
+            _fish_ibm(args[0][0], args[1][0], args[2][0], *args[3:], f[0])
+        else:
+            _ibm_parallel(*args, f)
+        ctx.args, ctx.dtypes = args, (qs.dtype, p.dtype, b.dtype)
+        return torch.from_numpy(f).to(qs.dtype)
+
+    @staticmethod
+    def backward(ctx, gf: Tensor):
+        args = ctx.args
+        q, p = args[0], args[1]
+        gq, gp, gmask = np.zeros(q.shape), np.zeros(p.shape), np.zeros(p.shape)
+        g = _f64(gf)
+        if q.shape[0] == 1:
+            _fish_ibm_backward(q[0], p[0], args[2][0], *args[3:], g[0], gq[0], gp[0], gmask[0])
+        else:
+            _ibm_backward_parallel(*args, g, gq, gp, gmask)
+        H, W = args[4]
+        q_dtype, p_dtype, b_dtype = ctx.dtypes
+        return (torch.from_numpy(gq).to(q_dtype), torch.from_numpy(gp).to(p_dtype).view(-1, 1, H, W),
+                torch.from_numpy(gmask).to(b_dtype).view(-1, 1, H, W), None, None, None, None, None)

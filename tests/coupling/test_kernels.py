@@ -1,0 +1,144 @@
+"""The compiled coupling (fishsim/coupling/kernels.py) against the torch formulas it replaces on
+the CPU (band.py, mask.py, ibm.py): the same band selection, the same mask, boundary velocity and
+IBM force to round-off, the same vector-Jacobian products, and central differences (gradcheck)."""
+
+import dataclasses
+import math
+
+import pytest
+import torch
+from torch.autograd import gradcheck
+
+from fishsim.coupling import CouplingConfig, solid_to_fluid
+from fishsim.coupling.band import band_margin, surface_band, torch_nearest_and_inside
+from fishsim.coupling.ibm import ibm_force, torch_ibm_force
+from fishsim.coupling.kernels import BandBoundary, OutsidePressureForce, nearest_and_inside
+from fishsim.coupling.mask import SIGMA, band_boundary, boundary_velocity, element_distances, soft_mask
+from fishsim.fields import Grid
+
+GRID = Grid(H=40, W=60, dx=2.5e-3)
+
+
+def bent_fish(B=2, n=60, seed=0):
+    """B jittered, bent ccw fish-like outlines (a thin tail) of n nodes, [B, n, 2] float64, and
+    random node velocities."""
+    g = torch.Generator().manual_seed(seed)
+    s = torch.linspace(0, 1, n // 2 + 1, dtype=torch.float64)[:-1]
+    half = 0.006 * torch.sin(math.pi * s.clamp(0.02, 1)) ** 0.7 + 3e-4       # half-width, thin at the tail
+    shapes = []
+    for b in range(B):
+        x = 0.04 + 0.08 * s
+        y = 0.05 + 0.01 * torch.sin(4 * s + b)
+        top = torch.stack([x, y + half], -1)
+        bottom = torch.stack([x, y - half], -1)
+        q = torch.cat([bottom, top.flip(0)], 0)
+        shapes.append(q + 2e-4 * torch.rand(q.shape, generator=g, dtype=torch.float64))
+    qs = torch.stack(shapes)
+    return qs, torch.randn(qs.shape, generator=g, dtype=torch.float64)
+
+
+@pytest.mark.parametrize("distance", ["segment", "node"])
+@pytest.mark.parametrize("k_nearest", [8, 24, 200])
+def test_band_selection_matches_the_torch_one(distance, k_nearest):
+    """The same inside flags and the same K' nearest elements (as sets; the compiled ranking is in
+    float64, so only near-ties at the K'-th may differ, which these outlines do not have)."""
+    qs, _ = bent_fish()
+    band = surface_band(qs, GRID, band_margin(SIGMA, GRID.dx), k_nearest, distance)
+    k = band.nearest.shape[-1]
+    h = int(band.centres[0, :, 1].unique().numel())
+    nearest, inside = torch_nearest_and_inside(qs - band.origin, band.centres, k, distance, (h, band.flat.shape[1] // h))
+    assert torch.equal(band.inside, inside) and 0 < int(inside.sum()) < inside.numel()
+    same = (band.nearest.sort(-1).values == nearest.sort(-1).values).all(-1)
+    assert same.float().mean() > 0.9
+    # where the sets differ, they are ties: the same K' squared distances (a cell nearest to a
+    # vertex is equally near both segments that share it)
+    e_compiled, _ = element_distances(qs, band, torch.float64)
+    e_torch, _ = element_distances(qs, dataclasses.replace(band, nearest=nearest), torch.float64)
+    assert torch.allclose(e_compiled.sort(-1).values, e_torch.sort(-1).values, rtol=1e-5, atol=1e-12)
+    again, _ = nearest_and_inside(qs - band.origin, band.centres, k, distance == "segment", band.flat.shape[1] // h)
+    assert torch.equal(again, band.nearest)
+
+
+@pytest.mark.parametrize("distance, mean, k_nearest, tau", [
+    ("segment", "harmonic", 24, 5e-7), ("segment", "arithmetic", 24, 5e-7), ("node", "arithmetic", 24, 5e-7),
+    ("segment", "harmonic", 200, 5e-7), ("segment", "harmonic", 24, 2e-6), ("node", "harmonic", 200, 1e-7)])
+def test_mask_velocity_and_their_adjoint_equal_the_torch_formulas(distance, mean, k_nearest, tau):
+    """b, v_d and the vector-Jacobian products w.r.t. q and qdot to round-off (float64), for the
+    truncated (K' < S) and the full soft-min, with the velocity's temperature tau equal to the
+    mask's xi (one set of weights) or not."""
+    qs, qdots = bent_fish()
+    band = surface_band(qs, GRID, band_margin(SIGMA, GRID.dx), k_nearest, distance)
+    g = torch.Generator().manual_seed(5)
+    cot_b = torch.randn(2, 1, GRID.H, GRID.W, generator=g, dtype=torch.float64)
+    cot_v = torch.randn(2, 2, GRID.H, GRID.W, generator=g, dtype=torch.float64)
+
+    def run(compiled: bool):
+        q, qd = qs.clone().requires_grad_(True), qdots.clone().requires_grad_(True)
+        if compiled:
+            b, v = band_boundary(q, qd, band, GRID, tau=tau, mean=mean, dtype=torch.float64)
+        else:
+            b = soft_mask(q, GRID, distance=distance, mean=mean, band=band, dtype=torch.float64)
+            v = boundary_velocity(q, qd, b, GRID, tau, distance=distance, band=band, weighted=False)
+        ((b * cot_b).sum() + (v * cot_v).sum()).backward()
+        return b.detach(), v.detach(), q.grad, qd.grad
+
+    compiled, reference = run(True), run(False)
+    for got, want in zip(compiled, reference):
+        scale = want.abs().max()
+        assert scale > 0 and (got - want).abs().max() <= 1e-10 * scale, float((got - want).abs().max() / scale)
+
+
+def test_band_boundary_gradient_against_central_differences():
+    qs, qdots = bent_fish(B=1, n=30)
+    band = surface_band(qs, GRID, band_margin(SIGMA, GRID.dx), 8)
+    args = (band.centres, band.nearest, band.inside, 5e-7, 5e-7, 5e-7, True, True, band.truncated, torch.float64)
+    fn = lambda q, qd: BandBoundary.apply(q - band.origin, qd, *args)
+    assert gradcheck(fn, (qs.requires_grad_(True), qdots.requires_grad_(True)), eps=1e-8, atol=1e-6, rtol=1e-4,
+                     fast_mode=True)
+
+
+def test_solid_to_fluid_in_float32_matches_the_float64_torch_reference():
+    """The coupling's CPU path (compiled, float64 inside, float32 out) against the torch formulas
+    in float64: b within float32 round-off."""
+    qs, qdots = bent_fish(B=1)
+    cfg = CouplingConfig()
+    surface = torch.arange(qs.shape[1])
+    out = solid_to_fluid(qs, qdots, surface, GRID, cfg, dtype=torch.float32)
+    band = surface_band(qs, GRID, band_margin(cfg.sigma, GRID.dx), cfg.k_nearest, cfg.distance)
+    b = soft_mask(qs, GRID, cfg.xi, cfg.sigma, cfg.distance, cfg.mean, band, torch.float64)
+    v = boundary_velocity(qs, qdots, b, GRID, cfg.tau, cfg.distance, band, weighted=False)
+    assert out.mask.dtype == torch.float32 and (out.mask.double() - b).abs().max() < 1e-6
+    assert (out.velocity.double() - v).abs().max() < 1e-6 * v.abs().max()
+
+
+@pytest.mark.parametrize("fit", ["linear", "mean"])
+def test_ibm_force_and_its_adjoint_equal_the_torch_formulas(fit):
+    """The compiled IBM pressure force (outside weights, chord elements) and its vector-Jacobian
+    products w.r.t. the surface, the pressure and the mask, against ibm.py's torch formulas
+    (float64), for two fish, one of them partly outside the grid's edge cells."""
+    qs, _ = bent_fish()
+    qs[1] += torch.tensor([-0.038, 0.0], dtype=torch.float64)        # its tail within the kernel of x = 0
+    mask = soft_mask(qs, GRID, dtype=torch.float64)
+    g = torch.Generator().manual_seed(7)
+    y = torch.arange(GRID.H, dtype=torch.float64).view(1, 1, -1, 1)
+    p = 50 * torch.randn(2, 1, GRID.H, GRID.W, generator=g, dtype=torch.float64) + 30 * y
+    cot = torch.randn(2, qs.shape[1], 2, generator=g, dtype=torch.float64)
+
+    def run(fn):
+        q, pr, b = (t.detach().clone().requires_grad_(True) for t in (qs, p, mask))
+        f = fn(q, pr, b, GRID, fit=fit)
+        (f * cot).sum().backward()
+        return f.detach(), q.grad, pr.grad, b.grad
+
+    for got, want in zip(run(ibm_force), run(torch_ibm_force)):
+        scale = want.abs().max()
+        assert scale > 0 and (got - want).abs().max() <= 1e-10 * scale, float((got - want).abs().max() / scale)
+
+
+def test_compiled_ibm_force_gradient_against_central_differences():
+    qs, _ = bent_fish(B=1, n=30)
+    mask = soft_mask(qs, GRID, dtype=torch.float64).detach()
+    p = torch.randn(1, 1, GRID.H, GRID.W, generator=torch.Generator().manual_seed(8), dtype=torch.float64)
+    fn = lambda q, pr, b: OutsidePressureForce.apply(q, pr, b, 0.05, GRID.dx, 6.25e-6, 4, True)
+    assert gradcheck(fn, (qs.requires_grad_(True), p.requires_grad_(True), mask.requires_grad_(True)), eps=1e-8,
+                     atol=1e-6, rtol=1e-4, fast_mode=True)
