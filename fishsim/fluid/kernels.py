@@ -365,8 +365,9 @@ class Predict(torch.autograd.Function):
 
 
 @jit
-def _penalize_divergence(wx, wy, bx, by, dx_, dy_, inv_dx, ux, uy, div):
-    """u = w + b (v_d - w) on the interior faces, b v_d on the wall faces; div = div u."""
+def _penalize_divergence(wx, wy, bx, by, dx_, dy_, inv_dx, ux, uy, div, px, py):
+    """u = w + b (v_d - w) on the interior faces, b v_d on the wall faces; div = div u; the
+    penalisation's increment summed over the passes: (px, py) += u - w."""
     N, H, W = div.shape
     for n in range(N):
         for i in range(H):
@@ -374,21 +375,27 @@ def _penalize_divergence(wx, wy, bx, by, dx_, dy_, inv_dx, ux, uy, div):
                 wall = j == 0 or j == W
                 ux[n, i, j] = bx[n, i, j] * dx_[n, i, j] if wall else wx[n, i, j] + bx[n, i, j] * (
                     dx_[n, i, j] - wx[n, i, j])
+                px[n, i, j] += ux[n, i, j] - wx[n, i, j]
         for i in range(H + 1):
             for j in range(W):
                 wall = i == 0 or i == H
                 uy[n, i, j] = by[n, i, j] * dy_[n, i, j] if wall else wy[n, i, j] + by[n, i, j] * (
                     dy_[n, i, j] - wy[n, i, j])
+                py[n, i, j] += uy[n, i, j] - wy[n, i, j]
         for i in range(H):
             for j in range(W):
                 div[n, i, j] = (ux[n, i, j + 1] - ux[n, i, j] + uy[n, i + 1, j] - uy[n, i, j]) * inv_dx
 
 
 @jit
-def _subtract_gradient(ux, uy, phi, inv_dx, vx, vy):
-    """v = u - grad phi on the interior faces, u on the wall faces."""
+def _subtract_gradient(ux, uy, phi, inv_dx, vx, vy, phi_sum):
+    """v = u - grad phi on the interior faces, u on the wall faces; phi summed over the passes
+    (phi_sum += phi)."""
     N, H, W = phi.shape
     for n in range(N):
+        for i in range(H):
+            for j in range(W):
+                phi_sum[n, i, j] += phi[n, i, j]
         for i in range(H):
             vx[n, i, 0], vx[n, i, W] = ux[n, i, 0], ux[n, i, W]
             for j in range(1, W):
@@ -468,17 +475,17 @@ class Constrain(torch.autograd.Function):
         b, d = [t.expand_as(w).contiguous() for t, w in ((bx, wx), (by, wy))], [
             t.expand_as(w).contiguous() for t, w in ((dx_, wx), (dy_, wy))]
         ws, inv_dx = [(wx.contiguous(), wy.contiguous())], 1.0 / dx
-        phi_sum, pen = 0.0, (0.0, 0.0)
+        div = torch.empty(*wx.shape[:-1], wx.shape[-1] - 1, dtype=wx.dtype)
+        phi_sum, pen = torch.zeros_like(div), _zeros(*ws[0])
+        flat_b, flat_pen, flat_phi_sum = [_flat(t) for t in (*b, *d)], [_flat(t) for t in pen], _flat(phi_sum)
         for _ in range(passes):
             w = ws[-1]
             ux, uy = _empty(*w)
-            div = torch.empty(*wx.shape[:-1], wx.shape[-1] - 1, dtype=wx.dtype)
-            _penalize_divergence(*(_flat(t) for t in (*w, *b, *d)), inv_dx, _flat(ux), _flat(uy), _flat(div))
+            _penalize_divergence(_flat(w[0]), _flat(w[1]), *flat_b, inv_dx, _flat(ux), _flat(uy), _flat(div),
+                                 *flat_pen)
             phi = apply_inverse(div, inverse)
             vx, vy = _empty(*w)
-            _subtract_gradient(_flat(ux), _flat(uy), _flat(phi), inv_dx, _flat(vx), _flat(vy))
-            phi_sum = phi_sum + phi
-            pen = (pen[0] + (ux - w[0]), pen[1] + (uy - w[1]))
+            _subtract_gradient(_flat(ux), _flat(uy), _flat(phi), inv_dx, _flat(vx), _flat(vy), flat_phi_sum)
             ws.append((vx, vy))
         ctx.save_for_backward(*[c for w in ws[:-1] for c in w], *b, *d)
         ctx.inverse, ctx.dx, ctx.passes, ctx.shapes = inverse, dx, passes, [t.shape for t in (bx, by, dx_, dy_)]
