@@ -265,8 +265,6 @@ def ibm_force(qs: Tensor, p: Tensor, mask: Tensor, grid: Grid, sigma_prime: floa
     On the CPU the defaults (weight "outside", area "chord", no traction) run compiled, in
     float64 (fishsim.coupling.kernels.OutsidePressureForce); ``torch_ibm_force`` is the reference.
     """
-    if viscous is not None and weight != OUTSIDE:
-        raise ValueError(f"the viscous traction samples the cells beyond the band: weight 'outside', got {weight!r}")
     if qs.device.type == "cpu" and weight == OUTSIDE and area == CHORD and viscous is None:
         from fishsim.coupling.kernels import OutsidePressureForce  # the same formulas, compiled
 
