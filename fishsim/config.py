@@ -180,9 +180,8 @@ class FluidConfig:
 
 @dataclass
 class VacuumConfig(FluidConfig):
-    """No fluid: no hydrodynamic force, the solid alone (``fishsim.fluid.vacuum.Vacuum``)."""
-
-    model: str = "none"
+    """No fluid: no hydrodynamic force, the solid alone (``fishsim.fluid.vacuum.Vacuum``); the
+    base's keys only."""
 
 
 @dataclass

@@ -183,7 +183,7 @@ def run_hydronet(cfg: ValidateConfig) -> dict:
     """suite=hydronet: evaluate, write metrics.json and the comparison picture, print the table."""
     import torch
 
-    from fishsim.fluid.factory import SHIPPED_HYDRONET, make_grid
+    from fishsim.fluid.factory import SHIPPED_HYDRONET
     from fishsim.fluid.hydronet import HydroNetFluid, load_hydronet
     from fishsim.fluid.hydronet.trained_range import check_fluid
     from fishsim.fluid.numerical import NumericalFluid
@@ -192,7 +192,7 @@ def run_hydronet(cfg: ValidateConfig) -> dict:
 
     out_dir = make_out_dir("validate", cfg.out_dir)
     s = cfg.scenes
-    grid, device = make_grid(s.tank), torch.device(cfg.device)
+    grid, device = s.tank.grid, torch.device(cfg.device)
     path = cfg.model_file or SHIPPED_HYDRONET
     net = HydroNetFluid(load_hydronet(path, device), grid, bf16=cfg.bf16, pressure=cfg.pressure)
     check_fluid(net.model, path, s.rho, s.mu, s.tank.dx, s.h, strict=False)   # measuring that error is allowed

@@ -31,6 +31,21 @@ from torch import Tensor
 
 from fishsim.compiled import jit
 
+
+def _f64(t: Tensor) -> np.ndarray:
+    """A tensor as a C-contiguous float64 numpy array (a copy unless it already is one)."""
+    return np.ascontiguousarray(t.detach().to(torch.float64).numpy())
+
+
+def _each_fish(one, parallel, *args) -> None:
+    """``parallel(*args)`` over a batch's fish (the arrays' leading dimension), or for a single
+    fish ``one`` on its slices in the calling thread (a parallel region costs more than it saves)."""
+    if next(a for a in args if isinstance(a, np.ndarray)).shape[0] > 1:
+        parallel(*args)
+    else:
+        one(*(a[0] if isinstance(a, np.ndarray) else a for a in args))
+
+
 # ---------------------------------------------------------------------------------------------
 # The band's nearest elements and inside flags
 
@@ -151,10 +166,7 @@ def nearest_and_inside(qs: Tensor, centres: Tensor, k: int, segment: bool, width
     x = np.ascontiguousarray(centres.detach().to(torch.float64).numpy())
     B, P = x.shape[:2]
     nearest, inside = np.empty((B, P, k), np.int64), np.empty((B, P), np.bool_)
-    if B == 1:                       # one fish: no parallel region (its start costs more than it saves)
-        _fish_nearest(q[0], x[0], width, segment, nearest[0], inside[0])
-    else:
-        _nearest_parallel(q, x, width, segment, nearest, inside)
+    _each_fish(_fish_nearest, _nearest_parallel, q, x, width, segment, nearest, inside)
     return torch.from_numpy(nearest), torch.from_numpy(inside)
 
 
@@ -347,10 +359,6 @@ def _backward_parallel(q, qdot, centres, nearest, inside, xi, sigma, tau, harmon
                        truncated, b[n], gb[n], gu[n], gq[n], gqdot[n])
 
 
-def _f64(t: Tensor) -> np.ndarray:
-    return np.ascontiguousarray(t.detach().to(torch.float64).numpy())
-
-
 class BandBoundary(torch.autograd.Function):
     """(b [B, P], u [B, P, 2]) of the band cells (module docstring) in ``dtype``, from the surface
     positions qs and velocities qdots [B, S, 2] (m, m/s; relative to the band's origin), the cell
@@ -365,10 +373,7 @@ class BandBoundary(torch.autograd.Function):
                 bool(segment), bool(truncated))
         B, P = nearest.shape[:2]
         b, u = np.empty((B, P)), np.empty((B, P, 2))
-        if B == 1:
-            _fish_forward(*(a[0] for a in args[:5]), *args[5:], b[0], u[0])
-        else:
-            _forward_parallel(*args, b, u)
+        _each_fish(_fish_forward, _forward_parallel, *args, b, u)
         ctx.args, ctx.b, ctx.dtypes = args, b, (qs.dtype, qdots.dtype)
         return torch.from_numpy(b).to(dtype), torch.from_numpy(u).to(dtype)
 
@@ -378,10 +383,7 @@ class BandBoundary(torch.autograd.Function):
         gb = np.zeros(b.shape) if gb is None else _f64(gb)
         gu = np.zeros((*b.shape, 2)) if gu is None else _f64(gu)
         gq, gqdot = np.zeros(args[0].shape), np.zeros(args[1].shape)
-        if b.shape[0] == 1:
-            _fish_backward(*(a[0] for a in args[:5]), *args[5:], b[0], gb[0], gu[0], gq[0], gqdot[0])
-        else:
-            _backward_parallel(*args, b, gb, gu, gq, gqdot)
+        _each_fish(_fish_backward, _backward_parallel, *args, b, gb, gu, gq, gqdot)
         q_dtype, qdot_dtype = ctx.dtypes
         return (torch.from_numpy(gq).to(q_dtype), torch.from_numpy(gqdot).to(qdot_dtype),
                 *([None] * 10))
@@ -623,10 +625,7 @@ class OutsidePressureForce(torch.autograd.Function):
         args = (_f64(qs), _f64(p).reshape(B, H * W), _f64(b).reshape(B, H * W), float(outside), (H, W), float(dx),
                 float(sigma_prime), int(radius), bool(linear))
         f = np.empty(args[0].shape)
-        if B == 1:
-            _fish_ibm(args[0][0], args[1][0], args[2][0], *args[3:], f[0])
-        else:
-            _ibm_parallel(*args, f)
+        _each_fish(_fish_ibm, _ibm_parallel, *args, f)
         ctx.args, ctx.dtypes = args, (qs.dtype, p.dtype, b.dtype)
         return torch.from_numpy(f).to(qs.dtype)
 
@@ -635,11 +634,7 @@ class OutsidePressureForce(torch.autograd.Function):
         args = ctx.args
         q, p = args[0], args[1]
         gq, gp, gmask = np.zeros(q.shape), np.zeros(p.shape), np.zeros(p.shape)
-        g = _f64(gf)
-        if q.shape[0] == 1:
-            _fish_ibm_backward(q[0], p[0], args[2][0], *args[3:], g[0], gq[0], gp[0], gmask[0])
-        else:
-            _ibm_backward_parallel(*args, g, gq, gp, gmask)
+        _each_fish(_fish_ibm_backward, _ibm_backward_parallel, *args, _f64(gf), gq, gp, gmask)
         H, W = args[4]
         q_dtype, p_dtype, b_dtype = ctx.dtypes
         return (torch.from_numpy(gq).to(q_dtype), torch.from_numpy(gp).to(p_dtype).view(-1, 1, H, W),

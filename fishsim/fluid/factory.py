@@ -6,14 +6,8 @@ from pathlib import Path
 
 import torch
 
-from fishsim.fields import Boundary, FluidModel, FluidParams, Grid
+from fishsim.fields import Boundary, FluidModel, FluidParams
 from fishsim.fluid.grid import channel, closed_tank
-
-
-def make_grid(tank) -> Grid:
-    """The grid of a ``TankConfig`` (fishsim.fluid.tank)."""
-    return Grid(H=tank.H, W=tank.W, dx=tank.dx)
-
 
 SHIPPED_HYDRONET = Path(__file__).resolve().parents[1] / "assets" / "hydronet.pt"
 
@@ -32,11 +26,11 @@ def make_fluid(cfg, tank, device=None) -> FluidModel:
     if cfg.model == "none":
         from fishsim.fluid.vacuum import Vacuum
 
-        return Vacuum(make_grid(tank))
+        return Vacuum(tank.grid)
     if cfg.model == "numerical":
         from fishsim.fluid.numerical import NumericalFluid
 
-        return NumericalFluid(make_grid(tank), refinement=cfg.refinement, substeps=cfg.substeps, cfl=cfg.cfl,
+        return NumericalFluid(tank.grid, refinement=cfg.refinement, substeps=cfg.substeps, cfl=cfg.cfl,
                               penalization_iterations=cfg.penalization_iterations, scheme=cfg.scheme,
                               brinkman=cfg.brinkman)
     if cfg.model == "hydronet":
@@ -44,7 +38,7 @@ def make_fluid(cfg, tank, device=None) -> FluidModel:
         from fishsim.fluid.pressure import RecoveryConfig
 
         model = load_hydronet(cfg.model_file or SHIPPED_HYDRONET, device=device or "cpu").to(fluid_dtype(cfg))
-        return HydroNetFluid(model, make_grid(tank), bf16=cfg.bf16, pressure=cfg.pressure,
+        return HydroNetFluid(model, tank.grid, bf16=cfg.bf16, pressure=cfg.pressure,
                              recovery=RecoveryConfig(tol=cfg.pressure_tol))
     raise ValueError(f"unknown fluid model {cfg.model!r}")
 
@@ -53,7 +47,7 @@ def make_walls(tank, dtype: torch.dtype, device=None, unit_inflow: bool = False)
     """The walls [1, ., H, W] of a ``TankConfig`` in ``dtype``: closed, or a channel with
     ``tank.inflow`` m/s at the ends (``unit_inflow``: 1 m/s, a swim tunnel's walls that the rollout
     scales)."""
-    grid = make_grid(tank)
+    grid = tank.grid
     if tank.inflow != 0.0 or unit_inflow:
         return channel(grid, 1.0 if unit_inflow else tank.inflow, tank.wall_y, tank.wall_x, 1, device, dtype)
     return closed_tank(grid, tank.wall_y, tank.wall_x, 1, device, dtype)

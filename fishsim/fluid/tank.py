@@ -1,15 +1,19 @@
 """The tank the fluid fills (docs/physics.md section 4): its grid, its walls and the inflow at its
 ends, as one config (``TankConfig``, the ``tank`` config group) that simulate, optimize and
 validate share. Torch-free, so the CLI's help can import it; ``fishsim.fluid.factory`` builds
-the grid and the walls from it.
+the walls from it.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from fishsim.errors import ConfigError
+
+if TYPE_CHECKING:
+    from fishsim.fields import Grid
 
 
 @dataclass
@@ -33,6 +37,18 @@ class TankConfig:
     def size(self) -> tuple[float, float]:
         """(length along x, height along y) in m."""
         return self.W * self.dx, self.H * self.dx
+
+    @property
+    def centre(self) -> tuple[float, float]:
+        """The box's centre (x, y) in m."""
+        return self.W * self.dx / 2, self.H * self.dx / 2
+
+    @property
+    def grid(self) -> Grid:
+        """The tank's ``Grid`` (imported on use: this module stays torch-free)."""
+        from fishsim.fields import Grid
+
+        return Grid(self.H, self.W, self.dx)
 
     def validate(self) -> None:
         if not (self.dx is not None and math.isfinite(self.dx) and self.dx > 0):

@@ -39,8 +39,8 @@ from torch import Tensor
 from fishsim.coupling.ibm import ibm_force
 from fishsim.coupling.mask import SIGMA
 from fishsim.fields import Boundary, FluidModel, FluidParams, FluidState
-from fishsim.fluid.factory import make_grid
-from fishsim.fluid.grid import closed_tank, curl, divergence, union, vorticity
+from fishsim.fluid.factory import make_walls
+from fishsim.fluid.grid import curl, divergence, union, vorticity
 from fishsim.fluid.hydronet.config import EvalConfig
 from fishsim.fluid.hydronet.loss import momentum_loss
 from fishsim.fluid.residual import fluid_face_masks
@@ -51,18 +51,24 @@ class Scenes:
     """The held-out scenes' boundaries and body surfaces at step k (time k h)."""
 
     def __init__(self, cfg: EvalConfig, device=None):
-        self.cfg, self.grid, self.device = cfg, make_grid(cfg.tank), device
+        self.cfg, self.grid, self.device = cfg, cfg.tank.grid, device
         self.names = [f"cylinder_{u:g}" for u in cfg.speeds] + [f"fish_{f:g}Hz" for f in cfg.frequencies]
-        still = Motion(_middle(cfg.tank), (0.0, 0.0), (0.0, 0.0), (0.0, 0.0), (0.0, 0.0),
-                       0.0, 0.0, 0.0, 0.0, 0.0, 0.0, (0.1, 0.03))
-        self.fish = [Fish(0.2, cfg.fish_amp * 0.2, f, 2 * math.pi / 0.2, 0.0, 0.2, still) for f in cfg.frequencies]
-        self.tank = closed_tank(self.grid, cfg.tank.wall_y, cfg.tank.wall_x, 1, device)
+        self.still = Motion(cfg.tank.centre, (0.0, 0.0), (0.0, 0.0), (0.0, 0.0), (0.0, 0.0),   # at the centre
+                            0.0, 0.0, 0.0, 0.0, 0.0, 0.0, (0.1, 0.03))
+        self.fish = [self.swimmer(f) for f in cfg.frequencies]
+        self.tank = make_walls(cfg.tank, torch.float32, device)
         n = 64
         th = torch.arange(n, dtype=torch.float32, device=device) * (2 * math.pi / n)
         self.circle = cfg.radius * torch.stack([torch.cos(th), torch.sin(th)], -1)  # ccw [n, 2]
 
     def centre(self, u: float, k: int) -> tuple[float, float]:
-        return 0.1 + u * k * self.cfg.h, _middle(self.cfg.tank)[1]
+        return 0.1 + u * k * self.cfg.h, self.cfg.tank.centre[1]
+
+    def swimmer(self, frequency: float, amplitude: float | None = None) -> Fish:
+        """The 0.2 m fish held at the tank's centre, beating at ``frequency`` Hz with tail amplitude
+        ``amplitude`` L (default fish_amp)."""
+        amp = self.cfg.fish_amp if amplitude is None else amplitude
+        return Fish(0.2, amp * 0.2, frequency, 2 * math.pi / 0.2, 0.0, 0.2, self.still)
 
     def boundary(self, k: int) -> Boundary:
         """b, v_d [B, ., H, W] of every scene at step k (walls included)."""
@@ -87,12 +93,6 @@ class Scenes:
         out += [torch.as_tensor(fish_surface(f, t)[0], dtype=torch.float32, device=self.device)[None]
                 for f in self.fish]
         return out
-
-
-def _middle(tank) -> tuple[float, float]:
-    """The centre (x, y) in m of a TankConfig's box."""
-    length, height = tank.size
-    return length / 2, height / 2
 
 
 def relative_errors(net: FluidState, ref: FluidState, mask: Tensor, dx: float) -> tuple[Tensor, Tensor]:
@@ -192,10 +192,8 @@ def kinetic_energy(state: FluidState, mask: Tensor, rho: float, dx: float) -> Te
 @torch.no_grad()
 def energy_checks(net: FluidModel, reference: FluidModel, cfg: EvalConfig = EvalConfig(), device=None) -> dict:
     """The still-fish and kinetic-energy checks of the module docstring, as a dict of numbers."""
-    grid = make_grid(cfg.tank)
-    tank = closed_tank(grid, cfg.tank.wall_y, cfg.tank.wall_x, 1, device)
-    centre = Motion(_middle(cfg.tank), (0.0, 0.0), (0.0, 0.0), (0.0, 0.0), (0.0, 0.0),
-                    0.0, 0.0, 0.0, 0.0, 0.0, 0.0, (0.1, 0.03))
+    scenes = Scenes(cfg, device)
+    grid, tank = scenes.grid, scenes.tank
     params = FluidParams(torch.full((1,), cfg.rho, device=device), torch.full((1,), cfg.mu, device=device), cfg.h)
 
     def rollout(model: FluidModel, fish: Fish, steps: int) -> tuple[FluidState, Boundary]:
@@ -205,9 +203,9 @@ def energy_checks(net: FluidModel, reference: FluidModel, cfg: EvalConfig = Eval
             state = model.step(state, bd, params)
         return state, bd
 
-    still, _ = rollout(net, Fish(0.2, 0.0, 1.0, 2 * math.pi / 0.2, 0.0, 0.2, centre), cfg.still_steps)
+    still, _ = rollout(net, scenes.swimmer(1.0, amplitude=0.0), cfg.still_steps)
     speed = max(c.abs().max().item() for c in curl(still.a, grid.dx))
-    swimmer = Fish(0.2, cfg.fish_amp * 0.2, cfg.energy_frequency, 2 * math.pi / 0.2, 0.0, 0.2, centre)
+    swimmer = scenes.swimmer(cfg.energy_frequency)
     energy = {}
     for name, model in (("net", net), ("ref", reference)):
         state, bd = rollout(model, swimmer, cfg.energy_steps)

@@ -1,8 +1,9 @@
 """Training HydroNet on the scene pool: ``run(TrainConfig(...))`` (the CLI's ``train-hydronet``).
 
 One iteration (Wandel et al. 2021): ask the pool for a batch (state at t, boundary at t + h),
-step it once with the network, minimise mean_B log(beta L_p + gamma L_b) (``fluid/hydronet/loss.py``) with Adam,
-and tell the pool the new (detached) states, so the network trains on its own rollouts.
+step it once with the network, minimise mean_B log(beta L_p + gamma L_b)
+(``fluid/hydronet/loss.py``) with Adam, and tell the pool the new (detached) states, so the
+network trains on its own rollouts.
 With ``teacher > 0`` the numerical solver steps the same batch too and the objective becomes
 mean_B log(beta L_p + gamma L_b + teacher L_t) (``loss.teacher_loss``); with ``unroll = k`` an
 iteration takes k network steps, back-propagated together, step j against the solver's own

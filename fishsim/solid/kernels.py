@@ -10,8 +10,9 @@ element.py's, shared with packed.py.
 with E_int the co-rotated and muscle energies (element.py; elastic.py is their numpy reference).
 One pass over the elements computes F, the projections, the energy and the nodal gradient
 without numpy temporaries: on the default fish (2142 elements) 0.05 ms instead of 0.29 ms per
-evaluation, which L-BFGS does ~11 times per step. Models with the volume term use the numpy paths (solve.Objective,
-elastic.element_hessians), which stay the reference (tests/solid/test_kernels.py).
+evaluation, which L-BFGS does ~11 times per step. Models with the volume term use the numpy
+paths (solve.Objective, elastic.element_hessians), which stay the reference
+(tests/solid/test_kernels.py).
 
 Batches: every kernel works on the samples of a mask or index list only (converged samples cost
 nothing) and runs them in parallel over numba's threads (`prange`); one sample's arithmetic is

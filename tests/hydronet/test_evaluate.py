@@ -9,7 +9,6 @@ import torch
 from typer.testing import CliRunner
 
 from fishsim.cli import app
-from fishsim.fluid.factory import make_grid
 from fishsim.fluid.hydronet.config import EvalConfig
 from fishsim.fluid.numerical import NumericalFluid
 from fishsim.fluid.tank import TankConfig
@@ -24,7 +23,7 @@ SMALL_ARGS = ["scenes.speeds=[0.2]", "scenes.frequencies=[5]", "scenes.warmup=3"
 
 def test_reference_against_itself_has_zero_error_and_equal_forces():
     """The metrics compare matching states: the numerical solver judged against itself scores 0."""
-    grid = make_grid(SMALL.tank)
+    grid = SMALL.tank.grid
     out = evaluate(NumericalFluid(grid), NumericalFluid(grid), SMALL)
     for m in out.metrics.values():
         for key, value in m.items():
@@ -82,7 +81,7 @@ def test_energy_checks_are_exact_for_the_reference_itself():
     """The numerical solver judged against itself: a still fish leaves the water at rest (max |v|
     = 0 exactly) and the swimming fish's kinetic energy ratio is 1; E of a uniform stream U over
     a fluid of area A is rho U^2 A / 2."""
-    grid = make_grid(SMALL.tank)
+    grid = SMALL.tank.grid
     checks = energy_checks(NumericalFluid(grid), NumericalFluid(grid), SMALL)
     assert checks["still_fish_max_speed_3"] == 0.0
     assert checks["kinetic_energy_ref_4"] > 0 and checks["kinetic_energy_ratio"] == pytest.approx(1.0, rel=1e-6)

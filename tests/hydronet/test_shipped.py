@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from fishsim.fluid.factory import SHIPPED_HYDRONET, make_grid
+from fishsim.fluid.factory import SHIPPED_HYDRONET
 from fishsim.fluid.hydronet import HydroNet, HydroNetFluid, PoolConfig, load_hydronet
 from fishsim.fluid.hydronet.config import EvalConfig
 from fishsim.fluid.numerical import NumericalFluid
@@ -64,7 +64,7 @@ def test_towed_cylinder_drag_has_the_right_sign_and_size(shipped):
     ratio 0.96 this early after the impulsive start, its own pressure; over 100 steps after 50,
     `fishsim validate`: 1.03-1.11 at 0.2-0.3 m/s, 2.0 at 0.1 m/s)."""
     cfg = EvalConfig(speeds=[0.2], frequencies=[], warmup=20, steps=20)
-    grid = make_grid(cfg.tank)
+    grid = cfg.tank.grid
     m = evaluate(HydroNetFluid(shipped, grid), NumericalFluid(grid), cfg).metrics["cylinder_0.2"]
     assert m["force_x_ref"] < 0 and m["force_x_net"] < 0
     assert 0.5 < m["drag_ratio"] < 2.0, m

@@ -41,7 +41,8 @@ Central differences cannot see a 2-cell (checkerboard) mode and at the paper's v
 noise grow in its rollouts at almost no cost (measured on such a rollout: fluid-face residual 3e-3
 central vs 3e-2 Koren; the numerical solver's own steps give 2.7e-9 with Koren in the fluid, so
 its discrete dynamics are almost an exact minimiser). Eager, the Koren residual costs ~0.15 s per
-batch of 16 at 64 x 128 (10x central); ``torch.compile`` brings it back to ~15 ms (fishsim/learn/train.py).
+batch of 16 at 64 x 128 (10x central); ``torch.compile`` brings it back to ~15 ms
+(fishsim/learn/train.py).
 """
 
 from __future__ import annotations
