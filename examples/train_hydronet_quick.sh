@@ -7,4 +7,4 @@
 set -euo pipefail
 out=${1:-runs/hydronet-quick}
 fishsim train-hydronet out_dir="$out" iterations=2000 pool.H=48 pool.W=96 pool.size=64 val_every=250 "${@:2}"
-fishsim validate model_file="$out/best.pt" out_dir="$out/validate"
+fishsim validate hydronet.model_file="$out/best.pt" out_dir="$out/validate"

@@ -468,17 +468,26 @@ class SolidStudyConfig:
             raise ConfigError(f"solid.beam_across must be >= 1 element across (got {list(self.beam_across)})")
 
 
+# validate's settings before its ``hydronet`` node (2026-11-27): top-level keys, now hydronet.*
+VALIDATE_HYDRONET_KEYS = ("model_file", "bf16", "pressure")
+
+
 @dataclass
 class ValidateConfig:
-    """suite: hydronet | solid | swim | convergence. model_file: the HydroNet to judge (null: shipped).
-    bf16: run it in bfloat16. pressure: network | recovered (``fishsim.fluid.pressure``).
+    """suite: hydronet | solid | swim | convergence.
+    hydronet: the HydroNet being judged, a ``HydroNetConfig`` (conf/fluid/hydronet.yaml, composed
+        as ``fluid@hydronet``): its model_file (null: the shipped one), bf16, pressure,
+        pressure_tol and strict_range. suite=hydronet builds the evaluated network from it;
+        suite=swim's and suite=solid's HydroNet runs take its model_file, bf16, pressure_tol and
+        strict_range (suite=solid its pressure too; suite=swim's fluids hydronet and
+        hydronet_recovered set their own). Its rho, mu and dtype stay at their defaults: the
+        fluid is the scenes' (scenes.rho, scenes.mu) or the studies' runs' (swim.overrides).
     device: cpu | cuda. scenes: the held-out scenes and protocol (hydronet).
-    solid: the mesh study and beam check (solid). swim: the frequency study (swim)."""
+    solid: the mesh study and beam check (solid). swim: the frequency study (swim).
+    convergence: the frequency study against the reference's knobs (convergence)."""
 
     suite: str = "hydronet"
-    model_file: str | None = None
-    bf16: bool = False
-    pressure: str = "network"
+    hydronet: HydroNetConfig = field(default_factory=HydroNetConfig)
     device: str = "cpu"
     scenes: EvalConfig = field(default_factory=EvalConfig)
     solid: SolidStudyConfig = field(default_factory=SolidStudyConfig)
@@ -492,8 +501,7 @@ class ValidateConfig:
         self.convergence.validate()
         if self.suite not in SUITES:
             raise ConfigError(f"suite must be one of {SUITES} (got '{self.suite}')")
-        if self.pressure not in PRESSURES:
-            raise ConfigError(f"pressure must be recovered or network (got '{self.pressure}')")
+        self._validate_hydronet()
         s = self.scenes
         s.tank.validate()
         if not (s.tank.H >= 32 and s.tank.W >= 32 and s.rho > 0 and s.mu > 0):
@@ -506,6 +514,23 @@ class ValidateConfig:
             raise ConfigError("scenes.warmup >= 0, scenes.steps >= 1 and radius, fish_amp, h > 0 are required")
         if not (s.speeds or s.frequencies):
             raise ConfigError("give at least one of scenes.speeds or scenes.frequencies")
+
+    def _validate_hydronet(self) -> None:
+        """The judged HydroNet's config, its messages naming hydronet.* (not fluid.*); the fluid's
+        keys and the precision are the suites' own."""
+        net, shipped = self.hydronet, HydroNetConfig()
+        if net.model != "hydronet":
+            raise ConfigError(f"hydronet.model must be hydronet: validate judges a HydroNet (got '{net.model}')")
+        try:
+            net.validate()
+        except ConfigError as err:
+            raise ConfigError(str(err).replace("fluid.", "hydronet.")) from None
+        for key in ("rho", "mu", "dtype"):
+            if getattr(net, key) != getattr(shipped, key):
+                raise ConfigError(f"hydronet.{key} stays at its default ({getattr(shipped, key)}) in validate: the "
+                                  "suites set the fluid and the precision (suite=hydronet: scenes.rho, scenes.mu, "
+                                  "float32; suite=swim: swim.overrides=[fluid.rho=...], "
+                                  "swim.hydronet_overrides=[fluid.dtype=...])")
 
 
 ROOTS: dict[str, type] = {"mesh": MeshCommandConfig, "simulate": SimulateConfig, "render": RenderConfig,
@@ -539,12 +564,13 @@ def load_config(command: str, overrides: list[str] | None = None, config_file: s
         with initialize_config_dir(config_dir=config_dir(), version_base="1.3"):
             raw = compose(config_name=command, overrides=overrides)
     except (HydraException, OmegaConfBaseException, ValueError) as err:  # ValueError: bad group override
-        raise ConfigError(_one_line(err)) from None
+        raise ConfigError(_one_line(err, command)) from None
     if config_file is not None:
         from pathlib import Path
 
         groups = {d.name for d in Path(config_dir()).iterdir() if d.is_dir()}
-        raw = _merge_file(raw, config_file, [o for o in overrides if "=" in o and o.split("=")[0].lstrip("+~") not in groups])
+        raw = _merge_file(raw, config_file, [o for o in overrides if "=" in o and o.split("=")[0].lstrip("+~") not in groups],
+                          command)
     return to_dataclass(command, raw)
 
 
@@ -596,10 +622,10 @@ def _refuse_hydra_runner_keys(overrides: list[str]) -> None:
                               f"(fishsim.multirun); {NO_SWEEPS}")
 
 
-def _merge_file(raw: Any, path: str, dotted: list[str]) -> Any:
-    """raw <- the YAML file <- the ``key=value`` overrides (later wins). A file whose fluid is
-    another model than the composed one replaces the composed ``fluid`` node (the models' keys
-    differ)."""
+def _merge_file(raw: Any, path: str, dotted: list[str], command: str | None = None) -> Any:
+    """raw <- the YAML file (of ``command``, in today's layout: ``_upgraded``) <- the ``key=value``
+    overrides (later wins). A file whose fluid is another model than the composed one replaces the
+    composed ``fluid`` node (the models' keys differ)."""
     from pathlib import Path
 
     import yaml
@@ -607,7 +633,7 @@ def _merge_file(raw: Any, path: str, dotted: list[str]) -> Any:
     if not Path(path).is_file():
         raise ConfigError(f"config file {path} does not exist (give the path of a YAML config, e.g. a run's best.yaml)")
     try:
-        loaded = _upgraded(OmegaConf.load(path))
+        loaded = _upgraded(OmegaConf.load(path), command)
         dots = OmegaConf.from_dotlist([o.lstrip("+") for o in dotted if not o.startswith("~")])
         OmegaConf.set_struct(raw, False)          # the file may hold keys of other groups; the schema checks them
         model = OmegaConf.select(loaded, "fluid.model")
@@ -615,17 +641,41 @@ def _merge_file(raw: Any, path: str, dotted: list[str]) -> Any:
             raw.fluid = {}
         return OmegaConf.merge(raw, loaded, dots)
     except (OmegaConfBaseException, ValueError, OSError, yaml.YAMLError) as err:
-        raise ConfigError(f"config file {path} is not a readable YAML config: {_one_line(err)}") from None
+        raise ConfigError(f"config file {path} is not a readable YAML config: {_one_line(err, command)}") from None
 
 
 TANK_KEYS = tuple(f.name for f in dataclasses.fields(TankConfig))
 
 
-def _upgraded(loaded: DictConfig) -> DictConfig:
+def _moved(key: str, command: str | None) -> tuple[str, str] | None:
+    """A key of an earlier layout that ``command`` now keeps elsewhere: (whose setting it is, its
+    key today), or None. Any command: the tank's grid, walls and inflow under ``fluid`` (before
+    2026-11-27), now ``tank.*``; validate: the judged HydroNet's top-level keys, now ``hydronet.*``."""
+    group, _, name = key.partition(".")
+    if group == "fluid" and name in TANK_KEYS:
+        return "the tank", f"tank.{name}"
+    if command == "validate" and key in VALIDATE_HYDRONET_KEYS:
+        return "the HydroNet validate judges", f"hydronet.{key}"
+    return None
+
+
+def _upgraded(loaded: DictConfig, command: str | None = None) -> DictConfig:
     """A config stored before the ``tank`` group and the per-model fluid configs (2026-11-27: one
     flat ``fluid`` node holding the grid, walls, inflow and every model's keys) in today's
     layout: the tank's keys moved to ``tank``, the keys of other fluid models dropped (they were
-    ignored by the model the file names)."""
+    ignored by the model the file names). A validate config of then (its scenes' tank in
+    ``scenes``, the judged HydroNet's ``model_file``, ``bf16``, ``pressure`` at the top level):
+    those keys moved to ``scenes.tank`` and into the ``hydronet`` node."""
+    if command == "validate" and isinstance(loaded, DictConfig):
+        upgraded = OmegaConf.to_container(loaded)
+        scenes = upgraded.get("scenes") if isinstance(upgraded.get("scenes"), dict) else {}
+        tank = {k: scenes.pop(k) for k in TANK_KEYS if k in scenes}
+        if tank:
+            scenes["tank"] = {**tank, **(scenes.get("tank") or {})}
+        net = {k: upgraded.pop(k) for k in VALIDATE_HYDRONET_KEYS if k in upgraded}
+        if net:
+            upgraded["hydronet"] = {**net, **(upgraded.get("hydronet") or {})}
+        loaded = OmegaConf.create(upgraded)
     fluid = loaded.get("fluid") if isinstance(loaded, DictConfig) else None
     if not isinstance(fluid, DictConfig) or not any(k in fluid for k in TANK_KEYS):
         return loaded
@@ -651,7 +701,7 @@ def to_dataclass(command: str, raw: Any) -> Any:
         merged = OmegaConf.merge(schema, raw)
         cfg = OmegaConf.to_object(merged)
     except OmegaConfBaseException as err:
-        raise ConfigError(_one_line(err)) from None
+        raise ConfigError(_one_line(err, command)) from None
     cfg.validate()
     return cfg
 
@@ -674,8 +724,9 @@ def to_yaml(cfg: Any) -> str:
     return OmegaConf.to_yaml(OmegaConf.structured(cfg))
 
 
-def _one_line(err: Exception) -> str:
-    """Condense an OmegaConf/Hydra error into one line with a hint on how to fix it."""
+def _one_line(err: Exception, command: str | None = None) -> str:
+    """Condense an OmegaConf/Hydra error into one line with a hint on how to fix it (for a key
+    that ``command`` keeps elsewhere now: where, ``_moved``)."""
     text = " ".join(str(err).split()) or type(err).__name__
     foreign = re.search(r"Key '([^']+)' not in '(\w+Config)' full_key: (fluid\.\S+)", text)
     if foreign and foreign.group(2) in {c.__name__ for c in FLUID_MODELS.values()}:
@@ -684,10 +735,13 @@ def _one_line(err: Exception) -> str:
                 f"keys, conf/fluid/{model}.yaml: switch models with the group, fluid={model}, not fluid.model; "
                 "the tank's grid, walls and inflow are tank.*)")
     unknown = re.search(r"Could not override '([^']+)'", text) or re.search(r"Key '([^']+)' not in", text)
+    added = re.search(r"Key '[^']+' not in '\w+' full_key: (\S+)", text)    # a +key=... or a config file's key
+    for key in [m.group(1) for m in (unknown, added) if m]:
+        moved = _moved(key, command)
+        if moved:
+            return f"config error: '{key}' is a setting of {moved[0]}: use {moved[1]}"
     if unknown and ("not in struct" in text or "Could not override" in text):
         key = unknown.group(1)
-        if key.startswith("fluid.") and key.split(".", 1)[1] in TANK_KEYS:
-            return f"config error: '{key}' is a setting of the tank: use tank.{key.split('.', 1)[1]}"
         return (f"config error: unknown config key '{key}' (check the spelling; "
                 "`fishsim <command> --help` lists the config groups and keys)")
     for tail in (" full_key:", " Config search path:", " See https:"):

@@ -24,7 +24,8 @@ class SwimStudyConfig:
     """suite=swim. frequencies (Hz); frames per episode; fluids: names of FLUIDS; reference: the
     one the others are compared with; overrides: more `fishsim simulate` overrides for every run
     (e.g. a smaller tank); hydronet_overrides: more for the HydroNet runs only (``fishsim
-    validate`` puts its model_file and bf16 there)."""
+    validate`` puts its hydronet node's model_file, bf16, pressure_tol and strict_range before
+    them; the fluid's own pressure stays)."""
 
     frequencies: list[float] = field(default_factory=lambda: [3.0, 4.0, 5.0, 6.0, 7.0])
     frames: int = 120

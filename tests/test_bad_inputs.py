@@ -62,7 +62,7 @@ def test_an_output_naming_a_folder_is_one_line(here, command, example):
 
 @pytest.mark.parametrize("command, bad", [
     ("mesh", "fish.mesh_file=missing.vtu"), ("mesh", "output=fish.stl"), ("simulate", "fish.mesh_file=missing.vtu"),
-    ("render", "path=x.h5"), ("validate", "model_file=missing.pt"), ("optimize", "fish.mesh_file=missing.vtu"),
+    ("render", "path=x.h5"), ("validate", "hydronet.model_file=missing.pt"), ("optimize", "fish.mesh_file=missing.vtu"),
     ("train-hydronet", "init_from=missing.pt")])
 @pytest.mark.parametrize("out_dir", [None, "new/run", "adir"])
 def test_an_input_error_leaves_no_folder_behind(here, command, bad, out_dir):

@@ -206,3 +206,87 @@ def test_simulate_help_lists_every_config_group():
     for key in ("solid.material.youngs_modulus=600000.0", "solid.pd.preconditioner=lagged_newton",
                 "fluid.pressure=network", "coupling.distance=segment", "coupling.force_mode=per_node"):
         assert key in out, key
+
+
+def test_validate_judges_the_hydronet_node_a_hydronet_config():
+    """validate's HydroNet is a ``hydronet`` node composed from the shipped conf/fluid/hydronet.yaml
+    (``fluid@hydronet``): the same HydroNetConfig as simulate's fluid=hydronet, set as hydronet.*,
+    its messages naming hydronet.*; its help lists that model's keys only."""
+    from fishsim.config import HydroNetConfig
+
+    node = load_config("validate").hydronet
+    assert type(node) is HydroNetConfig and node == HydroNetConfig() == load_config("simulate", ["fluid=hydronet"]).fluid
+    cfg = load_config("validate", ["hydronet.model_file=net.pt", "hydronet.bf16=true", "hydronet.pressure=recovered",
+                                   "hydronet.strict_range=true"])
+    assert (cfg.hydronet.model_file, cfg.hydronet.bf16, cfg.hydronet.pressure, cfg.hydronet.strict_range) == (
+        "net.pt", True, "recovered", True)
+    for override, fragment in (("hydronet.pressure=own", "hydronet.pressure must be recovered or network"),
+                               ("hydronet.model=numerical", "hydronet.model must be hydronet"),
+                               ("hydronet.substeps=4", "unknown config key 'hydronet.substeps'"),
+                               ("hydronet.rho=40", "hydronet.rho stays at its default"),
+                               ("hydronet.dtype=float64", "hydronet.dtype stays at its default")):
+        with pytest.raises(ConfigError) as err:
+            load_config("validate", [override])
+        assert fragment in str(err.value) and "\n" not in str(err.value), (override, str(err.value))
+    out = runner.invoke(app, ["validate", "--help"], terminal_width=400).output
+    assert "hydronet.model_file=None" in out and "hydronet=numerical" not in out
+
+
+def test_validate_hydronet_settings_reach_the_evaluation_and_the_studies(tmp_path, monkeypatch):
+    """suite=hydronet evaluates the network that hydronet.* describes (the file, its precision and
+    pressure); the studies' HydroNet runs get the node's model and precision, suite=solid its
+    pressure too, while suite=swim's fluids keep choosing theirs and its own hydronet_overrides
+    come last."""
+    import fishsim.learn.evaluate
+    from fishsim.commands.validate import hydronet_overrides, run
+    from tests.test_cli_simulate import _tiny_hydronet
+
+    class Judged(Exception):
+        pass
+
+    def evaluate(net, reference, scenes, device, progress=None):
+        raise Judged(net)
+
+    monkeypatch.setattr(fishsim.learn.evaluate, "evaluate", evaluate)
+    model = _tiny_hydronet(tmp_path / "net.pt")
+    cfg = load_config("validate", [f"hydronet.model_file={model}", "hydronet.bf16=true", "hydronet.pressure=recovered",
+                                   f"out_dir={tmp_path / 'o'}"])
+    with pytest.raises(Judged) as judged:
+        run(cfg)
+    net = judged.value.args[0]
+    assert (net.model.cfg.hidden, net.bf16, net.pressure) == (4, True, "recovered")      # the file's net, not the shipped one
+    studies = hydronet_overrides(cfg)
+    assert f"fluid.model_file={model}" in studies and "fluid.bf16=true" in studies
+    assert not any(o.startswith("fluid.pressure=") for o in studies)
+    assert "fluid.pressure=recovered" in hydronet_overrides(cfg, pressure=True)
+    assert load_config("simulate", ["fluid=hydronet", *hydronet_overrides(cfg, pressure=True)]).fluid == cfg.hydronet
+
+
+@pytest.mark.parametrize("old, new", [("model_file=net.pt", "hydronet.model_file"), ("bf16=true", "hydronet.bf16"),
+                                      ("pressure=recovered", "hydronet.pressure"), ("+model_file=net.pt",
+                                                                                   "hydronet.model_file")])
+def test_validate_old_top_level_hydronet_keys_are_one_line(old, new):
+    """The keys validate had before its hydronet node are refused in one line that names the new
+    key (as fluid.H names tank.H), exit code 2; other commands do not suggest it."""
+    result = runner.invoke(app, ["validate", old])
+    key = old.lstrip("+").split("=")[0]
+    assert result.exit_code == 2 and "Traceback" not in result.output
+    assert result.output.strip() == f"error: config error: '{key}' is a setting of the HydroNet validate judges: use {new}"
+    with pytest.raises(ConfigError, match="unknown config key 'model_file'"):
+        load_config("simulate", ["model_file=net.pt"])
+
+
+def test_validate_config_stored_before_the_hydronet_node_loads(tmp_path):
+    """A validate config stored before 2026-11-27 (a run's .hydra/config.yaml, as in results/):
+    the top-level model_file, bf16 and pressure load with --config into the hydronet node, the
+    scenes' grid and walls into scenes.tank."""
+    old = tmp_path / "config.yaml"
+    old.write_text("suite: hydronet\nmodel_file: net.pt\nbf16: true\npressure: recovered\ndevice: cpu\n"
+                   "scenes:\n  steps: 5\n  H: 64\n  W: 128\n  dx: 0.003\n  wall_x: 4\n")
+    cfg = load_config("validate", ["scenes.steps=3"], str(old))
+    assert (cfg.hydronet.model_file, cfg.hydronet.bf16, cfg.hydronet.pressure, cfg.scenes.steps) == (
+        "net.pt", True, "recovered", 3)
+    assert load_config("validate", [], str(old)) == load_config(
+        "validate", ["hydronet.model_file=net.pt", "hydronet.bf16=true", "hydronet.pressure=recovered",
+                     "scenes.steps=5", "scenes.tank.H=64", "scenes.tank.W=128", "scenes.tank.dx=0.003",
+                     "scenes.tank.wall_x=4"])

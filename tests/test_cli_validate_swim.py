@@ -51,13 +51,13 @@ def test_validate_swim_bad_fluid_is_exit_2(tmp_path):
 
 
 def test_validate_swim_judges_the_given_model_file(tmp_path):
-    """model_file= reaches the study's HydroNet runs: a missing file is refused (it used to be
+    """hydronet.model_file= reaches the study's HydroNet runs: a missing file is refused (it used to be
     ignored, and the shipped model judged instead)."""
     result = runner.invoke(app, ["validate", "suite=swim", "swim.fluids=[hydronet]", "swim.reference=hydronet",
-                                 "swim.frames=2", f"model_file={tmp_path / 'missing.pt'}", f"out_dir={tmp_path / 'o'}"])
+                                 "swim.frames=2", f"hydronet.model_file={tmp_path / 'missing.pt'}", f"out_dir={tmp_path / 'o'}"])
     assert result.exit_code == 2 and "missing.pt" in result.output, result.output
     small = "['tank.H=32','tank.W=96','fish.length=0.06','fish.edge_length=4e-3','origin=[0.05,0.04]']"
     numerical = runner.invoke(app, ["validate", "suite=swim", "swim.frequencies=[4,8]", "swim.frames=2",
                                     "swim.fluids=[numerical]", "swim.reference=numerical", f"swim.overrides={small}",
-                                    f"model_file={tmp_path / 'missing.pt'}", f"out_dir={tmp_path / 'n'}"])
+                                    f"hydronet.model_file={tmp_path / 'missing.pt'}", f"out_dir={tmp_path / 'n'}"])
     assert numerical.exit_code == 0, numerical.output                 # the numerical runs do not take it

@@ -1,6 +1,9 @@
 """``fishsim validate``: comparisons against reference solutions.
 
-suite=hydronet: the HydroNet model against the numerical solver on held-out scenes
+The HydroNet being judged is the ``hydronet`` node, a ``HydroNetConfig`` (conf/fluid/hydronet.yaml;
+``hydronet.model_file=<a best.pt>``, ``hydronet.bf16``, ``hydronet.pressure``, ...).
+
+suite=hydronet: that HydroNet against the numerical solver on held-out scenes
 (``fishsim.learn.evaluate``): metrics.json, a printed table, and a picture of the final
 vorticity of both models side by side (comparison.png/.svg).
 
@@ -83,11 +86,16 @@ def run_convergence(cfg: ValidateConfig) -> dict:
     return metrics
 
 
-def hydronet_overrides(cfg: ValidateConfig) -> list[str]:
-    """`fishsim simulate` overrides that make a study's HydroNet runs use the model and precision
-    being judged (``model_file``, ``bf16``); the numerical runs ignore them."""
-    out = [f"fluid.bf16={str(cfg.bf16).lower()}"]
-    return out + ([f"fluid.model_file={cfg.model_file}"] if cfg.model_file else [])
+def hydronet_overrides(cfg: ValidateConfig, pressure: bool = False) -> list[str]:
+    """`fishsim simulate` overrides that make a study's HydroNet runs (``fluid=hydronet``) run the
+    HydroNet being judged, the ``hydronet`` node: its model_file (when set), bf16, pressure_tol and
+    strict_range, and with ``pressure`` its pressure (suite=solid; suite=swim's fluids set their
+    own). Not its rho, mu or dtype: the runs' fluid is the study's (``ValidateConfig``)."""
+    net = cfg.hydronet
+    out = [f"fluid.model_file={net.model_file}"] if net.model_file else []
+    out += [f"fluid.bf16={str(net.bf16).lower()}", f"fluid.pressure_tol={net.pressure_tol!r}",
+            f"fluid.strict_range={str(net.strict_range).lower()}"]
+    return out + ([f"fluid.pressure={net.pressure}"] if pressure else [])
 
 
 def run_swim(cfg: ValidateConfig) -> dict:
@@ -96,7 +104,7 @@ def run_swim(cfg: ValidateConfig) -> dict:
     from fishsim.swim_study import PAPER, frequency_study
 
     out_dir = make_out_dir("validate", cfg.out_dir)
-    s = replace(cfg.swim, hydronet_overrides=[*cfg.swim.hydronet_overrides, *hydronet_overrides(cfg)])
+    s = replace(cfg.swim, hydronet_overrides=[*hydronet_overrides(cfg), *cfg.swim.hydronet_overrides])
     columns = (TextColumn("validate swim: {task.fields[fluid]}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
     with Progress(*columns, console=Console(stderr=True), transient=True) as bar:
         task = bar.add_task("fluids", total=len(s.fluids), fluid="")
@@ -141,7 +149,7 @@ def run_solid(cfg: ValidateConfig) -> dict:
     out_dir = make_out_dir("validate", cfg.out_dir)
     s = cfg.solid
     overrides = ([] if cfg.device == "cpu" else [f"device={cfg.device}"]) + (
-        hydronet_overrides(cfg) if s.fluid == "hydronet" else [])
+        hydronet_overrides(cfg, pressure=True) if s.fluid == "hydronet" else [])
     columns = (TextColumn("validate solid"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
     with Progress(*columns, console=Console(stderr=True), transient=True) as bar:
         task = bar.add_task("runs", total=len(s.edges) * len(s.muscles))
@@ -183,8 +191,7 @@ def run_hydronet(cfg: ValidateConfig) -> dict:
     """suite=hydronet: evaluate, write metrics.json and the comparison picture, print the table."""
     import torch
 
-    from fishsim.fluid.factory import SHIPPED_HYDRONET
-    from fishsim.fluid.hydronet import HydroNetFluid, load_hydronet
+    from fishsim.fluid.factory import SHIPPED_HYDRONET, make_fluid
     from fishsim.fluid.hydronet.trained_range import check_fluid
     from fishsim.fluid.numerical import NumericalFluid
     from fishsim.learn.evaluate import energy_checks, evaluate, summarise
@@ -193,9 +200,10 @@ def run_hydronet(cfg: ValidateConfig) -> dict:
     out_dir = make_out_dir("validate", cfg.out_dir)
     s = cfg.scenes
     grid, device = s.tank.grid, torch.device(cfg.device)
-    path = cfg.model_file or SHIPPED_HYDRONET
-    net = HydroNetFluid(load_hydronet(path, device), grid, bf16=cfg.bf16, pressure=cfg.pressure)
-    check_fluid(net.model, path, s.rho, s.mu, s.tank.dx, s.h, strict=False)   # measuring that error is allowed
+    path = cfg.hydronet.model_file or SHIPPED_HYDRONET
+    net = make_fluid(cfg.hydronet, s.tank, device)     # model_file, bf16, pressure, pressure_tol
+    # outside the model's trained range: a warning, as measuring that error is allowed (refused with strict_range)
+    check_fluid(net.model, path, s.rho, s.mu, s.tank.dx, s.h, strict=cfg.hydronet.strict_range, key="hydronet")
     columns = (TextColumn("validate hydronet"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
     with Progress(*columns, console=Console(stderr=True), transient=True) as bar:
         task = bar.add_task("steps", total=None)

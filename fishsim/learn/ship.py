@@ -8,8 +8,9 @@
   of runs before CHECKPOINT's, which started from their weights), iterations, wall time, the
   final training losses (``log.csv`` beside CHECKPOINT), the evaluation against the numerical
   solver (VALIDATE_DIR/metrics.json, written by ``fishsim validate suite=hydronet
-  model_file=CHECKPOINT``), the frequency studies (each SWIM_DIR/metrics.json, written by
-  ``fishsim validate suite=swim model_file=CHECKPOINT``) and the targets it is judged against;
+  hydronet.model_file=CHECKPOINT``), the frequency studies (each SWIM_DIR/metrics.json, written by
+  ``fishsim validate suite=swim hydronet.model_file=CHECKPOINT``) and the targets it is judged
+  against;
 * ``training/hydronet/ckpt.pt`` + ``log.csv``: the compact checkpoint to continue training from
   in a later sitting (``compact_checkpoint``; see the metadata's "continue" entry).
 """

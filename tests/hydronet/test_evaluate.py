@@ -51,7 +51,7 @@ def test_validate_command_writes_metrics_and_picture(tmp_path):
     from tests.test_cli_simulate import _tiny_hydronet
 
     model = _tiny_hydronet(tmp_path / "net.pt")
-    result = CliRunner().invoke(app, ["validate", f"model_file={model}", *SMALL_ARGS, f"out_dir={tmp_path}"])
+    result = CliRunner().invoke(app, ["validate", f"hydronet.model_file={model}", *SMALL_ARGS, f"out_dir={tmp_path}"])
     assert result.exit_code == 0, result.output
     data = json.loads((tmp_path / "metrics.json").read_text())
     assert set(data["metrics"]) == {"cylinder_0.2", "fish_5Hz"}
@@ -61,7 +61,7 @@ def test_validate_command_writes_metrics_and_picture(tmp_path):
 
 
 def test_validate_missing_model_exit_code_2(tmp_path):
-    result = CliRunner().invoke(app, ["validate", f"model_file={tmp_path / 'none.pt'}", f"out_dir={tmp_path}"])
+    result = CliRunner().invoke(app, ["validate", f"hydronet.model_file={tmp_path / 'none.pt'}", f"out_dir={tmp_path}"])
     assert result.exit_code == 2 and "fishsim train-hydronet" in result.output
 
 

@@ -5,7 +5,8 @@ one time step: outside them its steps are extrapolated and can be far off (the s
 rho = 1000, mu = 1e-3: a 34 % one-step error) without any sign in the output. So every model
 file carries its ``training_range`` (rho and mu ranges, dx, h; written by ``save_weights`` and
 ``export_model``, or for an older file in the ``.json`` metadata beside it), and a run outside
-it warns in one line, or is refused when the config asks for that (``fluid.strict_range``).
+it warns in one line, or is refused when the config asks for that (``fluid.strict_range``;
+``fishsim validate``: ``hydronet.strict_range``).
 """
 
 from __future__ import annotations
@@ -55,10 +56,12 @@ def describe(trained: dict) -> str:
             f"h = {trained['h']:g} s")
 
 
-def check_fluid(model, path, rho: float, mu: float, dx: float, h: float, strict: bool) -> str | None:
+def check_fluid(model, path, rho: float, mu: float, dx: float, h: float, strict: bool,
+                key: str = "fluid") -> str | None:
     """Warn (one line on stderr) or, when ``strict``, raise ConfigError if (rho, mu, dx, h) is
     outside the range the HydroNet ``model`` (loaded from ``path``) was trained for; returns the
-    message (None inside the range, or for a model whose range is unknown)."""
+    message (None inside the range, or for a model whose range is unknown). ``key``: the config
+    node of the model, whose ``strict_range`` the message names (``fishsim validate``: hydronet)."""
     trained = getattr(model, "training_range", None)
     wrong = outside(trained, rho, mu, dx, h) if trained else []
     if not wrong:
@@ -68,10 +71,10 @@ def check_fluid(model, path, rho: float, mu: float, dx: float, h: float, strict:
                f"trained for it (fishsim train-hydronet pool.rho=[{rho:g},{rho:g}] pool.mu=[{mu:g},{mu:g}] "
                f"pool.dx={dx:g} pool.h={h:g})")
     if strict:
-        raise ConfigError(message + "; fluid.strict_range=true refuses it")
+        raise ConfigError(message + f"; {key}.strict_range=true refuses it")
     from rich.console import Console
     from rich.markup import escape
 
-    Console(stderr=True, soft_wrap=True).print(f"[yellow]warning: {escape(message)} (fluid.strict_range=true "
+    Console(stderr=True, soft_wrap=True).print(f"[yellow]warning: {escape(message)} ({key}.strict_range=true "
                                                "refuses such runs)[/]")
     return message
