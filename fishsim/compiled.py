@@ -10,7 +10,8 @@ of other files (the solid's element physics, the banded solvers), each written o
 
 The stamp replaces numba's per-file one through numba's cache-locator extension point (the same
 cache directories as numba's: ``NUMBA_CACHE_DIR`` if set, else ``__pycache__`` beside the
-source, else the user-wide cache); files outside the registered packages keep numba's own.
+source, else the user-wide cache), in files named by the stamp too; files outside the registered
+packages keep numba's own.
 """
 
 from __future__ import annotations
@@ -75,6 +76,12 @@ class _SourceKeyed:
 
     def get_source_stamp(self):
         return source_stamp(self._root, Path(self._py_file).resolve())
+
+    def get_disambiguator(self):
+        """The cache files' name part: numba's (the line number) and the stamp's head, so that an
+        entry of other sources is never opened (its index may pickle types that no longer exist
+        where they were, which numba would fail to load before it compares the stamps)."""
+        return f"{super().get_disambiguator()}-{self.get_source_stamp()[:12]}"
 
     @classmethod
     def from_function(cls, py_func, py_file):

@@ -332,12 +332,13 @@ def test_truncated_backpropagation_equals_detached_windows(segment):
         return float(loss.detach()), float(g)
 
     def by_windows(params):
-        state, total = sw.initial_state(params, ep.origin), 0.0
+        state, total, cache = sw.initial_state(params, ep.origin), 0.0, SolverCache()   # one PD cache, as rollout's
         for t0 in range(0, n, k):
             state = SwimState(*(x.detach() for x in (state.q, state.qdot)), state.fluid.map(lambda _, x: x.detach()),
                               state.qdot_prev.detach())
             anchored = dataclasses.replace(params.controller, t_anchor=t0 * sw.h)
-            state, m = rollout(sw, state, dataclasses.replace(params, controller=anchored), min(k, n - t0), start=t0)
+            state, m = rollout(sw, state, dataclasses.replace(params, controller=anchored), min(k, n - t0), start=t0,
+                               cache=cache)
             total = total + m["tail_y"].sum()
         return total
 

@@ -20,7 +20,6 @@ import numpy as np
 import scipy.sparse as sp
 
 from fishsim.solid import energies as en
-from fishsim.solid import kernels
 from fishsim.solid.model import SolidModel
 
 
@@ -205,25 +204,10 @@ def element_hessians(model: SolidModel, p: Projections, sample: int, projected: 
 def newton_matrix(model: SolidModel, p: Projections, sample: int, projected: bool = False) -> sp.csc_matrix:
     """Assembled Newton matrix M/h^2 - df_int/dq = M/h^2 + sum_e G_e^T H_e G_e of one sample,
     sparse [2N, 2N] over DOFs 2i + a (x and y coupled, unlike the per-axis PD matrix);
-    `projected`: the positive definite approximation of stress_differential. Without the volume
-    term the element matrices come from the compiled kernels.newton_elements."""
-    if p.volume is None:
-        Ke = np.empty((model.fem.n_elements, 6, 6))
-        kernels.newton_elements(*newton_kernel_arrays(model, p), projected, sample, Ke)
-    else:
-        Ge = model.fem.element_G
-        Ke = Ge.transpose(0, 2, 1) @ element_hessians(model, p, sample, projected) @ Ge
+    `projected`: the positive definite approximation of stress_differential."""
+    Ge = model.fem.element_G
+    Ke = Ge.transpose(0, 2, 1) @ element_hessians(model, p, sample, projected) @ Ge
     return model.fem.pattern.assemble(Ke, np.repeat(model.mass_h2, 2))
-
-
-def newton_kernel_arrays(model: SolidModel, p: Projections) -> tuple:
-    """The projections and model arrays the compiled Newton kernels take, in their argument order
-    (alpha_R, beta_R, c, w_corotated, muscle_of, w_muscle, n0, n1, |F m|, a, grad), C-contiguous."""
-    c = np.ascontiguousarray
-    alpha_R, beta_R, cc = p.rotation
-    n0, n1, length, a = p.muscle[2:6]
-    return (c(alpha_R), c(beta_R), c(cc), c(p.w_corotated), model.muscle_of, model.muscle_weight, c(n0), c(n1),
-            c(length), c(a), model.fem.grad)
 
 
 def select_sample(p: Projections, b: int) -> Projections:

@@ -25,8 +25,8 @@ Vecs alike through simd's operators and generic sqrt / maximum / select.
 from __future__ import annotations
 
 from fishsim.compiled import jit
+from fishsim.linalg.simd import maximum, select, sqrt
 from fishsim.solid.energies import _TINY
-from fishsim.solid.simd import maximum, select, sqrt
 
 
 @jit(inline="always")

@@ -50,10 +50,10 @@ class CscPattern:
 
 @dataclass(frozen=True)
 class NewtonBand:
-    """Where the element entries of the solid's [2N, 2N] Newton matrices land in its band
-    (banded.BandLayout of the mesh's pattern): slot [T, 6, 6], the flat index into a band
-    [n, w + 1] of each element matrix entry (-1 above the diagonal, which the band omits);
-    diagonal [2N], that of each DOF's diagonal entry. One per mesh (SolidModel.newton_band)."""
+    """Where the element entries of the solid's [2N, 2N] Newton matrices land in its padded band
+    [rows, cols] (banded.BandLayout of the mesh's pattern): slot [T, 6, 6], the flat index of
+    each element matrix entry (-1 above the diagonal, which the band omits); diagonal [2N], that
+    of each DOF's diagonal entry. One per mesh (SolidModel.newton_band)."""
 
     layout: BandLayout
     slot: np.ndarray
@@ -63,12 +63,8 @@ class NewtonBand:
     def of(cls, pattern: CscPattern) -> NewtonBand:
         layout = BandLayout.of(pattern.indptr, pattern.indices)
         flat = np.full(len(pattern.indices), -1)
-        flat[layout.lower] = layout.column * (layout.width + 1) + layout.offset
+        flat[layout.lower] = layout.column * layout.cols + layout.offset
         return cls(layout, flat[pattern.slot].reshape(-1, 6, 6), flat[pattern.diagonal])
-
-    def empty(self, B: int) -> np.ndarray:
-        """Room for B factors, [B, n, w + 1]."""
-        return np.empty((B, len(self.layout.perm), self.layout.width + 1))
 
 
 @dataclass(frozen=True)

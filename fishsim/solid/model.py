@@ -138,7 +138,7 @@ class SolidModel:
 
     @functools.cached_property
     def pack_band(self) -> PackBand:
-        """The Newton band of the lane-packed solver (packed.py; built on first use)."""
+        """The Newton band of the compiled solver's packs (packed.py; built on first use)."""
         return PackBand(self.newton_band, self.mass_diag)
 
     @property

@@ -5,7 +5,7 @@
   under strong compression), factorised at the start of a step and reused by later steps until
   one needs more than options.refresh_iterations iterations (kept in the SolverCache; the batch size
   changing rebuilds them). The batch's factors are assembled and factorised in parallel over
-  the samples, straight into their bands (kernels.newton_factors). It follows the body's local
+  the samples, straight into their bands (packed.factor, packs of width 1). It follows the body's local
   rotations, which the two fixed matrices below cannot. The exact Hessian, where positive
   definite, saves ~1.2 of ~12 L-BFGS iterations per step on the default fish over the
   projected one.
@@ -27,9 +27,10 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from fishsim.linalg.banded import BandedCholesky, lu_factor, spd_factor
-from fishsim.solid import elastic, kernels
+from fishsim.linalg.banded import BandedCholesky, spd_factor
+from fishsim.solid import elastic, packed
 from fishsim.solid.model import SolidModel, SolverCache
+from fishsim.solid.packed import aligned_empty, kernel_arrays
 
 _CACHE_SIZE = 64
 
@@ -114,96 +115,81 @@ class Preconditioner:
         return lu.solve(R.reshape(2 * N, B)).reshape(N, 2 * B)
 
 
-def newton_factors(model: SolidModel, p: elastic.Projections, samples: np.ndarray, L: np.ndarray,
-                   projected: bool = False) -> np.ndarray:
-    """Banded Cholesky factors of the samples' Newton matrices (exact, or `projected`) at the
-    projections p, written to L[b] ([B, n, w + 1], model.newton_band's layout) in parallel over
-    the samples. Returns ok [B]: the matrix was positive definite (False also for samples not
-    factorised). Models without the volume term only (compiled element matrices)."""
-    band, ok = model.newton_band, np.zeros(len(L), bool)
-    kernels.newton_factors(elastic.newton_kernel_arrays(model, p), projected, band.slot, band.diagonal,
-                           model.mass_diag, np.asarray(samples, np.int64), L, ok)
-    return ok
-
-
 class LaggedFactors:
     """The lagged Newton factors of a batch of B samples, kept between steps (SolverCache.lagged):
-    banded factors L [B, n, w + 1] where `banded`, else a SuperLU object in `other` (models
-    with the volume term, or a projected matrix that failed Cholesky);
-    `valid` [B] False marks samples to refactorise at the next step's start; `iterations` [B]
-    the last step's L-BFGS iterations (the next step's cost estimate)."""
+    banded factors L [B, rows, w + 4, 1] (packed.PackBand's layout, packs of width 1) where
+    ok [B, 1] is 1.0, else a factorisation in `other` (models with the volume term, or a
+    sample whose banded Cholesky failed); `valid` [B] False marks samples to refactorise at the
+    next step's start; `iterations` [B] the last step's L-BFGS iterations (the next step's cost
+    estimate)."""
 
     def __init__(self, model: SolidModel, B: int):
-        self.L = None if model.material.volume_term else model.newton_band.empty(B)
-        self.banded = np.zeros(B, bool)
+        band = model.pack_band
+        self.L = None if model.material.volume_term else aligned_empty((B, band.rows, band.width, 1))
+        self.ok = np.zeros((B, 1))
         self.valid = np.zeros(B, bool)
         self.other: dict[int, object] = {}
         self.iterations = np.zeros(B, np.int64)
 
+    @property
+    def banded(self) -> np.ndarray:
+        """[B] bool: the sample's factor is in L."""
+        return self.ok[:, 0] > 0
+
     def refactorise(self, model: SolidModel, X: np.ndarray, contraction: np.ndarray, E: np.ndarray) -> None:
         """Factorise the Newton matrix at positions X [B, N, 2] of every invalid sample: the exact
-        one where positive definite, else its positive definite projection."""
+        one where positive definite, else its positive definite projection; compiled into L
+        (packed.factor) on models without the volume term, else (and where that fails) banded
+        Cholesky or sparse LU of the assembled matrix."""
         stale = np.flatnonzero(~self.valid)
         if not len(stale):
             return
-        p = self.forget(model, X, contraction, E, stale)
-        if p.volume is None:                       # compiled: exact, else projected, else LU
-            self.banded |= newton_factors(model, p, stale, self.L)
-            failed = stale[~self.banded[stale]]
-            if len(failed):
-                self.banded |= newton_factors(model, p, failed, self.L, projected=True)
-        else:
-            for b in stale:
-                factor = BandedCholesky.of(elastic.newton_matrix(model, p, int(b)))
-                self.other[int(b)] = factor or spd_factor(elastic.newton_matrix(model, p, int(b), projected=True))
-        self.record(model, p, stale)
-
-    def forget(self, model: SolidModel, X: np.ndarray, contraction: np.ndarray, E: np.ndarray,
-               stale: np.ndarray) -> elastic.Projections:
-        """Drop the factors of the `stale` samples (indices); returns the projections at X
-        [B, N, 2] their new factors are built from."""
-        self.banded[stale] = False
+        self.ok[stale] = 0.0
         for b in stale:
             self.other.pop(int(b), None)
-        return elastic.projections_at(model, X, contraction, E)
-
-    def record(self, model: SolidModel, p: elastic.Projections, stale: np.ndarray) -> None:
-        """Mark the refactorised `stale` samples valid; those whose Newton matrix (exact and
-        projected) was not banded-Cholesky factorisable get a sparse LU of the projected one."""
-        for b in stale[~self.banded[stale]]:
-            if int(b) not in self.other:
-                self.other[int(b)] = lu_factor(elastic.newton_matrix(model, p, int(b), projected=True))
+        if self.L is not None:
+            packed.factor(np.ascontiguousarray(X, np.float64), kernel_arrays(model, contraction, E),
+                          model.pack_band.arrays, self.L, stale, self.ok)
+        failed = stale[~self.banded[stale]]
+        if len(failed):
+            p = elastic.projections_at(model, X, contraction, E)
+            for b in failed:
+                exact = BandedCholesky.of(elastic.newton_matrix(model, p, int(b)))
+                self.other[int(b)] = exact or spd_factor(elastic.newton_matrix(model, p, int(b), projected=True))
         self.valid[stale] = True
+
+    def refresh(self, model: SolidModel, iterations: np.ndarray) -> None:
+        """Mark samples whose step needed more than refresh_iterations for refactorisation, and
+        keep the step's iterations as the next step's cost estimate."""
+        self.valid &= iterations <= model.options.refresh_iterations
+        self.iterations = iterations.copy()
+
+
+def lagged_factors(model: SolidModel, cache: SolverCache, B: int) -> LaggedFactors:
+    """The cache's lagged factors for a batch of B samples (new, all stale, if it had none for B)."""
+    if cache.lagged is None or len(cache.lagged.valid) != B:
+        cache.lagged = LaggedFactors(model, B)
+    return cache.lagged
 
 
 class LaggedNewton:
-    """r -> K_b^-1 r per sample with the lagged Newton factors of `cache.lagged` (refactorised
-    where stale, unless `refactorise` is False: solve.pd_solve's compiled path factorises
-    inside its kernel); with `active` [B] only those samples are solved (the others are 0)."""
+    """r -> K_b^-1 r per sample with the lagged Newton factors of `cache.lagged`, refactorised
+    where stale at X [B, N, 2]; with `active` [B] only those samples are solved (the others
+    are 0)."""
 
     def __init__(self, model: SolidModel, cache: SolverCache, X: np.ndarray, contraction: np.ndarray,
-                 E: np.ndarray, refactorise: bool = True):
-        B = len(X)
-        if cache.lagged is None or len(cache.lagged.valid) != B:
-            cache.lagged = LaggedFactors(model, B)
-        self.lagged, self.model = cache.lagged, model
-        if refactorise:
-            self.lagged.refactorise(model, X, contraction, E)
+                 E: np.ndarray):
+        self.lagged, self.model = lagged_factors(model, cache, len(X)), model
+        self.lagged.refactorise(model, X, contraction, E)
 
     def __call__(self, R: np.ndarray, active: np.ndarray | None = None) -> np.ndarray:
         R = np.ascontiguousarray(R, dtype=np.float64)
         samples = np.arange(len(R)) if active is None else np.flatnonzero(active)
-        lagged, layout = self.lagged, self.model.newton_band.layout
+        lagged = self.lagged
         Z = np.zeros(R.shape)
         banded = samples[lagged.banded[samples]]
         if len(banded):
-            kernels.solve_samples(lagged.L, layout.perm, layout.inverse, R, banded, Z)
+            packed.solve(lagged.L, self.model.pack_band.arrays, R, banded, Z)
         for b in samples[~lagged.banded[samples]]:
             Z[b] = lagged.other[int(b)].solve(R[b].reshape(-1)).reshape(-1, 2)
         return Z
-
-    def refresh(self, iterations: np.ndarray) -> None:
-        """Mark samples whose step needed more than refresh_iterations for refactorisation, and
-        keep the step's iterations as the next step's cost estimate."""
-        self.lagged.valid &= iterations <= self.model.options.refresh_iterations
-        self.lagged.iterations = iterations.copy()

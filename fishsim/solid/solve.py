@@ -9,23 +9,23 @@ by L-BFGS (DiffPD's solver) with a prefactorised initial inverse Hessian (precon
 lagged Newton matrix by default; the rotated rest-shape Newton matrix; or DiffPD's PD matrix
 A(E), with which the first iteration is exactly one local-global step), Armijo backtracking,
 until the residual's largest nodal norm is <= atol. With the default preconditioner on models
-without the volume term the whole solve is compiled: from PACK_MIN samples on, eight samples per
-pack in the SIMD lanes, in lock step, each with the Newton matrix factorised afresh at the
-step's start (packed.lbfgs_packs); below that, one sample per thread with its lagged factor
-(kernels.lbfgs_samples). Otherwise the batched numpy iteration (_lbfgs) runs, with the
-objective and two-loop recursion compiled where possible. All take the same steps for the same
-H0 up to the dot products' round-off. The net residual sum_i g_i
+without the volume term the whole solve is compiled (packed.lbfgs, one code for both widths):
+from PACK_MIN samples on, eight samples per pack in the SIMD lanes, in lock step, each with the
+Newton matrix factorised afresh at the step's start; below that, one sample per thread with its
+lagged factor. Otherwise the batched numpy iteration (_lbfgs) runs, with the objective and
+two-loop recursion compiled where possible. All take the same steps for the same H0 up to the
+dot products' round-off. The net residual sum_i g_i
 is then removed by a rigid translation of q+ (exact: f_int is translation invariant), so linear
 momentum is conserved to round-off whatever atol is.
 
 Adjoint: (A - dA) x = b with A - dA = M/h^2 - df_int/dq, the Newton matrix at q+ (symmetric,
 indefinite only under strong compression): by default a direct solve per sample of the assembled
-2N x 2N matrix (banded Cholesky, eight samples per pack from PACK_MIN on; sparse LU if
-indefinite); or ('auto' / 'pcg') batched CG
+2N x 2N matrix (packed.newton_solve: banded Cholesky, eight samples per pack from PACK_MIN on;
+sparse LU if indefinite); or ('auto' / 'pcg') batched CG
 preconditioned with the rotated rest-shape Newton matrix, direct for samples where CG fails.
 
-Layout: nodal vectors are [B, N, 2] arrays, one sample contiguous (the compiled kernels work on
-one sample at a time, in parallel over the batch); elastic.py's operators take the [N, 2B]
+Layout: nodal vectors are [B, N, 2] arrays, one sample contiguous (packed.py's packs of width 1
+as they are; to_packs deals them into packs of eight); elastic.py's operators take the [N, 2B]
 column layout (elastic.to_columns), which the numpy paths convert to at their boundaries.
 """
 
@@ -42,7 +42,8 @@ from fishsim.linalg.banded import lu_factor, spd_factor
 from fishsim.linalg.pcg import pcg
 from fishsim.solid import elastic, kernels, packed
 from fishsim.solid.model import SolidModel, SolverCache
-from fishsim.solid.preconditioner import LaggedNewton, Preconditioner, newton_factors
+from fishsim.solid.packed import LANES, kernel_arrays
+from fishsim.solid.preconditioner import LaggedNewton, Preconditioner, lagged_factors
 
 
 @dataclass(frozen=True)
@@ -72,7 +73,7 @@ def max_nodal_norm(g: np.ndarray) -> np.ndarray:
 
 class Objective:
     """Phi and grad Phi of one step for a batch (y [B, N, 2], contraction [n_act, B], E [B]): the
-    compiled kernels.objective, or the numpy local step for models with the volume term."""
+    compiled packed.objective, or the numpy local step for models with the volume term."""
 
     def __init__(self, model: SolidModel, Y: np.ndarray, contraction: np.ndarray, E: np.ndarray):
         self.model, self.Y, self.contraction, self.E = model, Y, contraction, E
@@ -88,21 +89,15 @@ class Objective:
         if self.fused:
             g = np.empty_like(X)
             which = np.arange(len(self.E)) if samples is None else np.flatnonzero(samples)
-            phi = kernels.objective(X, self.Y, self.kernel_arrays, which, g)
-            return phi, g
+            phi = np.zeros((len(X), 1))
+            packed.objective(X, self.Y, self.kernel_arrays, which, g, phi)
+            return phi[:, 0], g
         Xc = elastic.to_columns(X)
         p = elastic.project(model, elastic.deformation_gradients(model, Xc), self.contraction, self.E)
         energy, S = elastic.energy_and_stress(model, p)
         MD = model.mass_h2[None, :, None] * (X - self.Y)
         grad = MD + elastic.from_columns(model.fem.G.T @ S.reshape(-1, Xc.shape[1]))
         return sample_dot(X - self.Y, MD) / 2 + energy, grad
-
-
-def kernel_arrays(model: SolidModel, contraction: np.ndarray, E: np.ndarray) -> tuple:
-    """The arrays kernels.objective takes (its phi_args) for contraction [n_act, B] and E [B]."""
-    w_corotated = np.ascontiguousarray(np.outer(model.fem.area * model.material.corotated_per_E, E))
-    return (model.mass_h2, model.mesh_triangles, model.fem.grad, w_corotated, model.muscle_of, model.muscle_weight,
-            np.ascontiguousarray(1.0 - contraction))
 
 
 class History:
@@ -151,29 +146,21 @@ def pd_solve(model: SolidModel, Y: np.ndarray, X0: np.ndarray, contraction: np.n
     Returns (X [B, N, 2], ForwardInfo). The preconditioner is built only if some sample needs an
     iteration (a start that is already converged, e.g. a checkpoint recomputation's, costs one
     residual evaluation). On models without the volume term, with the default preconditioner,
-    the samples run their whole solve compiled: in packs from PACK_MIN samples on
-    (_solve_packed), else per sample (_solve_compiled), which also takes any sample whose Newton
-    matrix neither the packs nor it could factorise by banded Cholesky to the batched numpy
-    iteration (_lbfgs)."""
+    the samples run their whole solve compiled (_solve_compiled); a sample whose Newton matrix
+    has no banded Cholesky factor goes to the batched numpy iteration (_lbfgs) with a sparse LU."""
     opts = model.options
     objective = Objective(model, Y, contraction, E)
     X = X0.copy()
     phi, g = objective(X)
     iterations = np.zeros(len(X), np.int64)
     need = max_nodal_norm(g) > opts.atol
-    compiled = objective.fused and opts.preconditioner == "lagged_newton"
-    if compiled and need.sum() >= PACK_MIN:
-        need = need & ~_solve_packed(objective, X, g, need, iterations)
+    lagged = opts.preconditioner == "lagged_newton"
+    if objective.fused and lagged and need.any():
+        need = need & ~_solve_compiled(objective, cache, X, g, need, iterations)
     if need.any():
-        if compiled:
-            precondition = _solve_compiled(objective, cache, X0, X, g, need, iterations)
-            rest = need & ~precondition.lagged.banded
-        else:
-            precondition, rest = _preconditioner(model, cache, X0, contraction, E), need
-        if rest.any():
-            X, g = _lbfgs(objective, precondition, X, phi, g, rest, iterations)
-        if isinstance(precondition, LaggedNewton):
-            precondition.refresh(iterations)
+        X, g = _lbfgs(objective, _preconditioner(model, cache, X0, contraction, E), X, phi, g, need, iterations)
+    if lagged and cache.lagged is not None:
+        cache.lagged.refresh(model, iterations)
     X, g = _remove_net_residual(model, X, g)
     residual = max_nodal_norm(g)
     converged = residual <= opts.atol
@@ -192,10 +179,10 @@ PACK_MIN = 4
 def packs_of(samples: np.ndarray) -> np.ndarray:
     """The samples (indices) dealt into packs [P, LANES] in order, the last pack padded with
     copies of its last sample (their results are the same and are dropped)."""
-    P = -(-len(samples) // packed.LANES)
-    lanes = np.full(P * packed.LANES, samples[-1], np.int64)
+    P = -(-len(samples) // LANES)
+    lanes = np.full(P * LANES, samples[-1], np.int64)
     lanes[:len(samples)] = samples
-    return lanes.reshape(P, packed.LANES)
+    return lanes.reshape(P, LANES)
 
 
 def to_packs(a: np.ndarray, lanes: np.ndarray) -> np.ndarray:
@@ -208,57 +195,48 @@ def from_packs(a: np.ndarray, lanes: np.ndarray, out: np.ndarray) -> None:
     out[lanes] = np.moveaxis(a, -1, 1)
 
 
-def pack_arrays(objective_arrays: tuple, lanes: np.ndarray) -> tuple:
-    """kernels.objective's arrays with the per-sample ones (w_corotated, stretch: [., B]) packed
+def pack_arrays(arrays: tuple, lanes: np.ndarray) -> tuple:
+    """packed.kernel_arrays' per-sample arrays (w_corotated, stretch: [B, .]) dealt into packs
     [P, ., LANES]."""
-    mass_h2, triangles, grad, w_corotated, muscle_of, w_muscle, stretch = objective_arrays
-    return (mass_h2, triangles, grad, to_packs(w_corotated.T, lanes), muscle_of, w_muscle, to_packs(stretch.T, lanes))
+    mass_h2, triangles, grad, w_corotated, muscle_of, w_muscle, stretch = arrays
+    return (mass_h2, triangles, grad, to_packs(w_corotated, lanes), muscle_of, w_muscle, to_packs(stretch, lanes))
 
 
-def _solve_packed(objective: Objective, X: np.ndarray, g: np.ndarray, need: np.ndarray,
-                  iterations: np.ndarray) -> np.ndarray:
-    """The `need` [B] samples' whole forward solves in lanes of packs (packed.lbfgs_packs: the
-    Newton matrix factorised at the start X, then L-BFGS in lock step), in place on X, g and
-    iterations. Returns the [B] mask of samples solved (those whose exact and projected Newton
-    matrices were both indefinite are left to the other paths)."""
+def _solve_compiled(objective: Objective, cache: SolverCache, X: np.ndarray, g: np.ndarray, need: np.ndarray,
+                    iterations: np.ndarray) -> np.ndarray:
+    """The `need` [B] samples' whole forward solves compiled (packed.lbfgs), in place on X, g
+    and iterations: from PACK_MIN samples on in packs of eight lanes, each lane's Newton matrix
+    factorised at the start X; below that one sample per thread, with its lagged factor
+    (cache.lagged), refactorised only where stale. Returns the [B] mask of samples solved; the
+    others (neither their exact nor their projected Newton matrix banded-Cholesky factorisable)
+    have not moved, and are marked for the numpy iteration's sparse LU."""
     model, opts = objective.model, objective.model.options
-    lanes = packs_of(np.flatnonzero(need))
-    band = model.pack_band
-    Xp, gp = to_packs(X, lanes), np.empty((len(lanes), *X.shape[1:], packed.LANES))
-    its, ok = np.zeros(lanes.shape), np.zeros(lanes.shape, bool)
-    packed.lbfgs_packs(Xp, to_packs(objective.Y, lanes), pack_arrays(objective.kernel_arrays, lanes), band.arrays,
-                       band.empty(len(lanes)), opts.atol, opts.max_iter, opts.history, gp, its, ok)
-    from_packs(Xp, lanes, X)                          # lanes not solved have not moved
-    from_packs(gp, lanes, g)
-    iterations[lanes] = its
-    solved = np.zeros(len(X), bool)
-    solved[lanes[ok]] = True
+    samples, band, B = np.flatnonzero(need), model.pack_band, len(X)
+    solved = np.zeros(B, bool)
+    if len(samples) >= PACK_MIN:
+        lanes = packs_of(samples)
+        P = len(lanes)
+        Xp, gp = to_packs(X, lanes), np.empty((P, *X.shape[1:], LANES))
+        its, ok = np.zeros(lanes.shape), np.zeros(lanes.shape)
+        packed.lbfgs(Xp, to_packs(objective.Y, lanes), pack_arrays(objective.kernel_arrays, lanes), band.arrays,
+                     band.empty(P), np.ones(P, bool), np.arange(P), opts.atol, opts.max_iter, opts.history, gp, its, ok)
+        from_packs(Xp, lanes, X)                          # lanes not solved have not moved
+        from_packs(gp, lanes, g)
+        iterations[lanes] = its
+        solved[lanes[ok > 0]] = True
+    else:
+        lagged = lagged_factors(model, cache, B)
+        stale = need & ~lagged.valid
+        its = np.zeros((B, 1))
+        order = balanced_order(samples, (lagged.iterations + _FACTOR_COST * stale)[need], numba.get_num_threads())
+        packed.lbfgs(X, objective.Y, objective.kernel_arrays, band.arrays, lagged.L, stale, order, opts.atol,
+                     opts.max_iter, opts.history, g, its, lagged.ok)
+        lagged.valid |= stale
+        iterations[samples] = its[samples, 0]
+        solved = need & lagged.banded
+    if (need & ~solved).any():
+        lagged_factors(model, cache, B).valid[need & ~solved] = False
     return solved
-
-
-def _solve_compiled(objective: Objective, cache: SolverCache, X0: np.ndarray, X: np.ndarray, g: np.ndarray,
-                    need: np.ndarray, iterations: np.ndarray) -> LaggedNewton:
-    """kernels.lbfgs_samples on the `need` [B] samples, in place on X, g and iterations: each
-    sample's stale lagged Newton factor is rebuilt at X0 and its whole L-BFGS solve run compiled,
-    in parallel over the samples. Returns the lagged Newton preconditioner, whose `banded` [B]
-    marks the samples solved (the others, whose Newton matrix was not banded-Cholesky
-    factorisable, now have a sparse LU for the numpy iteration)."""
-    model, opts = objective.model, objective.model.options
-    precondition = LaggedNewton(model, cache, X0, objective.contraction, objective.E, refactorise=False)
-    lagged = precondition.lagged
-    rebuild = need & ~lagged.valid
-    stale = np.flatnonzero(rebuild)
-    p = lagged.forget(model, X0, objective.contraction, objective.E, stale) if len(stale) else None
-    band = model.newton_band
-    samples = balanced_order(np.flatnonzero(need), (lagged.iterations + _FACTOR_COST * rebuild)[need],
-                             numba.get_num_threads())
-    kernels.lbfgs_samples(X, objective.Y, objective.kernel_arrays, lagged.L, band.layout.perm, band.layout.inverse,
-                          elastic.newton_kernel_arrays(model, p) if p is not None else _no_projections(model),
-                          band.slot, band.diagonal, model.mass_diag, rebuild, lagged.banded,
-                          opts.atol, opts.max_iter, opts.history, samples, g, iterations)
-    if p is not None:
-        lagged.record(model, p, stale)
-    return precondition
 
 
 # A Newton factorisation's cost in L-BFGS iterations (default fish: ~1 ms against ~0.2 ms).
@@ -274,13 +252,6 @@ def balanced_order(samples: np.ndarray, cost: np.ndarray, threads: int) -> np.nd
         lap, seat = divmod(rank, threads)
         chunks[seat if lap % 2 == 0 else threads - 1 - seat].append(samples[k])
     return np.array([s for chunk in chunks for s in chunk], np.int64)
-
-
-def _no_projections(model: SolidModel) -> tuple:
-    """Stand-in for elastic.newton_kernel_arrays when no factor is rebuilt (same types, empty)."""
-    empty = np.zeros((0, 0))
-    return (empty, empty, empty, empty, model.muscle_of, model.muscle_weight, empty, empty, empty, empty,
-            model.fem.grad)
 
 
 def _lbfgs(objective: Objective, precondition, X: np.ndarray, phi: np.ndarray, g: np.ndarray,
@@ -404,18 +375,18 @@ def _direct_solve(model: SolidModel, X: np.ndarray, contraction: np.ndarray, E: 
 def _banded_solve(model: SolidModel, X: np.ndarray, contraction: np.ndarray, E: np.ndarray, b: np.ndarray,
                   samples: np.ndarray, x: np.ndarray) -> np.ndarray:
     """x[s] = K_s^-1 b[s] for the samples whose Newton matrix K_s is positive definite, assembled,
-    factorised and solved by banded Cholesky in parallel over the samples (from PACK_MIN
-    samples on, eight per pack: packed.newton_solve_packs). Returns the samples solved."""
+    factorised and solved by banded Cholesky in parallel over the samples (packed.newton_solve;
+    from PACK_MIN samples on, eight per pack). Returns the samples solved."""
+    arrays, band = kernel_arrays(model, contraction, E), model.pack_band
     if len(samples) >= PACK_MIN:
-        lanes, band = packs_of(samples), model.pack_band
-        Z, ok = np.empty((len(lanes), *b.shape[1:], packed.LANES)), np.zeros(lanes.shape, bool)
-        packed.newton_solve_packs(to_packs(X, lanes), to_packs(b, lanes),
-                                  pack_arrays(kernel_arrays(model, contraction, E), lanes), band.arrays,
-                                  band.empty(len(lanes)), Z, ok)
+        lanes = packs_of(samples)
+        P = len(lanes)
+        Z, ok = np.empty((P, *b.shape[1:], LANES)), np.zeros(lanes.shape)
+        packed.newton_solve(to_packs(X, lanes), to_packs(b, lanes), pack_arrays(arrays, lanes), band.arrays,
+                            band.empty(P), np.arange(P), Z, ok)
         from_packs(Z, lanes, x)
-        return np.unique(lanes[ok])
-    L = model.newton_band.empty(len(b))
-    banded = np.flatnonzero(newton_factors(model, elastic.projections_at(model, X, contraction, E), samples, L))
-    layout = model.newton_band.layout
-    kernels.solve_samples(L, layout.perm, layout.inverse, np.ascontiguousarray(b), banded, x)
-    return banded
+        return np.unique(lanes[ok > 0])
+    ok = np.zeros((len(b), 1))
+    packed.newton_solve(np.ascontiguousarray(X, np.float64), np.ascontiguousarray(b, np.float64), arrays,
+                        band.arrays, band.empty(len(b), 1), samples, x, ok)
+    return samples[ok[samples, 0] > 0]

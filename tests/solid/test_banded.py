@@ -1,15 +1,15 @@
-"""The banded Cholesky of the solid's SPD matrices solves to round-off (per matrix, and batched
-straight from the element matrices), and an indefinite matrix falls back to SuperLU."""
+"""The banded Cholesky of the solid's SPD matrices solves to round-off, an indefinite matrix falls
+back to SuperLU, and the compiled forward solve takes the numpy iteration's steps."""
 
 import numba
 import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from fishsim.linalg.banded import BandedCholesky, band_factor, band_solve, spd_factor
+from fishsim.linalg.banded import BandedCholesky, factor, solve, spd_factor
 from fishsim.mesh import make_fish_mesh
-from fishsim.solid import SolidModel, SolverCache, elastic, kernels
-from fishsim.solid.preconditioner import LaggedNewton, newton_factors, pd_matrix, rest_newton_matrix
+from fishsim.solid import SolidModel, SolverCache, elastic
+from fishsim.solid.preconditioner import LaggedNewton, pd_matrix, rest_newton_matrix
 from fishsim.solid.solve import Objective, _lbfgs, _remove_net_residual, balanced_order, pd_solve
 
 
@@ -33,59 +33,39 @@ def test_indefinite_matrix_falls_back_to_lu():
 
 
 def test_band_kernels_match_dense_cholesky():
-    """band_factor / band_solve on a random SPD band equal numpy's dense Cholesky; a matrix that
-    is not positive definite is reported, not factorised."""
+    """factor / solve (one matrix, width 1) on a random SPD band whose size is not a multiple of
+    the factor's 4-row blocks equal numpy's dense Cholesky (the factor keeps 1 / L_jj on its
+    diagonal); a matrix that is not positive definite is reported, not factorised."""
     rng = np.random.default_rng(1)
-    n, w = 60, 5
+    n, w = 61, 5
     K = np.zeros((n, n))
     for i in range(1, w + 1):
         off = rng.standard_normal(n - i)
         K += np.diag(off, -i) + np.diag(off, i)
     K += np.diag(np.abs(K).sum(1) + 1.0)                       # diagonally dominant: SPD
-    L = np.array([[K[j + i, j] if j + i < n else 0.0 for i in range(w + 1)] for j in range(n)])
-    assert band_factor(L)
+    rows = -(-n // 4) * 4
+    L = np.zeros((rows, w + 4))
+    for j in range(n):
+        for i in range(min(w, n - 1 - j) + 1):
+            L[j, i] = K[j + i, j]
+    L[n:, 0] = 1.0
+    assert factor(L, w, 0.0) == 1.0
     C = np.linalg.cholesky(K)
-    np.testing.assert_allclose([[C[j + i, j] if j + i < n else 0.0 for i in range(w + 1)] for j in range(n)], L,
-                               rtol=0, atol=1e-13 * np.abs(C).max())
+    expected = [[(1 / C[j, j] if i == 0 else C[j + i, j]) if j + i < n else 0.0 for i in range(w + 1)] for j in range(n)]
+    np.testing.assert_allclose(L[:n, :w + 1], expected, rtol=0, atol=1e-13 * np.abs(C).max())
     b = rng.standard_normal(n)
-    x = b.copy()
-    band_solve(L, x)
+    x = np.empty(n)
+    identity = np.arange(n)
+    solve(L, w, identity, identity, b, x, np.empty(n), 0.0)
     np.testing.assert_allclose(K @ x, b, rtol=0, atol=1e-12 * np.abs(b).max())
-    L_bad = L * 0
+    L_bad = np.zeros_like(L)
     L_bad[:, 0] = 1.0
     L_bad[n // 2, 0] = -1.0
-    assert not band_factor(L_bad)
-
-
-def test_batched_newton_factors_equal_per_sample_solves(coarse_mesh):
-    """kernels.newton_factors (assembled straight into the band, factorised in parallel) and
-    kernels.solve_samples solve each sample's assembled Newton matrix, exact and projected; a
-    compressed sample whose exact matrix is indefinite is reported as such."""
-    numba.set_num_threads(min(2, numba.config.NUMBA_NUM_THREADS))     # the parallel path
-    model = SolidModel(coarse_mesh)
-    rng = np.random.default_rng(2)
-    B = 3
-    X = np.repeat(model.mesh.points[None], B, axis=0) + 1e-3 * rng.standard_normal((B, model.n_nodes, 2))
-    X[2] *= [0.5, 1.0]                                         # strongly compressed along the body
-    p = elastic.project(model, elastic.deformation_gradients(model, elastic.to_columns(X)),
-                        rng.uniform(0, 0.3, (model.n_muscles, B)), np.array([6e5, 3e5, 6e5]))
-    R = rng.standard_normal(X.shape)
-    layout = model.newton_band.layout
-    for projected in (False, True):
-        L = model.newton_band.empty(B)
-        ok = newton_factors(model, p, np.arange(B), L, projected)
-        Z = np.zeros_like(R)
-        kernels.solve_samples(L, layout.perm, layout.inverse, R, np.flatnonzero(ok), Z)
-        for b in range(B):
-            K = elastic.newton_matrix(model, p, b, projected)
-            assert ok[b] == (np.linalg.eigvalsh(K.toarray()).min() > 0)
-            if ok[b]:
-                np.testing.assert_allclose(K @ Z[b].ravel(), R[b].ravel(), rtol=0, atol=1e-9 * np.abs(R[b]).max())
-        assert ok.all() if projected else not ok[2]
+    assert factor(L_bad, w, 0.0) == 0.0
 
 
 def test_compiled_forward_equals_the_numpy_iteration(coarse_mesh):
-    """solve.pd_solve's compiled path (factor and whole L-BFGS per sample, kernels.lbfgs_samples)
+    """solve.pd_solve's compiled path (factor and whole L-BFGS per sample, packed.lbfgs at width 1)
     takes the numpy iteration's steps (solve._lbfgs with the same lagged Newton H0): the same
     iteration counts (+-1 for round-off at the stopping test) and q+, for a batch with a compressed
     sample whose exact Newton matrix is indefinite (projected factor inside the kernel)."""
@@ -98,7 +78,7 @@ def test_compiled_forward_equals_the_numpy_iteration(coarse_mesh):
     Y = X0 + 2e-4 * rng.standard_normal(X0.shape)
     contraction, E = rng.uniform(0, 0.3, (model.n_muscles, B)), np.array([6e5, 3e5, 6e5])
     p = elastic.project(model, elastic.deformation_gradients(model, elastic.to_columns(X0)), contraction, E)
-    assert not newton_factors(model, p, np.arange(B), model.newton_band.empty(B))[2]   # indefinite
+    assert np.linalg.eigvalsh(elastic.newton_matrix(model, p, 2).toarray()).min() < 0     # indefinite
     cache = SolverCache()
     X, info = pd_solve(model, Y, X0, contraction, E, cache)
     assert info.converged.all() and (info.iterations > 2).all() and cache.lagged.banded.all()

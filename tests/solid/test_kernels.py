@@ -1,4 +1,4 @@
-"""The compiled forward objective (kernels.objective) and adjoint parameter gradients against the
+"""The compiled forward objective (packed.objective) and adjoint parameter gradients against the
 numpy local step they fuse."""
 
 import numpy as np
@@ -50,24 +50,6 @@ def test_fused_objective_of_the_rest_shape_is_pure_muscle(coarse_mesh, B):
     u = np.full((model.n_muscles, B), 0.2)
     phi, _ = Objective(model, X, u, np.full(B, 6e5))(X)
     np.testing.assert_allclose(phi, (model.muscle_weight / 2 * 0.2**2).sum(), rtol=1e-12)
-
-
-@pytest.mark.parametrize("projected", [False, True])
-def test_compiled_newton_matrix_equals_numpy_element_hessians(coarse_mesh, projected):
-    """kernels.newton_elements assembles the same Newton matrix as the numpy element Hessians
-    (stress_differential), exact and projected, for a compressed, rotated sample of a batch."""
-    model = SolidModel(coarse_mesh)
-    rng = np.random.default_rng(1)
-    X = _deformed_batch(model, rng, (0.3, -2.5))
-    X[0, :, 0] *= 0.9                                    # compress sample 0 along x
-    p = elastic.project(model, elastic.deformation_gradients(model, elastic.to_columns(X)), rng.uniform(0, 0.4, (model.n_muscles, 2)),
-                        np.array([6e5, 2e5]))
-    for sample in (0, 1):
-        K = elastic.newton_matrix(model, p, sample, projected).toarray()
-        Ge = model.fem.element_G
-        Ke = Ge.transpose(0, 2, 1) @ elastic.element_hessians(model, p, sample, projected) @ Ge
-        K_ref = model.fem.pattern.assemble(Ke, np.repeat(model.mass_h2, 2)).toarray()
-        np.testing.assert_allclose(K, K_ref, rtol=0, atol=1e-12 * np.abs(K_ref).max())
 
 
 def test_compiled_parameter_gradients_equal_the_numpy_formulas(coarse_mesh):

@@ -1,50 +1,72 @@
-"""The lane-packed solver (packed.py: eight samples in the lanes of one SIMD vector) computes what
-the per-sample kernels compute: its vector operations, its Newton factors and solves (with a
-lane whose exact Newton matrix is indefinite), its whole forward solve, a blown-up lane."""
+"""The compiled solver's kernels (packed.py), written once for packs of eight samples in the lanes
+of one SIMD vector and for one sample in plain floats, compute the same at both widths: the
+lane-generic operations, the Newton factors and solves (with a lane whose exact Newton matrix is
+indefinite), the whole forward solve, a blown-up lane."""
 
 import numba
 import numpy as np
 import pytest
 import torch
 
-from fishsim.solid import PDOptions, SolidModel, SolverCache, elastic, kernels, packed, pd_step, rest_state
-from fishsim.solid.muscles import layer_muscles
-from fishsim.solid.preconditioner import newton_factors
-from fishsim.solid.simd import LANES, fma, isnan, lane, splat, vabs, vload, vmax, vsqrt, vstore, where
-from fishsim.solid.solve import (
-    Objective,
-    _remove_net_residual,
-    _solve_compiled,
-    _solve_packed,
-    from_packs,
-    max_nodal_norm,
-    pack_arrays,
-    packs_of,
-    pd_solve,
-    to_packs,
+from fishsim.linalg.simd import (
+    LANES,
+    absolute,
+    fill,
+    lane_value,
+    lanes_set,
+    load,
+    mask,
+    maximum,
+    multiply_add,
+    nan_mask,
+    select,
+    splat,
+    sqrt,
+    store,
+    width,
 )
+from fishsim.solid import PDOptions, SolidModel, SolverCache, elastic, packed, pd_step, rest_state
+from fishsim.solid.muscles import layer_muscles
+from fishsim.solid.packed import kernel_arrays
+from fishsim.solid.solve import Objective, from_packs, pack_arrays, packs_of, pd_solve, to_packs
 
 
 @numba.njit
-def _vector_expression(a, b, out) -> float:
-    for o in range(0, a.size, LANES):
-        x, y = vload(a, o), vload(b, o)
-        z = where(x > y, fma(x, y, 1.0) - x / y, vsqrt(vabs(-y)) * 2.0)
-        z += vmax(x, 0.25) - y / 3.0 + isnan(x / (x - x))
-        vstore(out, o, z)
-    return lane(splat(3.0) <= vload(a, 0), 2)
+def _expression(a, b, out, proto) -> tuple:
+    W = width(proto)
+    for o in range(0, a.size, W):
+        x, y = load(a, o, proto), load(b, o, proto)
+        z = select(mask(x > y), multiply_add(x, y, 1.0) - x / y, sqrt(absolute(-y)) * 2.0)
+        z += maximum(x, 0.25) - y / 3.0 + nan_mask(x / select(mask(x <= 0.0), np.nan, x))
+        store(out, o, z)
+    first = mask(fill(proto, 3.0) <= load(a, 0, proto))
+    return lane_value(first, W - 1), lanes_set(first)
 
 
-def test_vector_operations_match_numpy():
+@numba.njit
+def _wide(a, b, out):
+    return _expression(a, b, out, splat(0.0))
+
+
+@numba.njit
+def _narrow(a, b, out):
+    return _expression(a, b, out, 0.0)
+
+
+def test_lane_generic_operations_match_numpy_at_both_widths():
     rng = np.random.default_rng(0)
-    a, b, out = rng.random((50, LANES)), rng.random((50, LANES)), np.empty((50, LANES))
-    a[0, 3] = 0.0                                              # 0 / 0 in one lane
-    third_lane = _vector_expression(a, b, out)
+    a, b = rng.random((50, LANES)), rng.random((50, LANES))
+    a[0, 3] = 0.0                                              # a NaN in one lane
+    a[0, -1] = 3.5
     with np.errstate(invalid="ignore", divide="ignore"):
         z = np.where(a > b, a * b + 1.0 - a / b, np.sqrt(b) * 2.0)
-        z += np.maximum(a, 0.25) - b / 3.0 + np.isnan(a / (a - a))
+        z += np.maximum(a, 0.25) - b / 3.0 + (a <= 0.0)
+    out = np.empty_like(a)
+    assert _wide(a, b, out) == (1.0, float((3.0 <= a[0]).sum()))
     np.testing.assert_allclose(out, z, rtol=1e-14)
-    assert third_lane == float(3.0 <= a[0, 2])
+    out = np.empty(a.size)
+    assert _narrow(a.ravel(), b.ravel(), out) == (0.0, 0.0)
+    np.testing.assert_allclose(out, z.ravel(), rtol=1e-14)
 
 
 def _batch(model: SolidModel, B: int, seed: int):
@@ -57,54 +79,99 @@ def _batch(model: SolidModel, B: int, seed: int):
     return X0, Y, contraction, E
 
 
-def test_packed_newton_solves_equal_the_per_sample_kernels(coarse_mesh):
-    """newton_solve_packs (assembly from X, left-looking tiled factor, solve) against
-    kernels.newton_factors + solve_samples for 11 samples in 2 packs (the second padded): the
-    same solutions, and the same lanes flagged indefinite (the squashed sample and others)."""
+def _dense(model: SolidModel, L: np.ndarray) -> np.ndarray:
+    """The symmetric [2N, 2N] matrix of one sample's band L [rows, w + 4] (before factorising)."""
+    layout, w = model.newton_band.layout, model.pack_band.w
+    n = len(layout.perm)
+    K = np.zeros((n, n))
+    for i in range(w + 1):
+        j = np.arange(n - i)
+        K[layout.perm[j + i], layout.perm[j]] = K[layout.perm[j], layout.perm[j + i]] = L[j, i]
+    return K
+
+
+@pytest.mark.parametrize("projected", [0.0, 1.0])
+def test_compiled_newton_band_equals_the_numpy_newton_matrix(coarse_mesh, projected):
+    """The compiled assembly of a sample's Newton matrix into its band (packed._newton_band at
+    width 1) equals elastic.newton_matrix (numpy element Hessians), exact and projected, for a
+    compressed sample."""
     model = SolidModel(coarse_mesh)
-    B = 11
-    X0, _, contraction, E = _batch(model, B, seed=5)
-    b = np.random.default_rng(6).standard_normal(X0.shape)
-    p = elastic.project(model, elastic.deformation_gradients(model, elastic.to_columns(X0)), contraction, E)
-    L = model.newton_band.empty(B)
-    ok_ref = newton_factors(model, p, np.arange(B), L)
-    x_ref = np.zeros_like(b)
-    layout = model.newton_band.layout
-    kernels.solve_samples(L, layout.perm, layout.inverse, b, np.flatnonzero(ok_ref), x_ref)
-
-    lanes, band = packs_of(np.arange(B)), model.pack_band
-    arrays = pack_arrays(Objective(model, X0, contraction, E).kernel_arrays, lanes)
-    Z, ok = np.empty((2, *b.shape[1:], LANES)), np.zeros(lanes.shape, bool)
-    packed.newton_solve_packs(to_packs(X0, lanes), to_packs(b, lanes), arrays, band.arrays, band.empty(2), Z, ok)
-    x = np.zeros_like(b)
-    from_packs(Z, lanes, x)
-    ok_packed = np.zeros(B, bool)
-    ok_packed[lanes[ok]] = True
-    assert ok_packed.tolist() == ok_ref.tolist() and 0 < ok_ref.sum() < B and not ok_ref[2]
-    np.testing.assert_allclose(x[ok_ref], x_ref[ok_ref], rtol=0, atol=1e-10 * np.abs(x_ref).max())
+    X0, _, contraction, E = _batch(model, 3, seed=1)
+    arrays, band = kernel_arrays(model, contraction, E), model.pack_band
+    p = elastic.projections_at(model, X0, contraction, E)
+    slot, diagonal, diagonal_values = band.arrays[:3]
+    for b in (0, 2):
+        L = np.empty((band.rows, band.width))
+        packed._newton_band(X0[b], arrays[1], arrays[2], arrays[3][b], arrays[4], arrays[5], arrays[6][b], projected,
+                            slot, diagonal, diagonal_values, L, np.empty(16), 0.0)
+        K = elastic.newton_matrix(model, p, b, projected=bool(projected)).toarray()
+        np.testing.assert_allclose(_dense(model, L), K, rtol=0, atol=1e-12 * np.abs(K).max())
 
 
-def test_packed_forward_equals_the_per_sample_compiled_path(coarse_mesh):
-    """_solve_packed (8 lanes in lock step) takes each sample's steps of _solve_compiled with a
-    fresh Newton factor at the start (both: exact, else projected for the squashed sample): the
-    same iterations (+-1 for round-off at the stopping test) and q+, for 6 samples in one padded
-    pack with different E and contractions."""
+def test_factors_take_the_exact_newton_matrix_where_it_is_positive_definite(coarse_mesh):
+    """packed.factor + packed.solve (width 1, in parallel over the samples) solve each sample's
+    exact Newton matrix where it is positive definite and the projected one where it is not (the
+    squashed sample); packed.newton_solve (the adjoint's, exact only) flags that sample."""
     numba.set_num_threads(min(2, numba.config.NUMBA_NUM_THREADS))
     model = SolidModel(coarse_mesh)
-    B = 6
-    X0, Y, contraction, E = _batch(model, B, seed=3)
-    objective = Objective(model, Y, contraction, E)
-    _, g0 = objective(X0.copy())
-    need = np.ones(B, bool)
-    results = []
-    for solve in (_solve_packed, lambda *args: _solve_compiled(objective, SolverCache(), X0, *args[1:])):
-        X, g, iterations = X0.copy(), g0.copy(), np.zeros(B, np.int64)
-        solve(objective, X, g, need, iterations)
-        results.append((_remove_net_residual(model, X, g)[0], iterations, max_nodal_norm(g)))
-    (X, iterations, residual), (X_ref, iterations_ref, residual_ref) = results
-    assert (residual <= model.options.atol).all() and (residual_ref <= model.options.atol).all()
-    assert (iterations > 2).all() and np.abs(iterations - iterations_ref).max() <= 1
-    np.testing.assert_allclose(X, X_ref, rtol=0, atol=1e-7)
+    B = 3
+    X0, _, contraction, E = _batch(model, B, seed=2)
+    R = np.random.default_rng(2).standard_normal(X0.shape)
+    arrays, band = kernel_arrays(model, contraction, E), model.pack_band
+    L, ok, Z = band.empty(B, 1), np.zeros((B, 1)), np.zeros_like(R)
+    packed.factor(X0, arrays, band.arrays, L, np.arange(B), ok)
+    packed.solve(L, band.arrays, R, np.arange(B), Z)
+    p = elastic.projections_at(model, X0, contraction, E)
+    definite = [np.linalg.eigvalsh(elastic.newton_matrix(model, p, b).toarray()).min() > 0 for b in range(B)]
+    assert not definite[2] and any(definite) and ok.all()
+    for b in range(B):
+        K = elastic.newton_matrix(model, p, b, projected=not definite[b])
+        np.testing.assert_allclose(K @ Z[b].ravel(), R[b].ravel(), rtol=0, atol=1e-9 * np.abs(R[b]).max())
+    ok_exact, Z_exact = np.zeros((B, 1)), np.zeros_like(R)
+    packed.newton_solve(X0, R, arrays, band.arrays, band.empty(B, 1), np.arange(B), Z_exact, ok_exact)
+    assert (ok_exact[:, 0] > 0).tolist() == definite
+    np.testing.assert_allclose(Z_exact[definite], Z[definite], rtol=0, atol=1e-12 * np.abs(Z).max())
+
+
+def test_packs_of_eight_equal_single_samples(coarse_mesh):
+    """At width 8 (11 samples in 2 packs, the second padded) the kernels give what they give one
+    sample at a time: the adjoint's direct solves with the same lanes flagged indefinite, and
+    the whole forward solve from a fresh factor (the same iterations, +-1 for round-off at the
+    stopping test, and q+)."""
+    numba.set_num_threads(min(2, numba.config.NUMBA_NUM_THREADS))
+    model = SolidModel(coarse_mesh)
+    B = 11
+    X0, Y, contraction, E = _batch(model, B, seed=5)
+    R = np.random.default_rng(6).standard_normal(X0.shape)
+    arrays, band, lanes = kernel_arrays(model, contraction, E), model.pack_band, packs_of(np.arange(B))
+    wide = pack_arrays(arrays, lanes)
+    x_ref, ok_ref = np.zeros_like(R), np.zeros((B, 1))
+    packed.newton_solve(X0, R, arrays, band.arrays, band.empty(B, 1), np.arange(B), x_ref, ok_ref)
+    Z, ok = np.empty((2, *R.shape[1:], LANES)), np.zeros(lanes.shape)
+    packed.newton_solve(to_packs(X0, lanes), to_packs(R, lanes), wide, band.arrays, band.empty(2), np.arange(2), Z, ok)
+    x = np.zeros_like(R)
+    from_packs(Z, lanes, x)
+    ok_wide = np.zeros(B)
+    ok_wide[lanes[ok > 0]] = 1.0
+    assert ok_wide.tolist() == ok_ref[:, 0].tolist() and ok_ref[2, 0] == 0.0
+    good = ok_ref[:, 0] > 0
+    np.testing.assert_allclose(x[good], x_ref[good], rtol=0, atol=1e-10 * np.abs(x_ref[good]).max())
+
+    opts = model.options
+    _, g = Objective(model, Y, contraction, E)(X0.copy())
+    X1, g1, its1, ok1 = X0.copy(), g.copy(), np.zeros((B, 1)), np.zeros((B, 1))
+    packed.lbfgs(X1, Y, arrays, band.arrays, np.zeros((B, band.rows, band.width, 1)), np.ones(B, bool),
+                 np.arange(B), opts.atol, opts.max_iter, opts.history, g1, its1, ok1)
+    Xp, gp = to_packs(X0, lanes), to_packs(g, lanes)
+    its8, ok8 = np.zeros(lanes.shape), np.zeros(lanes.shape)
+    packed.lbfgs(Xp, to_packs(Y, lanes), wide, band.arrays, band.empty(2), np.ones(2, bool), np.arange(2),
+                 opts.atol, opts.max_iter, opts.history, gp, its8, ok8)
+    X8, iterations8 = np.zeros_like(X0), np.zeros(B)
+    from_packs(Xp, lanes, X8)
+    iterations8[lanes] = its8
+    assert ok1.all() and ok8.all() and (its1 > 2).all()
+    assert np.abs(iterations8 - its1[:, 0]).max() <= 1
+    np.testing.assert_allclose(X8, X1, rtol=0, atol=1e-7)
 
 
 def test_packed_forward_stops_a_blown_up_lane(coarse_mesh):

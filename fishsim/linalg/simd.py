@@ -48,11 +48,13 @@ def _is_f64_array(a) -> bool:
     return isinstance(a, types.Array) and a.dtype == types.float64 and a.layout == "C"
 
 
-def _element_pointer(context, builder, array_type, array, index_type, index):
-    """Pointer to flat element `index` of a C-contiguous array, as a <8 x double>*."""
+def _element_pointer(context, builder, array_type, array, index_type, index, vector=True):
+    """Pointer to flat element `index` of a C-contiguous array, as a <8 x double>* (`vector`)
+    or a double*."""
     data = context.make_array(array_type)(context, builder, array).data
     offset = context.cast(builder, index, index_type, types.intp)
-    return builder.bitcast(builder.gep(data, [offset]), _VEC.as_pointer())
+    pointer = builder.gep(data, [offset])
+    return builder.bitcast(pointer, _VEC.as_pointer()) if vector else pointer
 
 
 @intrinsic
@@ -285,3 +287,135 @@ def _select(mask, a, b):
     if isinstance(mask, Vec):
         return lambda mask, a, b: where(mask, a, b)
     return lambda mask, a, b: a if mask else b
+
+
+# ---------------------------------------------------------------------------------------------
+# Lane-generic operations: code written with them (and the operators) compiles for a pack of
+# width 1 (one sample, floats) and of width LANES (Vecs), chosen by a prototype value `proto`
+# (0.0 or a Vec) the caller passes down. A lane mask is 1.0 / 0.0 per lane (a float at width 1;
+# `mask` turns a comparison's bool into one).
+
+
+def width(proto) -> int:
+    """Lanes of a pack whose values are like proto: 1 (a float) or LANES (a Vec)."""
+    return 1
+
+
+@overload(width)
+def _width(proto):
+    if isinstance(proto, Vec):
+        return lambda proto: LANES
+    return lambda proto: 1
+
+
+def fill(proto, x):
+    """x in every lane, as proto's type (float(x) or splat(x))."""
+    return float(x)
+
+
+@overload(fill)
+def _fill(proto, x):
+    if isinstance(proto, Vec):
+        return lambda proto, x: splat(x)
+    return lambda proto, x: float(x)
+
+
+@intrinsic
+def load(typingctx, a, i, proto):
+    """a.flat[i:i + width(proto)] of a C-contiguous float64 array as proto's type (no bounds
+    check)."""
+    if not (_is_f64_array(a) and isinstance(i, types.Integer)):
+        return None
+    wide = isinstance(proto, Vec)
+
+    def codegen(context, builder, sig, args):
+        pointer = _element_pointer(context, builder, sig.args[0], args[0], sig.args[1], args[1], wide)
+        return builder.load(pointer, align=8)
+    return (vec if wide else types.float64)(a, i, proto), codegen
+
+
+@intrinsic
+def store(typingctx, a, i, v):
+    """a.flat[i:i + width] = v, a Vec or a float (no bounds check)."""
+    if not (_is_f64_array(a) and isinstance(i, types.Integer) and isinstance(v, (Vec, types.Float))):
+        return None
+    wide = isinstance(v, Vec)
+
+    def codegen(context, builder, sig, args):
+        value = args[2] if wide else context.cast(builder, args[2], sig.args[2], types.float64)
+        builder.store(value, _element_pointer(context, builder, sig.args[0], args[0], sig.args[1], args[1], wide),
+                      align=8)
+        return context.get_dummy_value()
+    return types.none(a, i, v), codegen
+
+
+def mask(condition):
+    """A lane mask from a comparison: a bool -> 1.0 / 0.0; a Vec mask stays as it is."""
+    return 1.0 if condition else 0.0
+
+
+@overload(mask)
+def _mask(condition):
+    if isinstance(condition, Vec):
+        return lambda condition: condition
+    return lambda condition: 1.0 if condition else 0.0
+
+
+def lanes_set(m) -> float:
+    """Number of lanes set in a lane mask."""
+    return m
+
+
+@overload(lanes_set)
+def _lanes_set(m):
+    if isinstance(m, Vec):
+        return lambda m: count(m)
+    return lambda m: m
+
+
+def lane_value(v, k: int) -> float:
+    """Lane k of v (a float is its own lane 0)."""
+    return v
+
+
+@overload(lane_value)
+def _lane_value(v, k):
+    if isinstance(v, Vec):
+        return lambda v, k: lane(v, k)
+    return lambda v, k: v
+
+
+def multiply_add(a, b, c):
+    """a b + c per lane."""
+    return a * b + c
+
+
+@overload(multiply_add)
+def _multiply_add(a, b, c):
+    if _involves_vec(a, b, c):
+        return lambda a, b, c: fma(a, b, c)
+    return lambda a, b, c: a * b + c
+
+
+def nan_mask(x):
+    """Lane mask: 1.0 where x is NaN."""
+    return 1.0 if math.isnan(x) else 0.0
+
+
+@overload(nan_mask)
+def _nan_mask(x):
+    if isinstance(x, Vec):
+        return lambda x: isnan(x)
+    return lambda x: 1.0 if math.isnan(x) else 0.0
+
+
+def absolute(x):
+    """|x| per lane."""
+    return abs(x)
+
+
+@overload(absolute)
+def _absolute(x):
+    if isinstance(x, Vec):
+        return lambda x: vabs(x)
+    return lambda x: abs(x)
