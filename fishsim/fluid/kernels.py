@@ -40,7 +40,7 @@ from numba import prange
 from torch import Tensor
 
 from fishsim.compiled import jit
-from fishsim.linalg.dct import apply_inverse
+from fishsim.linalg.dct import inverse_array
 
 
 @jit(inline="always")
@@ -455,14 +455,6 @@ def _penalize_divergence_adjoint(gux, guy, gdiv, wx, wy, bx, by, dx_, dy_, inv_d
                 gdy[n, i, j] += gd
 
 
-def _empty(*like: Tensor) -> list[Tensor]:
-    return [torch.empty(t.shape, dtype=t.dtype) for t in like]
-
-
-def _zeros(*like: Tensor) -> list[Tensor]:
-    return [torch.zeros(t.shape, dtype=t.dtype) for t in like]
-
-
 class Constrain(torch.autograd.Function):
     """K passes of u = penalize(w), (w, phi) = project(u) (``numerical.penalize`` with lambda ->
     infinity, ``numerical.project``) from w = (w_x, w_y) with the face masks b and body velocities
@@ -472,44 +464,47 @@ class Constrain(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, wx, wy, bx, by, dx_, dy_, inverse, dx: float, passes: int):
-        b, d = [t.expand_as(w).contiguous() for t, w in ((bx, wx), (by, wy))], [
-            t.expand_as(w).contiguous() for t, w in ((dx_, wx), (dy_, wy))]
-        ws, inv_dx = [(wx.contiguous(), wy.contiguous())], 1.0 / dx
-        div = torch.empty(*wx.shape[:-1], wx.shape[-1] - 1, dtype=wx.dtype)
-        phi_sum, pen = torch.zeros_like(div), _zeros(*ws[0])
-        flat_b, flat_pen, flat_phi_sum = [_flat(t) for t in (*b, *d)], [_flat(t) for t in pen], _flat(phi_sum)
+        shapes = (wx.shape, wy.shape)
+        masks = [_flat(t.expand_as(w)) for t, w in ((bx, wx), (by, wy), (dx_, wx), (dy_, wy))]
+        w, inv_dx = (_flat(wx), _flat(wy)), 1.0 / dx
+        div = np.empty((*w[0].shape[:-1], w[0].shape[-1] - 1), w[0].dtype)
+        phi_sum, pen = np.zeros_like(div), (np.zeros_like(w[0]), np.zeros_like(w[1]))
+        ws = [w]
         for _ in range(passes):
-            w = ws[-1]
-            ux, uy = _empty(*w)
-            _penalize_divergence(_flat(w[0]), _flat(w[1]), *flat_b, inv_dx, _flat(ux), _flat(uy), _flat(div),
-                                 *flat_pen)
-            phi = apply_inverse(div, inverse)
-            vx, vy = _empty(*w)
-            _subtract_gradient(_flat(ux), _flat(uy), _flat(phi), inv_dx, _flat(vx), _flat(vy), flat_phi_sum)
+            ux, uy = np.empty_like(w[0]), np.empty_like(w[1])
+            _penalize_divergence(*ws[-1], *masks, inv_dx, ux, uy, div, *pen)
+            phi = inverse_array(div, inverse)
+            vx, vy = np.empty_like(ux), np.empty_like(uy)
+            _subtract_gradient(ux, uy, phi, inv_dx, vx, vy, phi_sum)
             ws.append((vx, vy))
-        ctx.save_for_backward(*[c for w in ws[:-1] for c in w], *b, *d)
-        ctx.inverse, ctx.dx, ctx.passes, ctx.shapes = inverse, dx, passes, [t.shape for t in (bx, by, dx_, dy_)]
-        return ws[-1][0], ws[-1][1], phi_sum, pen[0], pen[1]
+        ctx.save_for_backward(wx, wy, bx, by, dx_, dy_)    # (autograd checks they are not changed)
+        ctx.ws = ws[1:-1]                                  # the later passes' inputs (numpy, internal)
+        ctx.inverse, ctx.dx, ctx.passes = inverse, dx, passes
+        ctx.shapes = [t.shape for t in (bx, by, dx_, dy_)] + list(shapes)
+        phi_shape = (*wx.shape[:-1], wx.shape[-1] - 1)
+        return (*(torch.from_numpy(a).reshape(shape) for a, shape in zip(ws[-1], shapes)),
+                torch.from_numpy(phi_sum).reshape(phi_shape),
+                *(torch.from_numpy(a).reshape(shape) for a, shape in zip(pen, shapes)))
 
     @staticmethod
     def backward(ctx, gvx, gvy, gphi, gpx, gpy):
-        saved, K = ctx.saved_tensors, ctx.passes
-        ws = [saved[2 * k: 2 * k + 2] for k in range(K)]
-        bx, by, dx_, dy_ = saved[2 * K:]
-        inverse = ctx.inverse
-        inv_dx = 1.0 / ctx.dx
-        gp = [g.contiguous() for g in (gpx, gpy)]
-        gw = [g.contiguous() for g in (gvx, gvy)]
-        gb, gd = _zeros(bx, by), _zeros(dx_, dy_)
-        for k in reversed(range(K)):
-            g_phi = gphi.clone().contiguous()
-            _gradient_adjoint(_flat(gw[0]), _flat(gw[1]), inv_dx, _flat(g_phi))
-            g_div = apply_inverse(g_phi, inverse)
+        wx, wy, *inputs = ctx.saved_tensors
+        bx, by, dx_, dy_ = (_flat(t.expand_as(w)) for t, w in zip(inputs, (wx, wy, wx, wy)))
+        ws = [(_flat(wx), _flat(wy)), *ctx.ws]
+        inverse, inv_dx = ctx.inverse, 1.0 / ctx.dx
+        gp = (_flat(gpx), _flat(gpy))
+        gw = (_flat(gvx), _flat(gvy))
+        g_phi_out = _flat(gphi)
+        gb, gd = (np.zeros_like(bx), np.zeros_like(by)), (np.zeros_like(dx_), np.zeros_like(dy_))
+        for k in reversed(range(ctx.passes)):
+            g_phi = g_phi_out.copy()
+            _gradient_adjoint(*gw, inv_dx, g_phi)
+            g_div = inverse_array(g_phi, inverse)
             gu = [a + c for a, c in zip(gw, gp)]              # pen_k = u_k - w_k
-            new = _empty(*ws[k])
-            _penalize_divergence_adjoint(*(_flat(t) for t in (*gu, g_div, *ws[k], bx, by, dx_, dy_)), inv_dx,
-                                         *(_flat(t) for t in (*new, *gb, *gd)))
+            new = (np.empty_like(gw[0]), np.empty_like(gw[1]))
+            _penalize_divergence_adjoint(*gu, g_div, *ws[k], bx, by, dx_, dy_, inv_dx, *new, *gb, *gd)
             gw = [a - c for a, c in zip(new, gp)]
-        grads = [g.sum_to_size(shape) for g, shape in zip((*gb, *gd), ctx.shapes)]
-        return gw[0], gw[1], *grads, None, None, None
-
+        *mask_shapes, sx, sy = ctx.shapes
+        grads = [torch.from_numpy(g).reshape(like).sum_to_size(shape)
+                 for g, like, shape in zip((*gb, *gd), (sx, sy, sx, sy), mask_shapes)]
+        return torch.from_numpy(gw[0]).reshape(sx), torch.from_numpy(gw[1]).reshape(sy), *grads, None, None, None

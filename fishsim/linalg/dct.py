@@ -168,10 +168,16 @@ def apply_inverse(f: Tensor, inverse: NeumannInverse) -> Tensor:
     solve against 0.7 ms for scipy's 2D transforms with a division and 0.85 ms for the FFT-based
     ``dct`` / ``idct`` above, which serve other devices (2D transforms)."""
     if f.device.type == "cpu":
-        x = f.detach().reshape(-1, *f.shape[-2:]).numpy()
-        F = sfft.dct(x, type=2, axis=-1, workers=torch.get_num_threads())
-        _tridiagonal(F, inverse.pivots, inverse.dx)
-        y = sfft.idct(F, type=2, axis=-1, workers=torch.get_num_threads())
-        return torch.from_numpy(np.ascontiguousarray(y, dtype=x.dtype)).reshape(f.shape)
+        y = inverse_array(f.detach().reshape(-1, *f.shape[-2:]).numpy(), inverse)
+        return torch.from_numpy(y).reshape(f.shape)
     inv = inverse.inv
     return idct(idct(dct(dct(f, -1), -2) * inv, -2), -1)
+
+
+def inverse_array(x: np.ndarray, inverse: NeumannInverse) -> np.ndarray:
+    """``apply_inverse`` on numpy arrays (CPU): L^+ x for x [N, H, W], a new C-contiguous array of
+    x's dtype (x is not changed)."""
+    F = sfft.dct(x, type=2, axis=-1, workers=torch.get_num_threads())
+    _tridiagonal(F, inverse.pivots, inverse.dx)
+    y = sfft.idct(F, type=2, axis=-1, workers=torch.get_num_threads(), overwrite_x=True)
+    return np.ascontiguousarray(y, dtype=x.dtype)
