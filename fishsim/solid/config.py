@@ -23,8 +23,8 @@ class SolidMaterial:
         tissue (DiffAqua uses 0.4 E, the DiffPD water snake 0.1 E); the controller's amplitude
         C is calibrated on top of this value.
     volume_term: add the lambda_s area / 2 ||F - closest det-1 matrix||^2 energy (DiffPD's
-        'volume'). Off by default, like DiffPD's underwater examples (co-rotated only), and ~3x
-        faster. Measured on the default fish at the calibrated 5 Hz stroke (vacuum): with it
+        'volume'). Off by default, like DiffPD's underwater examples (co-rotated only), and about
+        half the cost (default fish, B = 1, one thread: 7 against 15 ms a step forward). Measured on the default fish at the calibrated 5 Hz stroke (vacuum): with it
         the tail's peak-to-peak excursion drops from 30.1 to 22.4 mm and the largest element
         area change from 29 % (contracting muscle elements) to 10 %; so it matters for
         nu = 0.45 and is worth switching on when area conservation is important.

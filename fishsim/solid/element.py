@@ -25,8 +25,10 @@ Vecs alike through simd's operators and generic sqrt / maximum / select.
 from __future__ import annotations
 
 from fishsim.compiled import jit
-from fishsim.linalg.simd import maximum, select, sqrt
+from fishsim.linalg.simd import absolute, lanes_set, mask, maximum, select, sqrt, width
 from fishsim.solid.energies import _TINY
+
+_TINY_STEP = 1e-15          # volume_multiplier's convergence: the numpy reference's step
 
 
 @jit(inline="always")
@@ -111,3 +113,61 @@ def muscle_differential(col, n0, n1, L, a, w_m):
     dF00, _, dF10, _ = unit_strain(col)
     rad = n0 * dF00 + n1 * dF10
     return w_m * (dF00 - a * (dF00 - rad * n0) / L), w_m * (dF10 - a * (dF10 - rad * n1) / L)
+
+
+@jit(inline="always")
+def volume_multiplier(c2, s2):
+    """The Lagrange multiplier t in (-1, 1) of the closest det-1 matrix D = F_c / (1 + t) +
+    F_a / (1 - t) (energies.volume_multiplier: the root of the strictly decreasing
+    c^2 / (1 + t)^2 - s^2 / (1 - t)^2 - 1), per lane: safeguarded Newton, bisection on the
+    bracket, until every lane's step is <= 1e-15 (at most 60 iterations)."""
+    t = c2 * 0.0
+    lo, hi = t - 1.0, t + 1.0
+    for _ in range(60):
+        p, m = 1.0 / (1.0 + t), 1.0 / (1.0 - t)
+        r = c2 * p * p - s2 * m * m - 1.0
+        above = mask(r > 0.0)
+        lo, hi = select(above, t, lo), select(above, hi, t)
+        slope = -2.0 * c2 * p * p * p - 2.0 * s2 * m * m * m
+        newton = t + r / maximum(-slope, _TINY)
+        inside = mask(newton > lo) * mask(hi > newton)
+        t_new = select(inside, newton, (lo + hi) * 0.5)
+        done = lanes_set(mask(_TINY_STEP >= absolute(t_new - t))) == width(t)
+        t = t_new
+        if done:
+            break
+    return t
+
+
+@jit(inline="always")
+def volume_stress(F00, F01, F10, F11, w):
+    """(psi, S00, S01, S10, S11): DiffPD's volume energy w |F - D|^2 (w = area lambda_s, D the
+    closest det-1 matrix) and its stress w (F - D); also t, D's multiplier (volume_differential)."""
+    alpha, beta, gamma, delta = conformal(F00, F01, F10, F11)
+    t = volume_multiplier(alpha * alpha + beta * beta, gamma * gamma + delta * delta)
+    p, m = 1.0 / (1.0 + t), 1.0 / (1.0 - t)
+    ra, rb, rg, rd = alpha - alpha * p, beta - beta * p, gamma - gamma * m, delta - delta * m
+    psi = w * (ra * ra + rb * rb + rg * rg + rd * rd)
+    return psi, w * (ra + rg), w * (rd - rb), w * (rb + rd), w * (ra - rg), t
+
+
+@jit(inline="always")
+def volume_differential(col, alpha, beta, gamma, delta, t, w, projected):
+    """dS (dS00, dS01, dS10, dS11) of the volume stress for the unit dF ``col``: w (dF - dD) with
+    dD by implicit differentiation (energies.volume_projection_differential); where
+    ``projected`` (a bool or a lane mask), the Gauss-Newton w n (n . dF) / |n|^2 with
+    n = (alpha, beta, -gamma, -delta) ~ cof F (elastic.stress_differential)."""
+    dF00, dF01, dF10, dF11 = unit_strain(col)
+    da, db, dg, dd = conformal(dF00, dF01, dF10, dF11)
+    p, m = 1.0 / (1.0 + t), 1.0 / (1.0 - t)
+    c2, s2 = alpha * alpha + beta * beta, gamma * gamma + delta * delta
+    phi_t = -maximum(2.0 * c2 * p * p * p + 2.0 * s2 * m * m * m, _TINY)
+    dt = -2.0 * (p * p * (alpha * da + beta * db) - m * m * (gamma * dg + delta * dd)) / phi_t
+    ea = w * (da - (da * p - alpha * p * p * dt))
+    eb = w * (db - (db * p - beta * p * p * dt))
+    eg = w * (dg - (dg * m + gamma * m * m * dt))
+    ed = w * (dd - (dd * m + delta * m * m * dt))
+    scale = w * (alpha * da + beta * db - gamma * dg - delta * dd) / maximum(c2 + s2, _TINY)
+    ca, cb = select(projected, scale * alpha, ea), select(projected, scale * beta, eb)
+    cg, cd = select(projected, -scale * gamma, eg), select(projected, -scale * delta, ed)
+    return ca + cg, cd - cb, cb + cd, ca - cg

@@ -1,7 +1,7 @@
-"""Compiled (numba) helpers of the PD solve's batched numpy paths, on the solver's [B, N, 2]
-layout: the L-BFGS two-loop recursion of solve._lbfgs (the iteration for models with the volume
-term, and for samples whose Newton matrix has no banded Cholesky factor) and the adjoint's
-parameter gradients. The compiled forward and adjoint solves themselves are packed.py's.
+"""Compiled (numba) helpers of the PD solve on the solver's [B, N, 2] layout: the L-BFGS two-loop
+recursion of solve._lbfgs (the iteration of the non-default preconditioners, and for samples
+whose Newton matrix has no banded Cholesky factor) and the adjoint's parameter gradients. The
+compiled forward and adjoint solves themselves are packed.py's.
 
 Batches: every kernel works on the samples of an index list only and runs them in parallel over
 numba's threads (`prange`); one sample's arithmetic is serial and in the same order whatever
@@ -64,21 +64,26 @@ def lbfgs_second_loop(r: np.ndarray, S: np.ndarray, Y: np.ndarray, rho: np.ndarr
 
 @jit(parallel=True)
 def parameter_gradients(X: np.ndarray, lam: np.ndarray, triangles: np.ndarray, grad: np.ndarray,
-                        w_per_E: np.ndarray, muscle_of: np.ndarray, w_muscle: np.ndarray, grad_u: np.ndarray,
-                        grad_E: np.ndarray) -> None:
+                        w_per_E: np.ndarray, w_volume_per_E: np.ndarray, muscle_of: np.ndarray, w_muscle: np.ndarray,
+                        grad_u: np.ndarray, grad_E: np.ndarray) -> None:
     """The adjoint's parameter gradients, dL/dtheta = -lambda^T d(grad Phi)/dtheta at q+ = X, for
-    every sample (in parallel), from X and lambda [B, N, 2] (models without the volume term):
+    every sample (in parallel), from X and lambda [B, N, 2]:
 
-        dL/dE_b = -sum_e <G_e lambda, dS_e/dE>,  dS_e/dE = w_per_E_e (F - R) (conformal parts),
+        dL/dE_b = -sum_e <G_e lambda, dS_e/dE>,  dS_e/dE = w_per_E_e (F - R) + w_volume_per_E_e (F - D),
         dL/du_m = -w_muscle_m <(G_e lambda) m, F m / |F m|>    (S_fiber = w (F m - (1 - u) n)),
 
-    into grad_E [B] (per Pa) and grad_u [B, n_act]; w_per_E [T] = area 2 mu_s / E."""
+    into grad_E [B] (per Pa) and grad_u [B, n_act]; w_per_E [T] = area 2 mu_s / E, w_volume_per_E
+    [T] = area lambda_s / E (empty without the volume term; D the closest det-1 matrix)."""
+    volume = w_volume_per_E.shape[0] > 0
     for b in numba.prange(X.shape[0]):
         total = 0.0
         for e in range(triangles.shape[0]):
             F00, F01, F10, F11 = _deformation_gradient(X[b], triangles, grad, e, 0.0)
             D00, D01, D10, D11 = _deformation_gradient(lam[b], triangles, grad, e, 0.0)
             _, S00, S01, S10, S11 = element.corotated_stress(F00, F01, F10, F11, w_per_E[e])
+            if volume:
+                _, V00, V01, V10, V11, _ = element.volume_stress(F00, F01, F10, F11, w_volume_per_E[e])
+                S00, S01, S10, S11 = S00 + V00, S01 + V01, S10 + V10, S11 + V11
             total += D00 * S00 + D01 * S01 + D10 * S10 + D11 * S11
             m = muscle_of[e]
             if m >= 0:

@@ -82,14 +82,15 @@ def _deformation_gradient(X, triangles, grad, e, proto):
 
 
 @jit
-def _objective(X, Y, mass_h2, triangles, grad, w_corotated, muscle_of, w_muscle, stretch, g, proto):
+def _objective(X, Y, mass_h2, triangles, grad, w_corotated, w_volume, muscle_of, w_muscle, stretch, g, proto):
     """Phi of each lane (J per unit depth), writing grad Phi into g (module doc of solve.py):
 
         Phi(X) = 1/(2 h^2) ||X - Y||_M^2 + E_int(X),   grad Phi = M/h^2 (X - Y) + G^T S(X).
 
     X, Y, g [N, 2, W]; mass_h2 [N] = m_i / h^2; triangles [T, 3]; grad [T, 3, 2] shape-function
-    gradients; w_corotated [T, W] = area 2 mu_s(E); muscle_of [T] muscle index or -1; w_muscle
-    [n_act] = k_m area fraction; stretch [n_act, W] = 1 - contraction."""
+    gradients; w_corotated [T, W] = area 2 mu_s(E); w_volume [T, W] = area lambda_s(E), DiffPD's
+    volume term ([0, W]: none); muscle_of [T] muscle index or -1; w_muscle [n_act] = k_m area
+    fraction; stretch [n_act, W] = 1 - contraction."""
     W = width(proto)
     phi = fill(proto, 0.0)
     for i in range(X.shape[0]):
@@ -102,6 +103,10 @@ def _objective(X, Y, mass_h2, triangles, grad, w_corotated, muscle_of, w_muscle,
         F00, F01, F10, F11 = _deformation_gradient(X, triangles, grad, e, proto)
         psi, S00, S01, S10, S11 = element.corotated_stress(F00, F01, F10, F11, load(w_corotated, e * W, proto))
         phi += psi
+        if w_volume.shape[0]:
+            psi, V00, V01, V10, V11, _ = element.volume_stress(F00, F01, F10, F11, load(w_volume, e * W, proto))
+            phi += psi
+            S00, S01, S10, S11 = S00 + V00, S01 + V01, S10 + V10, S11 + V11
         m = muscle_of[e]
         if m >= 0:
             psi, M00, M10 = element.muscle_stress(F00, F10, load(stretch, m * W, proto), w_muscle[m])
@@ -116,11 +121,12 @@ def _objective(X, Y, mass_h2, triangles, grad, w_corotated, muscle_of, w_muscle,
 
 
 @jit
-def _newton_band(X, triangles, grad, w_corotated, muscle_of, w_muscle, stretch, projected, slot, diagonal,
-                 diagonal_values, L, H, proto):
+def _newton_band(X, triangles, grad, w_corotated, w_volume, muscle_of, w_muscle, stretch, projected, slot,
+                 diagonal, diagonal_values, L, H, proto):
     """Each lane's Newton matrix M/h^2 + sum_e G_e^T H_e G_e at X (H_e = d vec(S) / d vec(F) of
-    the co-rotated and muscle stresses, element.py) assembled into the band L [rows, w + 4, W].
-    `projected` (a lane mask) clamps c and |F m| as elastic.stress_differential does; slot,
+    the co-rotated, volume and muscle stresses, element.py) assembled into the band L
+    [rows, w + 4, W]. `projected` (a lane mask) clamps c and |F m| and takes the volume term's
+    Gauss-Newton part, as elastic.stress_differential does; slot,
     diagonal, diagonal_values: PackBand's; H [16 W] scratch."""
     W = width(proto)
     band = L.reshape(-1)
@@ -131,10 +137,15 @@ def _newton_band(X, triangles, grad, w_corotated, muscle_of, w_muscle, stretch, 
     zero = fill(proto, 0.0)
     for e in range(triangles.shape[0]):
         F00, F01, F10, F11 = _deformation_gradient(X, triangles, grad, e, proto)
-        alpha, beta, _, _ = element.conformal(F00, F01, F10, F11)
+        alpha, beta, gamma, delta = element.conformal(F00, F01, F10, F11)
         alpha_R, beta_R, c = element.rotation(alpha, beta)
         ce = element.clamped(c, 1.0, projected)
         w = load(w_corotated, e * W, proto)
+        volume = w_volume.shape[0] > 0
+        w_v, t = zero, zero
+        if volume:
+            w_v = load(w_volume, e * W, proto)
+            t = element.volume_stress(F00, F01, F10, F11, w_v)[5]
         m = muscle_of[e]
         n0, n1, length, a_m, w_m = zero, zero, zero, zero, 0.0
         if m >= 0:
@@ -145,6 +156,9 @@ def _newton_band(X, triangles, grad, w_corotated, muscle_of, w_muscle, stretch, 
             w_m = w_muscle[m]
         for col in range(4):                                        # unit dF_aj, col = 2a + j
             S00, S01, S10, S11 = element.corotated_differential(col, alpha_R, beta_R, ce, w)
+            if volume:
+                V00, V01, V10, V11 = element.volume_differential(col, alpha, beta, gamma, delta, t, w_v, projected)
+                S00, S01, S10, S11 = S00 + V00, S01 + V01, S10 + V10, S11 + V11
             if m >= 0:
                 M00, M10 = element.muscle_differential(col, n0, n1, length, a_m, w_m)
                 S00 += M00
@@ -190,24 +204,24 @@ def _max_nodal_norm(g, proto):
 
 
 @jit
-def _factor_newton(X, triangles, grad, w_corotated, muscle_of, w_muscle, stretch, slot, diagonal,
+def _factor_newton(X, triangles, grad, w_corotated, w_volume, muscle_of, w_muscle, stretch, slot, diagonal,
                    diagonal_values, w, L, proto):
     """Each lane's Newton matrix at X assembled into L and factorised: the exact one, else (in
     lanes where it is indefinite) the projected one. Returns the lanes with a factor."""
     H = np.empty(16 * width(proto))
-    _newton_band(X, triangles, grad, w_corotated, muscle_of, w_muscle, stretch, fill(proto, 0.0), slot, diagonal,
-                 diagonal_values, L, H, proto)
+    _newton_band(X, triangles, grad, w_corotated, w_volume, muscle_of, w_muscle, stretch, fill(proto, 0.0), slot,
+                 diagonal, diagonal_values, L, H, proto)
     ok = banded.factor(L, w, proto)
     if lanes_set(ok) < width(proto):
-        _newton_band(X, triangles, grad, w_corotated, muscle_of, w_muscle, stretch, 1.0 - ok, slot, diagonal,
-                     diagonal_values, L, H, proto)
+        _newton_band(X, triangles, grad, w_corotated, w_volume, muscle_of, w_muscle, stretch, 1.0 - ok, slot,
+                     diagonal, diagonal_values, L, H, proto)
         ok = banded.factor(L, w, proto)
     return ok
 
 
 @jit
-def _lbfgs_pack(X, Y, mass_h2, triangles, grad, w_corotated, muscle_of, w_muscle, stretch, slot, diagonal,
-                diagonal_values, w, perm, inverse, L, stale, atol, max_iter, m, g, iterations, ok, proto):
+def _lbfgs_pack(X, Y, mass_h2, triangles, grad, w_corotated, w_volume, muscle_of, w_muscle, stretch, slot,
+                diagonal, diagonal_values, w, perm, inverse, L, stale, atol, max_iter, m, g, iterations, ok, proto):
     """The forward solve of a pack, in place on X [N, 2, W] (to the minimiser of each lane's Phi;
     g receives grad Phi there). If `stale`, each lane's Newton matrix at X is first factorised
     into L (_factor_newton; ok [W] = 1.0 where one was positive definite); a lane without a
@@ -216,8 +230,8 @@ def _lbfgs_pack(X, Y, mass_h2, triangles, grad, w_corotated, muscle_of, w_muscle
     keeps its own step lengths. iterations [W] receives each lane's iterations."""
     W = width(proto)
     if stale:
-        store(ok, 0, _factor_newton(X, triangles, grad, w_corotated, muscle_of, w_muscle, stretch, slot, diagonal,
-                                    diagonal_values, w, L, proto))
+        store(ok, 0, _factor_newton(X, triangles, grad, w_corotated, w_volume, muscle_of, w_muscle, stretch, slot,
+                                    diagonal, diagonal_values, w, L, proto))
     lanes_ok = load(ok, 0, proto)
     if lanes_set(lanes_ok) == 0:
         return
@@ -228,7 +242,7 @@ def _lbfgs_pack(X, Y, mass_h2, triangles, grad, w_corotated, muscle_of, w_muscle
     rho, alphas = np.zeros(m * W), np.zeros(m * W)
     d, X_new, g_new, x = np.empty(size), np.empty(size), np.empty(size), np.empty(size)
     Xn, gn, dn = X_new.reshape(X.shape), g_new.reshape(X.shape), d.reshape(X.shape)
-    phi = _objective(X, Y, mass_h2, triangles, grad, w_corotated, muscle_of, w_muscle, stretch, g, proto)
+    phi = _objective(X, Y, mass_h2, triangles, grad, w_corotated, w_volume, muscle_of, w_muscle, stretch, g, proto)
     taken = fill(proto, 0.0)
     count, head = 0, 0
     for _ in range(max_iter):
@@ -266,8 +280,8 @@ def _lbfgs_pack(X, Y, mass_h2, triangles, grad, w_corotated, muscle_of, w_muscle
                 t = select(accepted, t, t * 0.5)
             for o in range(0, size, W):
                 store(X_new, o, load(Xf, o, proto) + t * load(d, o, proto))
-            phi_new = _objective(Xn, Y, mass_h2, triangles, grad, w_corotated, muscle_of, w_muscle, stretch, gn,
-                                 proto)
+            phi_new = _objective(Xn, Y, mass_h2, triangles, grad, w_corotated, w_volume, muscle_of, w_muscle, stretch,
+                                 gn, proto)
             accepted = maximum(accepted, mask(phi_new - phi <= c1 * t * slope + round_off * absolute(phi)))
             if lanes_set(accepted) == W:
                 break
@@ -285,8 +299,8 @@ def _lbfgs_pack(X, Y, mass_h2, triangles, grad, w_corotated, muscle_of, w_muscle
 
 
 # ---------------------------------------------------------------------------------------------
-# Entry points. phi_args = (mass_h2, triangles, grad, w_corotated [P, T, W], muscle_of, w_muscle,
-# stretch [P, n_act, W]) as in _objective; band = PackBand.arrays (slot, diagonal,
+# Entry points. phi_args = (mass_h2, triangles, grad, w_corotated [P, T, W], w_volume [P, T or 0, W],
+# muscle_of, w_muscle, stretch [P, n_act, W]) as in _objective; band = PackBand.arrays (slot, diagonal,
 # diagonal_values, w, perm, inverse); L [P, rows, w + 4, W] the packs' bands; packs: the indices
 # p to work on (in parallel over numba's threads, in this order: solve.balanced_order).
 
@@ -294,23 +308,23 @@ def _lbfgs_pack(X, Y, mass_h2, triangles, grad, w_corotated, muscle_of, w_muscle
 @jit(parallel=True)
 def objective(X, Y, phi_args, packs, g, phi):
     """phi[p] = Phi per lane [W], g[p] = grad Phi ([P, N, 2, W]) at X[p]."""
-    mass_h2, triangles, grad, w_corotated, muscle_of, w_muscle, stretch = phi_args
+    mass_h2, triangles, grad, w_corotated, w_volume, muscle_of, w_muscle, stretch = phi_args
     for k in numba.prange(packs.shape[0]):
         p = packs[k]
-        store(phi[p], 0, _objective(X[p], Y[p], mass_h2, triangles, grad, w_corotated[p], muscle_of, w_muscle,
-                                    stretch[p], g[p], prototype(X)))
+        store(phi[p], 0, _objective(X[p], Y[p], mass_h2, triangles, grad, w_corotated[p], w_volume[p], muscle_of,
+                                    w_muscle, stretch[p], g[p], prototype(X)))
 
 
 @jit(parallel=True)
 def factor(X, phi_args, band, L, packs, ok):
     """L[p] = each lane's Newton factor at X[p] (_factor_newton); ok[p] [W] = 1.0 where one was
     positive definite. phi_args' mass_h2 is unused (the band's diagonal_values hold M/h^2)."""
-    _, triangles, grad, w_corotated, muscle_of, w_muscle, stretch = phi_args
+    _, triangles, grad, w_corotated, w_volume, muscle_of, w_muscle, stretch = phi_args
     slot, diagonal, diagonal_values, w, _, _ = band
     for k in numba.prange(packs.shape[0]):
         p = packs[k]
-        store(ok[p], 0, _factor_newton(X[p], triangles, grad, w_corotated[p], muscle_of, w_muscle, stretch[p], slot,
-                                       diagonal, diagonal_values, w, L[p], prototype(X)))
+        store(ok[p], 0, _factor_newton(X[p], triangles, grad, w_corotated[p], w_volume[p], muscle_of, w_muscle,
+                                       stretch[p], slot, diagonal, diagonal_values, w, L[p], prototype(X)))
 
 
 @jit(parallel=True)
@@ -326,14 +340,14 @@ def solve(L, band, R, packs, Z):
 def newton_solve(X, R, phi_args, band, L, packs, Z, ok):
     """Z[p] = K^-1 R[p] per lane with K the exact Newton matrix at X[p] ([P, N, 2, W]); ok[p]
     [W] = 1.0 where K was positive definite (else Z is garbage)."""
-    _, triangles, grad, w_corotated, muscle_of, w_muscle, stretch = phi_args
+    _, triangles, grad, w_corotated, w_volume, muscle_of, w_muscle, stretch = phi_args
     slot, diagonal, diagonal_values, w, perm, inverse = band
     for k in numba.prange(packs.shape[0]):
         p = packs[k]
         proto = prototype(X)
         H = np.empty(16 * width(proto))
-        _newton_band(X[p], triangles, grad, w_corotated[p], muscle_of, w_muscle, stretch[p], fill(proto, 0.0), slot,
-                     diagonal, diagonal_values, L[p], H, proto)
+        _newton_band(X[p], triangles, grad, w_corotated[p], w_volume[p], muscle_of, w_muscle, stretch[p],
+                     fill(proto, 0.0), slot, diagonal, diagonal_values, L[p], H, proto)
         store(ok[p], 0, banded.factor(L[p], w, proto))
         banded.solve(L[p], w, perm, inverse, R[p], Z[p], np.empty(R[p].size), proto)
 
@@ -345,23 +359,27 @@ def lbfgs(X, Y, phi_args, band, L, stale, packs, atol, max_iter, m, g, iteration
     [W] then receives where that succeeded; else ok[p] and L[p] are the kept ones); iterations
     [P, W] (float) receives each lane's L-BFGS iterations. atol (N), max_iter, m: the stopping
     rule, iteration limit and history size."""
-    mass_h2, triangles, grad, w_corotated, muscle_of, w_muscle, stretch = phi_args
+    mass_h2, triangles, grad, w_corotated, w_volume, muscle_of, w_muscle, stretch = phi_args
     slot, diagonal, diagonal_values, w, perm, inverse = band
     for k in numba.prange(packs.shape[0]):
         p = packs[k]
-        _lbfgs_pack(X[p], Y[p], mass_h2, triangles, grad, w_corotated[p], muscle_of, w_muscle, stretch[p], slot,
-                    diagonal, diagonal_values, w, perm, inverse, L[p], stale[p], atol, max_iter, m, g[p],
-                    iterations[p], ok[p], prototype(X))
+        _lbfgs_pack(X[p], Y[p], mass_h2, triangles, grad, w_corotated[p], w_volume[p], muscle_of, w_muscle,
+                    stretch[p], slot, diagonal, diagonal_values, w, perm, inverse, L[p], stale[p], atol, max_iter, m,
+                    g[p], iterations[p], ok[p], prototype(X))
 
 
 def kernel_arrays(model, contraction: np.ndarray, E: np.ndarray) -> tuple:
-    """The entry points' phi_args for one sample per pack (width 1) of a SolidModel without the
-    volume term, for contraction [n_act, B] and E [B]: (mass_h2 [N], triangles [T, 3], grad
-    [T, 3, 2], w_corotated [B, T] = area 2 mu_s(E_b), muscle_of [T], w_muscle [n_act], stretch
-    [B, n_act] = 1 - contraction); solve.pack_arrays deals them into packs of eight."""
-    w_corotated = np.ascontiguousarray(np.outer(E, model.fem.area * model.material.corotated_per_E))
-    return (model.mass_h2, model.mesh_triangles, model.fem.grad, w_corotated, model.muscle_of, model.muscle_weight,
-            np.ascontiguousarray(1.0 - contraction.T))
+    """The entry points' phi_args for one sample per pack (width 1) of a SolidModel, for
+    contraction [n_act, B] and E [B]: (mass_h2 [N], triangles [T, 3], grad [T, 3, 2], w_corotated
+    [B, T] = area 2 mu_s(E_b), w_volume [B, T] = area lambda_s(E_b) ([B, 0] without the volume
+    term), muscle_of [T], w_muscle [n_act], stretch [B, n_act] = 1 - contraction);
+    solve.pack_arrays deals them into packs of eight."""
+    material, area = model.material, model.fem.area
+    w_corotated = np.ascontiguousarray(np.outer(E, area * material.corotated_per_E))
+    w_volume = np.ascontiguousarray(np.outer(E, area * material.volume_per_E) if material.volume_term
+                                    else np.zeros((len(E), 0)))
+    return (model.mass_h2, model.mesh_triangles, model.fem.grad, w_corotated, w_volume, model.muscle_of,
+            model.muscle_weight, np.ascontiguousarray(1.0 - contraction.T))
 
 
 class PackBand:

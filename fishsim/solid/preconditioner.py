@@ -118,14 +118,13 @@ class Preconditioner:
 class LaggedFactors:
     """The lagged Newton factors of a batch of B samples, kept between steps (SolverCache.lagged):
     banded factors L [B, rows, w + 4, 1] (packed.PackBand's layout, packs of width 1) where
-    ok [B, 1] is 1.0, else a factorisation in `other` (models with the volume term, or a
-    sample whose banded Cholesky failed); `valid` [B] False marks samples to refactorise at the
+    ok [B, 1] is 1.0, else a factorisation in `other` (a sample whose banded Cholesky failed); `valid` [B] False marks samples to refactorise at the
     next step's start; `iterations` [B] the last step's L-BFGS iterations (the next step's cost
     estimate)."""
 
     def __init__(self, model: SolidModel, B: int):
         band = model.pack_band
-        self.L = None if model.material.volume_term else aligned_empty((B, band.rows, band.width, 1))
+        self.L = aligned_empty((B, band.rows, band.width, 1))
         self.ok = np.zeros((B, 1))
         self.valid = np.zeros(B, bool)
         self.other: dict[int, object] = {}
@@ -139,17 +138,16 @@ class LaggedFactors:
     def refactorise(self, model: SolidModel, X: np.ndarray, contraction: np.ndarray, E: np.ndarray) -> None:
         """Factorise the Newton matrix at positions X [B, N, 2] of every invalid sample: the exact
         one where positive definite, else its positive definite projection; compiled into L
-        (packed.factor) on models without the volume term, else (and where that fails) banded
-        Cholesky or sparse LU of the assembled matrix."""
+        (packed.factor), and where that fails banded Cholesky or sparse LU of the assembled
+        matrix."""
         stale = np.flatnonzero(~self.valid)
         if not len(stale):
             return
         self.ok[stale] = 0.0
         for b in stale:
             self.other.pop(int(b), None)
-        if self.L is not None:
-            packed.factor(np.ascontiguousarray(X, np.float64), kernel_arrays(model, contraction, E),
-                          model.pack_band.arrays, self.L, stale, self.ok)
+        packed.factor(np.ascontiguousarray(X, np.float64), kernel_arrays(model, contraction, E),
+                      model.pack_band.arrays, self.L, stale, self.ok)
         failed = stale[~self.banded[stale]]
         if len(failed):
             p = elastic.projections_at(model, X, contraction, E)

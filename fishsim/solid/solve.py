@@ -8,8 +8,8 @@ Forward (docs/physics.md section 3): q+ = argmin Phi(q),
 by L-BFGS (DiffPD's solver) with a prefactorised initial inverse Hessian (preconditioner.py: the
 lagged Newton matrix by default; the rotated rest-shape Newton matrix; or DiffPD's PD matrix
 A(E), with which the first iteration is exactly one local-global step), Armijo backtracking,
-until the residual's largest nodal norm is <= atol. With the default preconditioner on models
-without the volume term the whole solve is compiled (packed.lbfgs, one code for both widths):
+until the residual's largest nodal norm is <= atol. With the default preconditioner the whole
+solve is compiled (packed.lbfgs, one code for both widths):
 from PACK_MIN samples on, eight samples per pack in the SIMD lanes, in lock step, each with the
 Newton matrix factorised afresh at the step's start; below that, one sample per thread with its
 lagged factor. Otherwise the batched numpy iteration (_lbfgs) runs, with the objective and
@@ -38,7 +38,7 @@ import numba
 import numpy as np
 import torch
 
-from fishsim.linalg.banded import lu_factor, spd_factor
+from fishsim.linalg.banded import lu_factor
 from fishsim.linalg.pcg import pcg
 from fishsim.solid import elastic, kernels, packed
 from fishsim.solid.model import SolidModel, SolverCache
@@ -73,11 +73,12 @@ def max_nodal_norm(g: np.ndarray) -> np.ndarray:
 
 class Objective:
     """Phi and grad Phi of one step for a batch (y [B, N, 2], contraction [n_act, B], E [B]): the
-    compiled packed.objective, or the numpy local step for models with the volume term."""
+    compiled packed.objective; with ``fused`` set False, the numpy local step (elastic.py, the
+    tests' independent reference)."""
 
     def __init__(self, model: SolidModel, Y: np.ndarray, contraction: np.ndarray, E: np.ndarray):
         self.model, self.Y, self.contraction, self.E = model, Y, contraction, E
-        self.fused = not model.material.volume_term
+        self.fused = True
         if self.fused:
             self.kernel_arrays = kernel_arrays(model, contraction, E)
 
@@ -145,8 +146,8 @@ def pd_solve(model: SolidModel, Y: np.ndarray, X0: np.ndarray, contraction: np.n
     cache: the preconditioner's factors kept between steps (read and updated).
     Returns (X [B, N, 2], ForwardInfo). The preconditioner is built only if some sample needs an
     iteration (a start that is already converged, e.g. a checkpoint recomputation's, costs one
-    residual evaluation). On models without the volume term, with the default preconditioner,
-    the samples run their whole solve compiled (_solve_compiled); a sample whose Newton matrix
+    residual evaluation). With the default preconditioner the samples run their whole solve
+    compiled (_solve_compiled); a sample whose Newton matrix
     has no banded Cholesky factor goes to the batched numpy iteration (_lbfgs) with a sparse LU."""
     opts = model.options
     objective = Objective(model, Y, contraction, E)
@@ -198,8 +199,9 @@ def from_packs(a: np.ndarray, lanes: np.ndarray, out: np.ndarray) -> None:
 def pack_arrays(arrays: tuple, lanes: np.ndarray) -> tuple:
     """packed.kernel_arrays' per-sample arrays (w_corotated, stretch: [B, .]) dealt into packs
     [P, ., LANES]."""
-    mass_h2, triangles, grad, w_corotated, muscle_of, w_muscle, stretch = arrays
-    return (mass_h2, triangles, grad, to_packs(w_corotated, lanes), muscle_of, w_muscle, to_packs(stretch, lanes))
+    mass_h2, triangles, grad, w_corotated, w_volume, muscle_of, w_muscle, stretch = arrays
+    return (mass_h2, triangles, grad, to_packs(w_corotated, lanes), to_packs(w_volume, lanes), muscle_of, w_muscle,
+            to_packs(stretch, lanes))
 
 
 def _solve_compiled(objective: Objective, cache: SolverCache, X: np.ndarray, g: np.ndarray, need: np.ndarray,
@@ -359,11 +361,6 @@ def _direct_solve(model: SolidModel, X: np.ndarray, contraction: np.ndarray, E: 
     [B, N, 2]: banded Cholesky when it is positive definite (_banded_solve), else sparse LU
     (banded.lu_factor)."""
     x = np.zeros(b.shape)
-    if model.material.volume_term:
-        p = elastic.projections_at(model, X, contraction, E)
-        for s in samples:
-            x[s] = spd_factor(elastic.newton_matrix(model, p, int(s))).solve(b[s].reshape(-1)).reshape(-1, 2)
-        return x
     rest = np.setdiff1d(samples, _banded_solve(model, X, contraction, E, b, samples, x))   # not positive definite
     if len(rest):
         p = elastic.projections_at(model, X, contraction, E)

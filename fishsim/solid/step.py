@@ -61,19 +61,15 @@ def adjoint_gradients(model: SolidModel, cache: SolverCache, q_next, contraction
 def parameter_gradients(model: SolidModel, q_next: np.ndarray, contraction: np.ndarray, E: np.ndarray,
                         lam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(dL/du [B, n_act], dL/dE [B]) = -lambda^T d(grad Phi)/d(u, E) at q+ (q_next, lam [B, N, 2];
-    contraction [n_act, B]): compiled (kernels.parameter_gradients) on models without the
-    volume term, else from the projections in numpy."""
-    if not model.material.volume_term:
-        grad_u, grad_E = np.empty((len(lam), model.n_muscles)), np.empty(len(lam))
-        kernels.parameter_gradients(np.ascontiguousarray(q_next), np.ascontiguousarray(lam), model.mesh_triangles,
-                                    model.fem.grad, model.fem.area * model.material.corotated_per_E,
-                                    model.muscle_of, model.muscle_weight, grad_u, grad_E)
-        return grad_u, grad_E
-    p = elastic.projections_at(model, q_next, contraction, E)
-    dZ = elastic.deformation_gradients(model, elastic.to_columns(lam))   # G lambda, Z layout
-    dS0, dS1 = elastic.fiber_stress_per_contraction(p)
-    grad_u = -(dZ[0, model.muscles, 0] * dS0 + dZ[0, model.muscles, 1] * dS1).T
-    return grad_u, -(dZ * elastic.stress_per_E(model, p)).sum(axis=(0, 1, 2))
+    contraction [n_act, B], unused: dS/du and dS/dE do not depend on it), compiled
+    (kernels.parameter_gradients)."""
+    material, area = model.material, model.fem.area
+    grad_u, grad_E = np.empty((len(lam), model.n_muscles)), np.empty(len(lam))
+    kernels.parameter_gradients(np.ascontiguousarray(q_next), np.ascontiguousarray(lam), model.mesh_triangles,
+                                model.fem.grad, area * material.corotated_per_E,
+                                area * material.volume_per_E if material.volume_term else np.zeros(0),
+                                model.muscle_of, model.muscle_weight, grad_u, grad_E)
+    return grad_u, grad_E
 
 
 def muscle_weight_gradient(model: SolidModel, q_next: np.ndarray, contraction: np.ndarray,

@@ -36,10 +36,20 @@ def test_fused_objective_equals_numpy_local_step(coarse_mesh):
     np.testing.assert_allclose(g, g_ref, rtol=0, atol=1e-12 * np.abs(g_ref).max())
 
 
-def test_volume_term_uses_the_numpy_path(coarse_mesh):
+def test_fused_objective_with_the_volume_term_equals_numpy_local_step(coarse_mesh):
+    """The compiled volume term (element.volume_stress: the closest det-1 matrix by a lane-wise
+    safeguarded Newton) gives the numpy energies.volume_projection's Phi and grad Phi."""
     model = SolidModel(coarse_mesh, SolidMaterial(volume_term=True))
-    X = np.array(model.mesh.points[None])
-    assert not Objective(model, X, np.zeros((model.n_muscles, 1)), np.array([6e5])).fused
+    rng = np.random.default_rng(3)
+    X = _deformed_batch(model, rng, (0.4, -1.3))
+    X[1, :, 1] *= 0.8                                    # squash sample 1: det F well below 1
+    Y = X + 1e-3 * rng.standard_normal(X.shape)
+    objective = Objective(model, Y, rng.uniform(0.0, 0.4, (model.n_muscles, 2)), np.array([6e5, 1.5e6]))
+    phi, g = objective(X)
+    objective.fused = False
+    phi_ref, g_ref = objective(X)
+    np.testing.assert_allclose(phi, phi_ref, rtol=1e-12)
+    np.testing.assert_allclose(g, g_ref, rtol=0, atol=1e-11 * np.abs(g_ref).max())
 
 
 @pytest.mark.parametrize("B", [1, 2])
@@ -52,11 +62,12 @@ def test_fused_objective_of_the_rest_shape_is_pure_muscle(coarse_mesh, B):
     np.testing.assert_allclose(phi, (model.muscle_weight / 2 * 0.2**2).sum(), rtol=1e-12)
 
 
-def test_compiled_parameter_gradients_equal_the_numpy_formulas(coarse_mesh):
-    """kernels.parameter_gradients (step.parameter_gradients without the volume term) equals
+@pytest.mark.parametrize("volume_term", [False, True])
+def test_compiled_parameter_gradients_equal_the_numpy_formulas(coarse_mesh, volume_term):
+    """kernels.parameter_gradients (step.parameter_gradients), with and without the volume term, equals
     -lambda^T d(grad Phi)/d(u, E) from the projections: dS/du = w n on the fiber column,
     dS/dE = elastic.stress_per_E."""
-    model = SolidModel(coarse_mesh)
+    model = SolidModel(coarse_mesh, SolidMaterial(volume_term=volume_term))
     rng = np.random.default_rng(8)
     B = 3
     X = np.repeat(model.mesh.points[None], B, axis=0) * [0.97, 1.0] + 1e-4 * rng.standard_normal((B, model.n_nodes, 2))

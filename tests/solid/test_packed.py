@@ -25,7 +25,16 @@ from fishsim.linalg.simd import (
     store,
     width,
 )
-from fishsim.solid import PDOptions, SolidModel, SolverCache, elastic, packed, pd_step, rest_state
+from fishsim.solid import (
+    PDOptions,
+    SolidMaterial,
+    SolidModel,
+    SolverCache,
+    elastic,
+    packed,
+    pd_step,
+    rest_state,
+)
 from fishsim.solid.muscles import layer_muscles
 from fishsim.solid.packed import kernel_arrays
 from fishsim.solid.solve import Objective, from_packs, pack_arrays, packs_of, pd_solve, to_packs
@@ -90,20 +99,21 @@ def _dense(model: SolidModel, L: np.ndarray) -> np.ndarray:
     return K
 
 
+@pytest.mark.parametrize("volume_term", [False, True])
 @pytest.mark.parametrize("projected", [0.0, 1.0])
-def test_compiled_newton_band_equals_the_numpy_newton_matrix(coarse_mesh, projected):
+def test_compiled_newton_band_equals_the_numpy_newton_matrix(coarse_mesh, projected, volume_term):
     """The compiled assembly of a sample's Newton matrix into its band (packed._newton_band at
     width 1) equals elastic.newton_matrix (numpy element Hessians), exact and projected, for a
-    compressed sample."""
-    model = SolidModel(coarse_mesh)
+    compressed sample, with and without DiffPD's volume term."""
+    model = SolidModel(coarse_mesh, SolidMaterial(volume_term=volume_term))
     X0, _, contraction, E = _batch(model, 3, seed=1)
     arrays, band = kernel_arrays(model, contraction, E), model.pack_band
     p = elastic.projections_at(model, X0, contraction, E)
     slot, diagonal, diagonal_values = band.arrays[:3]
     for b in (0, 2):
         L = np.empty((band.rows, band.width))
-        packed._newton_band(X0[b], arrays[1], arrays[2], arrays[3][b], arrays[4], arrays[5], arrays[6][b], projected,
-                            slot, diagonal, diagonal_values, L, np.empty(16), 0.0)
+        packed._newton_band(X0[b], arrays[1], arrays[2], arrays[3][b], arrays[4][b], arrays[5], arrays[6], arrays[7][b],
+                            projected, slot, diagonal, diagonal_values, L, np.empty(16), 0.0)
         K = elastic.newton_matrix(model, p, b, projected=bool(projected)).toarray()
         np.testing.assert_allclose(_dense(model, L), K, rtol=0, atol=1e-12 * np.abs(K).max())
 
