@@ -1,16 +1,15 @@
-"""An 8 x float64 SIMD vector as a numba type, `Vec` (an LLVM <8 x double> value), and the
-arithmetic on it: +, -, *, /, +=, -=, >, >=, <= (a Vec with a scalar broadcasts the scalar),
-fma, sqrt, max, |.|, lane masks (1.0 / 0.0 per lane) and `where`, each one vector instruction;
-loads and stores of 8 consecutive float64 (vload, vstore). packed.py runs eight samples of the
-PD solve in the lanes of one Vec.
+"""An 8 x float64 SIMD vector as a numba type, `Vec` (an LLVM <8 x double> value), and
+lane-generic operations: code written with them and the operators (+, -, *, /, +=, -=, >, >=,
+<=; a Vec with a scalar broadcasts the scalar) compiles for a pack of width 1 (one sample, plain
+floats) and of width LANES (Vecs, each operation one vector instruction), chosen by a prototype
+value `proto` (0.0 or a Vec) the caller passes down: width, fill, load, store (flat entries of
+C-contiguous float64 arrays), mask, select, maximum, sqrt, absolute, multiply_add, nan_mask,
+lanes_set, lane_value. A lane mask is 1.0 / 0.0 per lane (a float at width 1; `mask` turns a
+comparison's bool into one). The solid's element physics (element.py), its solver
+(solid/packed.py) and the banded Cholesky (banded.py) are written once this way.
 
 numba does not vectorise such 8-wide lane loops by itself (its SLP vectoriser is off and the
 loop vectoriser judges 8 trips not worth it), hence a type of its own.
-
-`sqrt`, `maximum` and `select` are generic: on floats they are math.sqrt, max and a
-conditional; on Vecs the lane-wise vsqrt, vmax and where (a float mask there is a bool). Code
-written with them and the operators compiles for one sample (floats) and for a pack (Vecs):
-element.py's element physics is written once that way.
 """
 
 from __future__ import annotations
@@ -58,29 +57,6 @@ def _element_pointer(context, builder, array_type, array, index_type, index, vec
 
 
 @intrinsic
-def vload(typingctx, a, i):
-    """The 8 values a.flat[i:i + 8] of a C-contiguous float64 array (no bounds check)."""
-    if _is_f64_array(a) and isinstance(i, types.Integer):
-        def codegen(context, builder, sig, args):
-            return builder.load(_element_pointer(context, builder, sig.args[0], args[0], sig.args[1], args[1]),
-                                align=8)
-        return vec(a, i), codegen
-    return None
-
-
-@intrinsic
-def vstore(typingctx, a, i, v):
-    """a.flat[i:i + 8] = v (no bounds check)."""
-    if _is_f64_array(a) and isinstance(i, types.Integer) and isinstance(v, Vec):
-        def codegen(context, builder, sig, args):
-            builder.store(args[2], _element_pointer(context, builder, sig.args[0], args[0], sig.args[1], args[1]),
-                          align=8)
-            return context.get_dummy_value()
-        return types.none(a, i, v), codegen
-    return None
-
-
-@intrinsic
 def splat(typingctx, x):
     """A Vec from a scalar (every lane x) or a Vec (itself)."""
     if isinstance(x, Vec):
@@ -95,7 +71,7 @@ def splat(typingctx, x):
 
 
 @intrinsic
-def lane(typingctx, v, k):
+def _lane(typingctx, v, k):
     """Lane k of v, a float."""
     if isinstance(v, Vec) and isinstance(k, types.Integer):
         def codegen(context, builder, sig, args):
@@ -154,7 +130,7 @@ def _greater_equal(typingctx, a, b):
 
 
 @intrinsic
-def vsqrt(typingctx, a):
+def _vsqrt(typingctx, a):
     """sqrt per lane."""
     if isinstance(a, Vec):
         return vec(a), lambda context, builder, sig, args: _llvm_call(builder, "llvm.sqrt", args[0])
@@ -162,7 +138,7 @@ def vsqrt(typingctx, a):
 
 
 @intrinsic
-def isnan(typingctx, a):
+def _isnan(typingctx, a):
     """Mask: 1.0 where the lane is NaN, else 0.0."""
     if isinstance(a, Vec):
         def codegen(context, builder, sig, args):
@@ -221,36 +197,12 @@ def _less_equal(a, b):
 
 
 @numba.njit(inline="always")
-def vmax(a, b):
-    """max per lane (the non-NaN one where one is NaN)."""
-    return _max(splat(a), splat(b))
-
-
-@numba.njit(inline="always")
-def fma(a, b, c):
-    """a b + c per lane, one rounding."""
-    return _fma(splat(a), splat(b), splat(c))
-
-
-@numba.njit(inline="always")
-def where(mask, a, b):
-    """a where mask (1.0) else b, per lane."""
-    return _where(mask, splat(a), splat(b))
-
-
-@numba.njit(inline="always")
-def count(mask) -> float:
-    """Number of lanes set in a mask (sum of its lanes)."""
+def _count(m) -> float:
+    """Number of lanes set in a Vec mask (sum of its lanes)."""
     total = 0.0
     for k in range(LANES):
-        total += lane(mask, k)
+        total += _lane(m, k)
     return total
-
-
-@numba.njit(inline="always")
-def vabs(a):
-    """|a| per lane."""
-    return vmax(a, -a)
 
 
 def sqrt(x):
@@ -271,29 +223,25 @@ def select(mask, a, b):
 @overload(sqrt)
 def _sqrt(x):
     if isinstance(x, Vec):
-        return lambda x: vsqrt(x)
+        return lambda x: _vsqrt(x)
     return lambda x: math.sqrt(x)
 
 
 @overload(maximum)
 def _maximum(a, b):
     if _involves_vec(a, b):
-        return lambda a, b: vmax(a, b)
+        return lambda a, b: _max(splat(a), splat(b))
     return lambda a, b: max(a, b)
 
 
 @overload(select)
 def _select(mask, a, b):
     if isinstance(mask, Vec):
-        return lambda mask, a, b: where(mask, a, b)
+        return lambda mask, a, b: _where(mask, splat(a), splat(b))
     return lambda mask, a, b: a if mask else b
 
 
-# ---------------------------------------------------------------------------------------------
-# Lane-generic operations: code written with them (and the operators) compiles for a pack of
-# width 1 (one sample, floats) and of width LANES (Vecs), chosen by a prototype value `proto`
-# (0.0 or a Vec) the caller passes down. A lane mask is 1.0 / 0.0 per lane (a float at width 1;
-# `mask` turns a comparison's bool into one).
+# Lane-generic operations (module docstring).
 
 
 def width(proto) -> int:
@@ -369,7 +317,7 @@ def lanes_set(m) -> float:
 @overload(lanes_set)
 def _lanes_set(m):
     if isinstance(m, Vec):
-        return lambda m: count(m)
+        return lambda m: _count(m)
     return lambda m: m
 
 
@@ -381,7 +329,7 @@ def lane_value(v, k: int) -> float:
 @overload(lane_value)
 def _lane_value(v, k):
     if isinstance(v, Vec):
-        return lambda v, k: lane(v, k)
+        return lambda v, k: _lane(v, k)
     return lambda v, k: v
 
 
@@ -393,7 +341,7 @@ def multiply_add(a, b, c):
 @overload(multiply_add)
 def _multiply_add(a, b, c):
     if _involves_vec(a, b, c):
-        return lambda a, b, c: fma(a, b, c)
+        return lambda a, b, c: _fma(splat(a), splat(b), splat(c))
     return lambda a, b, c: a * b + c
 
 
@@ -405,7 +353,7 @@ def nan_mask(x):
 @overload(nan_mask)
 def _nan_mask(x):
     if isinstance(x, Vec):
-        return lambda x: isnan(x)
+        return lambda x: _isnan(x)
     return lambda x: 1.0 if math.isnan(x) else 0.0
 
 
@@ -417,5 +365,5 @@ def absolute(x):
 @overload(absolute)
 def _absolute(x):
     if isinstance(x, Vec):
-        return lambda x: vabs(x)
+        return lambda x: _max(x, _sub(splat(0.0), x))
     return lambda x: abs(x)

@@ -142,13 +142,13 @@ def volume_multiplier(c2, s2):
 @jit(inline="always")
 def volume_stress(F00, F01, F10, F11, w):
     """(psi, S00, S01, S10, S11): DiffPD's volume energy w |F - D|^2 (w = area lambda_s, D the
-    closest det-1 matrix) and its stress w (F - D); also t, D's multiplier (volume_differential)."""
+    closest det-1 matrix) and its stress w (F - D)."""
     alpha, beta, gamma, delta = conformal(F00, F01, F10, F11)
     t = volume_multiplier(alpha * alpha + beta * beta, gamma * gamma + delta * delta)
     p, m = 1.0 / (1.0 + t), 1.0 / (1.0 - t)
     ra, rb, rg, rd = alpha - alpha * p, beta - beta * p, gamma - gamma * m, delta - delta * m
     psi = w * (ra * ra + rb * rb + rg * rg + rd * rd)
-    return psi, w * (ra + rg), w * (rd - rb), w * (rb + rd), w * (ra - rg), t
+    return psi, w * (ra + rg), w * (rd - rb), w * (rb + rd), w * (ra - rg)
 
 
 @jit(inline="always")

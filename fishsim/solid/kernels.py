@@ -82,7 +82,7 @@ def parameter_gradients(X: np.ndarray, lam: np.ndarray, triangles: np.ndarray, g
             D00, D01, D10, D11 = _deformation_gradient(lam[b], triangles, grad, e, 0.0)
             _, S00, S01, S10, S11 = element.corotated_stress(F00, F01, F10, F11, w_per_E[e])
             if volume:
-                _, V00, V01, V10, V11, _ = element.volume_stress(F00, F01, F10, F11, w_volume_per_E[e])
+                _, V00, V01, V10, V11 = element.volume_stress(F00, F01, F10, F11, w_volume_per_E[e])
                 S00, S01, S10, S11 = S00 + V00, S01 + V01, S10 + V10, S11 + V11
             total += D00 * S00 + D01 * S01 + D10 * S10 + D11 * S11
             m = muscle_of[e]

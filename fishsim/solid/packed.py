@@ -104,7 +104,7 @@ def _objective(X, Y, mass_h2, triangles, grad, w_corotated, w_volume, muscle_of,
         psi, S00, S01, S10, S11 = element.corotated_stress(F00, F01, F10, F11, load(w_corotated, e * W, proto))
         phi += psi
         if w_volume.shape[0]:
-            psi, V00, V01, V10, V11, _ = element.volume_stress(F00, F01, F10, F11, load(w_volume, e * W, proto))
+            psi, V00, V01, V10, V11 = element.volume_stress(F00, F01, F10, F11, load(w_volume, e * W, proto))
             phi += psi
             S00, S01, S10, S11 = S00 + V00, S01 + V01, S10 + V10, S11 + V11
         m = muscle_of[e]
@@ -145,7 +145,7 @@ def _newton_band(X, triangles, grad, w_corotated, w_volume, muscle_of, w_muscle,
         w_v, t = zero, zero
         if volume:
             w_v = load(w_volume, e * W, proto)
-            t = element.volume_stress(F00, F01, F10, F11, w_v)[5]
+            t = element.volume_multiplier(alpha * alpha + beta * beta, gamma * gamma + delta * delta)
         m = muscle_of[e]
         n0, n1, length, a_m, w_m = zero, zero, zero, zero, 0.0
         if m >= 0:
@@ -205,14 +205,15 @@ def _max_nodal_norm(g, proto):
 
 @jit
 def _factor_newton(X, triangles, grad, w_corotated, w_volume, muscle_of, w_muscle, stretch, slot, diagonal,
-                   diagonal_values, w, L, proto):
+                   diagonal_values, w, L, projected_fallback, proto):
     """Each lane's Newton matrix at X assembled into L and factorised: the exact one, else (in
-    lanes where it is indefinite) the projected one. Returns the lanes with a factor."""
+    lanes where it is indefinite, if ``projected_fallback``) the projected one. Returns the lanes
+    with a factor."""
     H = np.empty(16 * width(proto))
     _newton_band(X, triangles, grad, w_corotated, w_volume, muscle_of, w_muscle, stretch, fill(proto, 0.0), slot,
                  diagonal, diagonal_values, L, H, proto)
     ok = banded.factor(L, w, proto)
-    if lanes_set(ok) < width(proto):
+    if projected_fallback and lanes_set(ok) < width(proto):
         _newton_band(X, triangles, grad, w_corotated, w_volume, muscle_of, w_muscle, stretch, 1.0 - ok, slot,
                      diagonal, diagonal_values, L, H, proto)
         ok = banded.factor(L, w, proto)
@@ -231,7 +232,7 @@ def _lbfgs_pack(X, Y, mass_h2, triangles, grad, w_corotated, w_volume, muscle_of
     W = width(proto)
     if stale:
         store(ok, 0, _factor_newton(X, triangles, grad, w_corotated, w_volume, muscle_of, w_muscle, stretch, slot,
-                                    diagonal, diagonal_values, w, L, proto))
+                                    diagonal, diagonal_values, w, L, True, proto))
     lanes_ok = load(ok, 0, proto)
     if lanes_set(lanes_ok) == 0:
         return
@@ -324,7 +325,7 @@ def factor(X, phi_args, band, L, packs, ok):
     for k in numba.prange(packs.shape[0]):
         p = packs[k]
         store(ok[p], 0, _factor_newton(X[p], triangles, grad, w_corotated[p], w_volume[p], muscle_of, w_muscle,
-                                       stretch[p], slot, diagonal, diagonal_values, w, L[p], prototype(X)))
+                                       stretch[p], slot, diagonal, diagonal_values, w, L[p], True, prototype(X)))
 
 
 @jit(parallel=True)
@@ -345,10 +346,8 @@ def newton_solve(X, R, phi_args, band, L, packs, Z, ok):
     for k in numba.prange(packs.shape[0]):
         p = packs[k]
         proto = prototype(X)
-        H = np.empty(16 * width(proto))
-        _newton_band(X[p], triangles, grad, w_corotated[p], w_volume[p], muscle_of, w_muscle, stretch[p],
-                     fill(proto, 0.0), slot, diagonal, diagonal_values, L[p], H, proto)
-        store(ok[p], 0, banded.factor(L[p], w, proto))
+        store(ok[p], 0, _factor_newton(X[p], triangles, grad, w_corotated[p], w_volume[p], muscle_of, w_muscle,
+                                       stretch[p], slot, diagonal, diagonal_values, w, L[p], False, proto))
         banded.solve(L[p], w, perm, inverse, R[p], Z[p], np.empty(R[p].size), proto)
 
 
