@@ -384,29 +384,33 @@ def kernel_arrays(model, contraction: np.ndarray, E: np.ndarray) -> tuple:
 class PackBand:
     """The Newton band of the compiled solver's packs for the mesh's band layout (fem.NewtonBand;
     banded.py's padding: rows a multiple of 4, identity rows past 2N, cols = w + 4) and nodal
-    masses: slot [T, 6, 6] and diagonal [rows], flat indices (of one lane) of the element
-    entries and of every row's diagonal, which starts at diagonal_values (M/h^2 per DOF, 1 for
-    the padding); `arrays` as the entry points take them."""
+    masses. `arrays`, as the entry points take them: (slot [T, 6, 6] and diagonal [rows], flat
+    indices (of one lane) of the element entries and of every row's diagonal, diagonal_values
+    (M/h^2 per DOF, 1 for the padding) where the diagonal starts, the half-bandwidth w, the RCM
+    permutation and its inverse)."""
 
     def __init__(self, newton_band, mass_diag: np.ndarray):
-        layout = newton_band.layout
-        self.w, n = layout.width, len(layout.perm)
-        self.rows, self.width = layout.rows, layout.cols
-        self.slot = np.ascontiguousarray(newton_band.slot)
-        self.diagonal = np.concatenate([newton_band.diagonal, np.arange(n, self.rows) * self.width])
-        self.diagonal_values = np.concatenate([mass_diag, np.ones(self.rows - n)])
-        self.arrays = (self.slot, self.diagonal, self.diagonal_values, self.w, layout.perm, layout.inverse)
+        layout = self.layout = newton_band.layout
+        n = len(layout.perm)
+        diagonal = np.concatenate([newton_band.diagonal, np.arange(n, layout.rows) * layout.cols])
+        self.arrays = (np.ascontiguousarray(newton_band.slot), diagonal,
+                       np.concatenate([mass_diag, np.ones(layout.rows - n)]), layout.width, layout.perm,
+                       layout.inverse)
         self._room = None
 
+    def shape(self, packs: int, lanes: int = LANES) -> tuple:
+        """The factors' array shape for `packs` packs of `lanes` lanes: [packs, rows, cols, lanes]."""
+        return packs, self.layout.rows, self.layout.cols, lanes
+
     def empty(self, packs: int, lanes: int = LANES) -> np.ndarray:
-        """Room for the factors of `packs` packs of `lanes` lanes, [packs, rows, width, lanes],
-        64-byte aligned (one vector per cache line). The room is kept and reused by the next
-        call (so a step does not fault in ~6 MB of fresh pages per pack): a caller's factors
-        live until then."""
-        size = packs * self.rows * self.width * lanes
+        """Room for the factors of `packs` packs of `lanes` lanes (shape), 64-byte aligned (one
+        vector per cache line). The room is kept and reused by the next call (so a step does not
+        fault in ~6 MB of fresh pages per pack): a caller's factors live until then."""
+        shape = self.shape(packs, lanes)
+        size = int(np.prod(shape))
         if self._room is None or len(self._room) < size:
             self._room = aligned_empty((size,))
-        return self._room[:size].reshape(packs, self.rows, self.width, lanes)
+        return self._room[:size].reshape(shape)
 
 
 def aligned_empty(shape: tuple) -> np.ndarray:

@@ -123,8 +123,7 @@ class LaggedFactors:
     estimate)."""
 
     def __init__(self, model: SolidModel, B: int):
-        band = model.pack_band
-        self.L = aligned_empty((B, band.rows, band.width, 1))
+        self.L = aligned_empty(model.pack_band.shape(B, 1))
         self.ok = np.zeros((B, 1))
         self.valid = np.zeros(B, bool)
         self.other: dict[int, object] = {}

@@ -90,7 +90,8 @@ def _batch(model: SolidModel, B: int, seed: int):
 
 def _dense(model: SolidModel, L: np.ndarray) -> np.ndarray:
     """The symmetric [2N, 2N] matrix of one sample's band L [rows, w + 4] (before factorising)."""
-    layout, w = model.newton_band.layout, model.pack_band.w
+    layout = model.newton_band.layout
+    w = layout.width
     n = len(layout.perm)
     K = np.zeros((n, n))
     for i in range(w + 1):
@@ -111,7 +112,7 @@ def test_compiled_newton_band_equals_the_numpy_newton_matrix(coarse_mesh, projec
     p = elastic.projections_at(model, X0, contraction, E)
     slot, diagonal, diagonal_values = band.arrays[:3]
     for b in (0, 2):
-        L = np.empty((band.rows, band.width))
+        L = np.empty(band.shape(1, 1)[1:3])
         packed._newton_band(X0[b], arrays[1], arrays[2], arrays[3][b], arrays[4][b], arrays[5], arrays[6], arrays[7][b],
                             projected, slot, diagonal, diagonal_values, L, np.empty(16), 0.0)
         K = elastic.newton_matrix(model, p, b, projected=bool(projected)).toarray()
@@ -170,7 +171,7 @@ def test_packs_of_eight_equal_single_samples(coarse_mesh):
     opts = model.options
     _, g = Objective(model, Y, contraction, E)(X0.copy())
     X1, g1, its1, ok1 = X0.copy(), g.copy(), np.zeros((B, 1)), np.zeros((B, 1))
-    packed.lbfgs(X1, Y, arrays, band.arrays, np.zeros((B, band.rows, band.width, 1)), np.ones(B, bool),
+    packed.lbfgs(X1, Y, arrays, band.arrays, np.zeros(band.shape(B, 1)), np.ones(B, bool),
                  np.arange(B), opts.atol, opts.max_iter, opts.history, g1, its1, ok1)
     Xp, gp = to_packs(X0, lanes), to_packs(g, lanes)
     its8, ok8 = np.zeros(lanes.shape), np.zeros(lanes.shape)
