@@ -31,18 +31,15 @@ CONFIG = typer.Option(None, "--config", help="A YAML config to start from (e.g. 
 
 def describe(defaults, prefix: str = "") -> str:
     """Help text listing a command's config groups and keys with their defaults (``defaults``: the
-    command's default config instance), one paragraph per group; a node of any fluid model (typed
-    ``FluidConfig``, simulate's ``fluid``) also lists the other models' keys, while one of a given
-    model (validate's ``hydronet``) lists its own."""
-    import typing
-
-    from fishsim.config import FLUID_MODELS, FluidConfig
+    command's default config instance), one paragraph per group; the top-level ``fluid`` node (any fluid model:
+    simulate's, optimize's) also lists the other models' keys, while a node of one given model
+    (validate's ``hydronet``) lists its own."""
+    from fishsim.config import FLUID_MODELS
 
     keys, groups = [], []
-    hints = {} if prefix else typing.get_type_hints(type(defaults))
     for f in dataclasses.fields(defaults):
         default = getattr(defaults, f.name)
-        if hints.get(f.name) is FluidConfig:          # every fluid model's own keys
+        if not prefix and f.name == "fluid":          # any fluid model: every model's own keys
             groups.append(f"{f.name}: " + describe(default, f.name + "."))
             groups += [f"{f.name}={model}: " + describe(kind(), f.name + ".")
                        for model, kind in FLUID_MODELS.items() if model != default.model]

@@ -29,13 +29,11 @@ sigma_s = (1.5 dx)^2 the window reaches 6 cells (15 mm), beyond the default fish
 
 from __future__ import annotations
 
-import math
-
 import torch
 from torch import Tensor
 
 from fishsim.coupling.config import NONE
-from fishsim.coupling.ibm import KERNEL_RADIUS, kernel_cells, sample_weights
+from fishsim.coupling.ibm import kernel_cells, kernel_radius, sample_weights
 from fishsim.fields import Grid
 
 #: Variance of the spreading kernel in cell units squared (standard deviation 1.5 cells).
@@ -50,7 +48,7 @@ def spread_to_surface(qs: Tensor, cell_force: Tensor, grid: Grid,
     reached no node, [B]). Differentiable in qs and cell_force.
     """
     sigma_s = SPREAD_CELLS2 * grid.dx**2 if sigma_s is None else sigma_s
-    radius = math.ceil(KERNEL_RADIUS * math.sqrt(sigma_s) / grid.dx)
+    radius = kernel_radius(sigma_s, grid.dx)
     flat, valid, ox, oy = kernel_cells(qs, grid, radius)
     B, S, M = flat.shape
     dtype = cell_force.dtype

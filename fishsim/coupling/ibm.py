@@ -81,6 +81,11 @@ KERNEL_RADIUS = 4.0  # in standard deviations sqrt(sigma')
 OUTSIDE_MASK = 0.05  # "outside" samples cells with b below this: the rate penalisation's support (numerical.py)
 
 
+def kernel_radius(sigma_prime: float, dx: float) -> int:
+    """The sampling window's half-width in cells: KERNEL_RADIUS standard deviations, rounded up."""
+    return math.ceil(KERNEL_RADIUS * math.sqrt(sigma_prime) / dx)
+
+
 def kernel_cells(qs: Tensor, grid: Grid, radius: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """The (2r+1)^2 cells around each node: flat index [B, S, M] (clamped into the grid),
     validity [B, S, M] bool and the offsets x_ij - q^k as two contiguous [B, S, M] tensors
@@ -187,7 +192,7 @@ def surface_samples(qs: Tensor, mask: Tensor, grid: Grid, sigma_prime: float, we
     [B, S, M] each, m) and the normalised weights g_ij w_ij / Z_k [B, S, M], in ``dtype`` (the
     offsets are formed in qs.dtype).  a: the nodes' area vectors [B, S, 2] if already computed
     ("outside" needs their normals)."""
-    radius = math.ceil(KERNEL_RADIUS * math.sqrt(sigma_prime) / grid.dx)
+    radius = kernel_radius(sigma_prime, grid.dx)
     flat, valid, ox, oy = kernel_cells(qs, grid, radius)
     ox, oy = ox.to(dtype), oy.to(dtype)
     normal = None
@@ -270,8 +275,8 @@ def ibm_force(qs: Tensor, p: Tensor, mask: Tensor, grid: Grid, sigma_prime: floa
 
         if fit not in (LINEAR, MEAN):
             raise ValueError(f"fit must be 'mean' or 'linear', got {fit!r}")
-        radius = math.ceil(KERNEL_RADIUS * math.sqrt(sigma_prime) / grid.dx)
-        return OutsidePressureForce.apply(qs, p, mask, OUTSIDE_MASK, grid.dx, sigma_prime, radius, fit == LINEAR)
+        return OutsidePressureForce.apply(qs, p, mask, OUTSIDE_MASK, grid.dx, sigma_prime,
+                                          kernel_radius(sigma_prime, grid.dx), fit == LINEAR)
     return torch_ibm_force(qs, p, mask, grid, sigma_prime, weight, fit, area, viscous)
 
 

@@ -162,8 +162,7 @@ def nearest_and_inside(qs: Tensor, centres: Tensor, k: int, segment: bool, width
     """The k nearest elements [B, P, k] (long, in no particular order) and inside flags [B, P] of
     the band cells ``centres`` [B, P, 2] (a row-major window ``width`` cells wide) for the
     polylines ``qs`` [B, S, 2] (both relative to the band's origin, m; CPU)."""
-    q = np.ascontiguousarray(qs.detach().to(torch.float64).numpy())
-    x = np.ascontiguousarray(centres.detach().to(torch.float64).numpy())
+    q, x = _f64(qs), _f64(centres)
     B, P = x.shape[:2]
     nearest, inside = np.empty((B, P, k), np.int64), np.empty((B, P), np.bool_)
     _each_fish(_fish_nearest, _nearest_parallel, q, x, width, segment, nearest, inside)
@@ -619,23 +618,32 @@ class OutsidePressureForce(torch.autograd.Function):
     (cells), ``linear`` or mean fit; CPU tensors. Differentiable in qs, p and b."""
 
     @staticmethod
+    def arrays(qs: Tensor, p: Tensor, b: Tensor, settings: tuple) -> tuple:
+        """The kernels' arguments: float64 copies of qs, p and b ([B, H W]), then the settings."""
+        B, H, W = p.shape[0], p.shape[-2], p.shape[-1]
+        return _f64(qs), _f64(p).reshape(B, H * W), _f64(b).reshape(B, H * W), *settings
+
+    @staticmethod
     def forward(ctx, qs: Tensor, p: Tensor, b: Tensor, outside: float, dx: float, sigma_prime: float, radius: int,
                 linear: bool):
-        B, H, W = p.shape[0], p.shape[-2], p.shape[-1]
-        args = (_f64(qs), _f64(p).reshape(B, H * W), _f64(b).reshape(B, H * W), float(outside), (H, W), float(dx),
-                float(sigma_prime), int(radius), bool(linear))
+        settings = (float(outside), (p.shape[-2], p.shape[-1]), float(dx), float(sigma_prime), int(radius),
+                    bool(linear))
+        args = OutsidePressureForce.arrays(qs, p, b, settings)
         f = np.empty(args[0].shape)
         _each_fish(_fish_ibm, _ibm_parallel, *args, f)
-        ctx.args, ctx.dtypes = args, (qs.dtype, p.dtype, b.dtype)
+        # the tensors, not their float64 copies (two whole grids a frame), wait for the backward
+        ctx.save_for_backward(qs, p, b)
+        ctx.settings = settings
         return torch.from_numpy(f).to(qs.dtype)
 
     @staticmethod
     def backward(ctx, gf: Tensor):
-        args = ctx.args
+        qs, p_in, b_in = ctx.saved_tensors
+        args = OutsidePressureForce.arrays(qs, p_in, b_in, ctx.settings)
         q, p = args[0], args[1]
         gq, gp, gmask = np.zeros(q.shape), np.zeros(p.shape), np.zeros(p.shape)
         _each_fish(_fish_ibm_backward, _ibm_backward_parallel, *args, _f64(gf), gq, gp, gmask)
         H, W = args[4]
-        q_dtype, p_dtype, b_dtype = ctx.dtypes
+        q_dtype, p_dtype, b_dtype = qs.dtype, p_in.dtype, b_in.dtype
         return (torch.from_numpy(gq).to(q_dtype), torch.from_numpy(gp).to(p_dtype).view(-1, 1, H, W),
                 torch.from_numpy(gmask).to(b_dtype).view(-1, 1, H, W), None, None, None, None, None)

@@ -41,7 +41,8 @@ class TankConfig:
     @property
     def centre(self) -> tuple[float, float]:
         """The box's centre (x, y) in m."""
-        return self.W * self.dx / 2, self.H * self.dx / 2
+        length, height = self.size
+        return length / 2, height / 2
 
     @property
     def grid(self) -> Grid:
