@@ -11,7 +11,7 @@ import torch
 
 from fishsim.config import FishConfig, SimulateConfig
 from fishsim.errors import ConfigError
-from fishsim.fluid.factory import SHIPPED_HYDRONET, fluid_dtype, fluid_params, make_fluid, make_walls
+from fishsim.fluid.factory import fluid_dtype, fluid_params, hydronet_file, make_fluid, make_walls
 from fishsim.fluid.hydronet.trained_range import check_fluid
 from fishsim.resources import check_memory
 from fishsim.rollout import Swimmer, SwimParams
@@ -71,7 +71,7 @@ def build_episode(cfg: SimulateConfig) -> Episode:
     mesh = build_fish_mesh(cfg.fish)
     fluid = make_fluid(cfg.fluid, cfg.tank, device)
     if cfg.fluid.model == "hydronet":
-        check_fluid(fluid.model, cfg.fluid.model_file or SHIPPED_HYDRONET, cfg.fluid.rho, cfg.fluid.mu,
+        check_fluid(fluid.model, hydronet_file(cfg.fluid), cfg.fluid.rho, cfg.fluid.mu,
                     cfg.tank.dx, cfg.h, cfg.fluid.strict_range)
     solid = SolidModel(mesh, cfg.solid.material, h=cfg.h, options=cfg.solid.pd,
                        added_mass_ratio=cfg.coupling.stabilisation_ratio if fluid.exerts_force else 0.0,

@@ -191,7 +191,7 @@ def run_hydronet(cfg: ValidateConfig) -> dict:
     """suite=hydronet: evaluate, write metrics.json and the comparison picture, print the table."""
     import torch
 
-    from fishsim.fluid.factory import SHIPPED_HYDRONET, make_fluid
+    from fishsim.fluid.factory import hydronet_file, make_fluid
     from fishsim.fluid.hydronet.trained_range import check_fluid
     from fishsim.fluid.numerical import NumericalFluid
     from fishsim.learn.evaluate import energy_checks, evaluate, summarise
@@ -200,7 +200,7 @@ def run_hydronet(cfg: ValidateConfig) -> dict:
     out_dir = make_out_dir("validate", cfg.out_dir)
     s = cfg.scenes
     grid, device = s.tank.grid, torch.device(cfg.device)
-    path = cfg.hydronet.model_file or SHIPPED_HYDRONET
+    path = hydronet_file(cfg.hydronet)
     net = make_fluid(cfg.hydronet, s.tank, device)     # model_file, bf16, pressure, pressure_tol
     # outside the model's trained range: a warning, as measuring that error is allowed (refused with strict_range)
     check_fluid(net.model, path, s.rho, s.mu, s.tank.dx, s.h, strict=cfg.hydronet.strict_range, key="hydronet")

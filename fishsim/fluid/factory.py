@@ -37,10 +37,15 @@ def make_fluid(cfg, tank, device=None) -> FluidModel:
         from fishsim.fluid.hydronet import HydroNetFluid, load_hydronet
         from fishsim.fluid.pressure import RecoveryConfig
 
-        model = load_hydronet(cfg.model_file or SHIPPED_HYDRONET, device=device or "cpu").to(fluid_dtype(cfg))
+        model = load_hydronet(hydronet_file(cfg), device=device or "cpu").to(fluid_dtype(cfg))
         return HydroNetFluid(model, tank.grid, bf16=cfg.bf16, pressure=cfg.pressure,
                              recovery=RecoveryConfig(tol=cfg.pressure_tol))
     raise ValueError(f"unknown fluid model {cfg.model!r}")
+
+
+def hydronet_file(cfg) -> str | Path:
+    """The model file a HydroNetConfig names: its model_file, else the shipped one."""
+    return cfg.model_file or SHIPPED_HYDRONET
 
 
 def make_walls(tank, dtype: torch.dtype, device=None, unit_inflow: bool = False) -> Boundary:
