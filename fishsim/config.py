@@ -171,11 +171,11 @@ class FluidConfig:
     model: str = "none"
     dtype: str = "float32"
 
-    def validate(self) -> None:
-        _require(self.dtype in ("float32", "float64"), f"fluid.dtype must be float32 or float64 (got '{self.dtype}')")
-        _require(self.model in FLUID_MODELS, f"fluid.model must be one of {tuple(FLUID_MODELS)} (got '{self.model}')")
+    def validate(self, key: str = "fluid") -> None:
+        _require(self.dtype in ("float32", "float64"), f"{key}.dtype must be float32 or float64 (got '{self.dtype}')")
+        _require(self.model in FLUID_MODELS, f"{key}.model must be one of {tuple(FLUID_MODELS)} (got '{self.model}')")
         _require(isinstance(self, FLUID_MODELS[self.model]),
-                 f"fluid.model={self.model} needs a {FLUID_MODELS[self.model].__name__} (got a {type(self).__name__})")
+                 f"{key}.model={self.model} needs a {FLUID_MODELS[self.model].__name__} (got a {type(self).__name__})")
 
 
 @dataclass
@@ -194,9 +194,9 @@ class WaterConfig(FluidConfig):
     rho: float = 50.0
     mu: float = 1.25e-4
 
-    def validate(self) -> None:
-        super().validate()
-        _positive(**{"fluid.rho": self.rho, "fluid.mu": self.mu})
+    def validate(self, key: str = "fluid") -> None:
+        super().validate(key)
+        _positive(**{f"{key}.rho": self.rho, f"{key}.mu": self.mu})
 
 
 @dataclass
@@ -229,16 +229,16 @@ class NumericalConfig(WaterConfig):
     brinkman: float | None = None
     scheme: str = "koren"
 
-    def validate(self) -> None:
-        super().validate()
-        _require(self.refinement in (1, 2, 4), f"fluid.refinement must be 1, 2 or 4 (got {self.refinement})")
-        _require(1 <= self.substeps <= 64, f"fluid.substeps must be in [1, 64] (got {self.substeps})")
-        _require(0 < self.cfl <= 1.5, f"fluid.cfl must be in (0, 1.5] (got {self.cfl})")
-        _require(self.scheme in ("koren", "albada"), f"fluid.scheme must be koren or albada (got '{self.scheme}')")
+    def validate(self, key: str = "fluid") -> None:
+        super().validate(key)
+        _require(self.refinement in (1, 2, 4), f"{key}.refinement must be 1, 2 or 4 (got {self.refinement})")
+        _require(1 <= self.substeps <= 64, f"{key}.substeps must be in [1, 64] (got {self.substeps})")
+        _require(0 < self.cfl <= 1.5, f"{key}.cfl must be in (0, 1.5] (got {self.cfl})")
+        _require(self.scheme in ("koren", "albada"), f"{key}.scheme must be koren or albada (got '{self.scheme}')")
         _require(1 <= self.penalization_iterations <= 16,
-                 f"fluid.penalization_iterations must be in [1, 16] (got {self.penalization_iterations})")
+                 f"{key}.penalization_iterations must be in [1, 16] (got {self.penalization_iterations})")
         _require(self.brinkman is None or self.brinkman > 0,
-                 f"fluid.brinkman must be > 0 (1/s) or null (got {self.brinkman})")
+                 f"{key}.brinkman must be > 0 (1/s) or null (got {self.brinkman})")
 
 
 @dataclass
@@ -262,11 +262,11 @@ class HydroNetConfig(WaterConfig):
     pressure_tol: float = 1e-6
     strict_range: bool = False
 
-    def validate(self) -> None:
-        super().validate()
+    def validate(self, key: str = "fluid") -> None:
+        super().validate(key)
         _require(self.pressure in PRESSURES,
-                 f"fluid.pressure must be recovered or network (got '{self.pressure}')")
-        _require(0 < self.pressure_tol < 1, f"fluid.pressure_tol must be in (0, 1) (got {self.pressure_tol})")
+                 f"{key}.pressure must be recovered or network (got '{self.pressure}')")
+        _require(0 < self.pressure_tol < 1, f"{key}.pressure_tol must be in (0, 1) (got {self.pressure_tol})")
 
 
 FLUID_MODELS: dict[str, type[FluidConfig]] = {"none": VacuumConfig, "numerical": NumericalConfig,
@@ -521,10 +521,7 @@ class ValidateConfig:
         net, shipped = self.hydronet, HydroNetConfig()
         if net.model != "hydronet":
             raise ConfigError(f"hydronet.model must be hydronet: validate judges a HydroNet (got '{net.model}')")
-        try:
-            net.validate()
-        except ConfigError as err:
-            raise ConfigError(str(err).replace("fluid.", "hydronet.")) from None
+        net.validate("hydronet")
         for key in ("rho", "mu", "dtype"):
             if getattr(net, key) != getattr(shipped, key):
                 raise ConfigError(f"hydronet.{key} stays at its default ({getattr(shipped, key)}) in validate: the "
