@@ -644,44 +644,61 @@ def _merge_file(raw: Any, path: str, dotted: list[str], command: str | None = No
 TANK_KEYS = tuple(f.name for f in dataclasses.fields(TankConfig))
 
 
+# Keys an earlier layout kept elsewhere (before 2026-11-27): (the command, None for any; the node
+# they were in, "" the root; the keys; the node that holds them now; whose settings they are).
+MOVED_KEYS = ((None, "fluid", TANK_KEYS, "tank", "the tank"),
+              ("validate", "", VALIDATE_HYDRONET_KEYS, "hydronet", "the HydroNet validate judges"),
+              ("validate", "scenes", TANK_KEYS, "scenes.tank", "the scenes' tank"))
+
+
+def _moves(command: str | None) -> list[tuple]:
+    return [move for move in MOVED_KEYS if move[0] in (None, command)]
+
+
 def _moved(key: str, command: str | None) -> tuple[str, str] | None:
-    """A key of an earlier layout that ``command`` now keeps elsewhere: (whose setting it is, its
-    key today), or None. Any command: the tank's grid, walls and inflow under ``fluid`` (before
-    2026-11-27), now ``tank.*``; validate: the judged HydroNet's top-level keys, now ``hydronet.*``."""
-    group, _, name = key.partition(".")
-    if group == "fluid" and name in TANK_KEYS:
-        return "the tank", f"tank.{name}"
-    if command == "validate" and key in VALIDATE_HYDRONET_KEYS:
-        return "the HydroNet validate judges", f"hydronet.{key}"
+    """A key of an earlier layout that ``command`` now keeps elsewhere (MOVED_KEYS): (whose
+    setting it is, its key today), or None."""
+    parent, _, name = key.rpartition(".")
+    for _, source, keys, target, whose in _moves(command):
+        if parent == source and name in keys:
+            return whose, f"{target}.{name}"
     return None
 
 
+def _node(tree: dict, path: str, create: bool = False) -> Any:
+    """The node at the dotted ``path`` of a plain config tree ("" the root); missing nodes are
+    created as empty ones if ``create``, else None."""
+    for name in filter(None, path.split(".")):
+        if create and not isinstance(tree.get(name), dict):
+            tree[name] = {}
+        tree = tree.get(name) if isinstance(tree, dict) else None
+    return tree
+
+
 def _upgraded(loaded: DictConfig, command: str | None = None) -> DictConfig:
-    """A config stored before the ``tank`` group and the per-model fluid configs (2026-11-27: one
-    flat ``fluid`` node holding the grid, walls, inflow and every model's keys) in today's
-    layout: the tank's keys moved to ``tank``, the keys of other fluid models dropped (they were
-    ignored by the model the file names). A validate config of then (its scenes' tank in
-    ``scenes``, the judged HydroNet's ``model_file``, ``bf16``, ``pressure`` at the top level):
-    those keys moved to ``scenes.tank`` and into the ``hydronet`` node."""
-    if command == "validate" and isinstance(loaded, DictConfig):
-        upgraded = OmegaConf.to_container(loaded)
-        scenes = upgraded.get("scenes") if isinstance(upgraded.get("scenes"), dict) else {}
-        tank = {k: scenes.pop(k) for k in TANK_KEYS if k in scenes}
-        if tank:
-            scenes["tank"] = {**tank, **(scenes.get("tank") or {})}
-        net = {k: upgraded.pop(k) for k in VALIDATE_HYDRONET_KEYS if k in upgraded}
-        if net:
-            upgraded["hydronet"] = {**net, **(upgraded.get("hydronet") or {})}
-        loaded = OmegaConf.create(upgraded)
-    fluid = loaded.get("fluid") if isinstance(loaded, DictConfig) else None
-    if not isinstance(fluid, DictConfig) or not any(k in fluid for k in TANK_KEYS):
+    """A config stored in an earlier layout (MOVED_KEYS: before the ``tank`` group and the
+    per-model fluid configs, 2026-11-27, one flat ``fluid`` node held the grid, walls, inflow and
+    every model's keys; validate kept its scenes' tank in ``scenes`` and the judged HydroNet's
+    keys at the top level) in today's: each moved key in its new node (where that node does not
+    set it already), and a fluid node that held the tank's keys keeps only its own model's (the
+    other models' were ignored by the model the file names)."""
+    if not isinstance(loaded, DictConfig):
         return loaded
-    tank = {k: fluid[k] for k in TANK_KEYS if k in fluid}
-    own = {f.name for f in dataclasses.fields(FLUID_MODELS.get(fluid.get("model", "numerical"), NumericalConfig))}
-    rest = {k: v for k, v in OmegaConf.to_container(fluid).items() if k in own}
-    upgraded = OmegaConf.to_container(loaded)
-    upgraded["fluid"], upgraded["tank"] = rest, {**upgraded.get("tank", {}), **tank}
-    return OmegaConf.create(upgraded)
+    tree, moved = OmegaConf.to_container(loaded), set()
+    for _, source, keys, target, _ in _moves(command):
+        node = _node(tree, source)
+        found = {k: node.pop(k) for k in keys if k in node} if isinstance(node, dict) else {}
+        if found:
+            _node(tree, target, create=True).update({k: v for k, v in found.items()
+                                                     if k not in _node(tree, target)})
+            moved.add(source)
+    if not moved:
+        return loaded
+    if "fluid" in moved:
+        fluid = tree["fluid"]
+        own = {f.name for f in dataclasses.fields(FLUID_MODELS.get(fluid.get("model", "numerical"), NumericalConfig))}
+        tree["fluid"] = {k: v for k, v in fluid.items() if k in own}
+    return OmegaConf.create(tree)
 
 
 def to_dataclass(command: str, raw: Any) -> Any:
