@@ -26,7 +26,7 @@ from fishsim.coupling.config import CouplingConfig
 from fishsim.coupling.exchange import spread_to_surface
 from fishsim.coupling.forces import burn_in_scale, fext_from_surface
 from fishsim.coupling.ibm import ibm_force
-from fishsim.coupling.mask import band_boundary, boundary_velocity, soft_mask
+from fishsim.coupling.mask import band_boundary
 from fishsim.fields import Boundary, Grid
 
 
@@ -51,11 +51,7 @@ def solid_to_fluid(q: Tensor, qdot: Tensor, surface, grid: Grid, cfg: CouplingCo
     idx = surface_index(surface, q.device)
     qs, qdots = q[:, idx], qdot[:, idx]
     band = surface_band(qs, grid, band_margin(cfg.sigma, grid.dx), cfg.k_nearest, cfg.distance)
-    if q.device.type == "cpu":                           # the same formulas, compiled
-        mask, velocity = band_boundary(qs, qdots, band, grid, cfg.xi, cfg.sigma, cfg.tau, cfg.mean, dtype)
-        return Boundary(mask=mask, velocity=velocity)
-    mask = soft_mask(qs, grid, cfg.xi, cfg.sigma, cfg.distance, cfg.mean, band, dtype)
-    velocity = boundary_velocity(qs, qdots, mask, grid, cfg.tau, cfg.distance, band, weighted=False)
+    mask, velocity = band_boundary(qs, qdots, band, grid, cfg.xi, cfg.sigma, cfg.tau, cfg.mean, dtype)
     return Boundary(mask=mask, velocity=velocity)
 
 

@@ -134,9 +134,13 @@ def soft_mask(qs: Tensor, grid: Grid, xi: float = XI, sigma: float = SIGMA,
 
 def band_boundary(qs: Tensor, qdots: Tensor, band: SurfaceBand, grid: Grid, xi: float = XI, sigma: float = SIGMA,
                   tau: float = TAU, mean: str = HARMONIC, dtype: torch.dtype | None = None) -> tuple[Tensor, Tensor]:
-    """``soft_mask`` and ``boundary_velocity(weighted=False)`` on one band in one compiled pass
-    over its cells (CPU; fishsim.coupling.kernels.BandBoundary, float64 inside): (b [B, 1, H, W],
-    v_d [B, 2, H, W]) in ``dtype`` (default qs.dtype), differentiable in qs and qdots [B, S, 2]."""
+    """``soft_mask`` and ``boundary_velocity(weighted=False)`` on one band: (b [B, 1, H, W],
+    v_d [B, 2, H, W]) in ``dtype`` (default qs.dtype), differentiable in qs and qdots [B, S, 2].
+    On the CPU in one compiled pass over the band's cells (fishsim.coupling.kernels.BandBoundary,
+    float64 inside); elsewhere the torch formulas."""
+    if qs.device.type != "cpu":
+        mask = soft_mask(qs, grid, xi, sigma, band.distance, mean, band, dtype)
+        return mask, boundary_velocity(qs, qdots, mask, grid, tau, band.distance, band, weighted=False)
     from fishsim.coupling.kernels import BandBoundary
 
     if mean not in (HARMONIC, ARITHMETIC):

@@ -34,7 +34,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from fishsim.coupling import band_margin, boundary_velocity, soft_mask, surface_band
+from fishsim.coupling import band_boundary, band_margin, surface_band
 from fishsim.fields import Boundary, FluidParams, FluidState, Grid
 from fishsim.fluid.grid import channel, union
 from fishsim.fluid.hydronet.config import PoolConfig
@@ -333,8 +333,7 @@ def fish_boundaries(fish: list[Fish], times: list[float], sigma: list[float], gr
         q = torch.as_tensor(np.stack([z[0] for z in qq]), dtype=torch.float32, device=device)
         qdot = torch.as_tensor(np.stack([z[1] for z in qq]), dtype=torch.float32, device=device)
         band = surface_band(q, grid, band_margin(sig, grid.dx))
-        b = soft_mask(q, grid, sigma=sig, band=band)
-        v = boundary_velocity(q, qdot, b, grid, band=band, weighted=False)  # as the coupling does
+        b, v = band_boundary(q, qdot, band, grid, sigma=sig)                  # as the coupling does
         for n, k in enumerate(ids):
             out[k] = Boundary(mask=b[n : n + 1], velocity=v[n : n + 1])
     return out
