@@ -59,55 +59,61 @@ def _koren_grad(u, c, d):
     ties, then t = (5c + 2d - u)/6, d, 3c - 2u (selects, no branches: the loop vectorises)."""
     t = (5.0 * c + 2.0 * d - u) / 6.0
     v = _median(c, t, _median(c, d, 3.0 * c - 2.0 * u))
-    is_c = v == c
-    is_t = (v == t) and not is_c
-    is_d = (v == d) and not (is_c or is_t)
-    is_e = not (is_c or is_t or is_d)
-    return (v, -1.0 / 6.0 * is_t - 2.0 * is_e, 1.0 * is_c + 5.0 / 6.0 * is_t + 3.0 * is_e,
-            1.0 / 3.0 * is_t + 1.0 * is_d)
+    fc = 1.0 if v == c else 0.0
+    ft = 1.0 - fc if v == t else 0.0
+    fd = 1.0 - fc - ft if v == d else 0.0
+    fe = 1.0 - fc - ft - fd
+    return v, -1.0 / 6.0 * ft - 2.0 * fe, fc + 5.0 / 6.0 * ft + 3.0 * fe, 1.0 / 3.0 * ft + fd
 
 
-@jit
+@jit(error_model="numpy")
 def _family_forward(q, T, tr0, tc0, tr1, tc1, F):
     """One flux family along rows: F[a, k] = U upwind(q[a+2, k .. k+3], U), U = (T[a+tr0, k+tc0]
-    + T[a+tr1, k+tc1]) / 2, the face value between q[a+2, k+1] and q[a+2, k+2]."""
+    + T[a+tr1, k+tc1]) / 2, the face value between q[a+2, k+1] and q[a+2, k+2]. Rows as 1D views,
+    the upwind side as selects: the loop vectorises."""
+    n = F.shape[1]
     for a in range(F.shape[0]):
-        r = a + 2
-        for k in range(F.shape[1]):
-            U = 0.5 * (T[a + tr0, k + tc0] + T[a + tr1, k + tc1])
-            if U >= 0:
-                F[a, k] = U * _koren(q[r, k], q[r, k + 1], q[r, k + 2])
-            else:
-                F[a, k] = U * _koren(q[r, k + 3], q[r, k + 2], q[r, k + 1])
+        qr, out = q[a + 2], F[a]
+        t0, t1 = T[a + tr0, tc0:tc0 + n], T[a + tr1, tc1:tc1 + n]
+        for k in range(n):
+            U = 0.5 * (t0[k] + t1[k])
+            pos = U >= 0
+            q0, q1, q2, q3 = qr[k], qr[k + 1], qr[k + 2], qr[k + 3]
+            out[k] = U * _koren(q0 if pos else q3, q1 if pos else q2, q2 if pos else q1)
 
 
-@jit
+@jit(error_model="numpy")
 def _family_backward(q, T, tr0, tc0, tr1, tc1, g, gq, gT):
     """Adjoint of ``_family_forward`` for dL/dF = g: adds dL/dq into gq and dL/dT into gT (they may
     be one array). Per row: the weights dL/dq[k + s] of every flux (a vectorised loop), then their
     sum per q entry (a gather: no flux waits for its neighbour's store)."""
     n0, n1 = g.shape
-    w = np.zeros((5, n1 + 6), dtype=q.dtype)      # flux k's weights at column k + 3
+    w0, w1 = np.zeros(n1 + 6, dtype=q.dtype), np.zeros(n1 + 6, dtype=q.dtype)    # flux k's at k + 3
+    w2, w3 = np.zeros(n1 + 6, dtype=q.dtype), np.zeros(n1 + 6, dtype=q.dtype)
+    w4 = np.empty(n1, dtype=q.dtype)
     for a in range(n0):
-        r = a + 2
+        qr, ga = q[a + 2], g[a]
+        t0, t1 = T[a + tr0, tc0:tc0 + n1], T[a + tr1, tc1:tc1 + n1]
         for k in range(n1):
-            U = 0.5 * (T[a + tr0, k + tc0] + T[a + tr1, k + tc1])
+            U = 0.5 * (t0[k] + t1[k])
             pos = U >= 0
-            v, du, dc, dd = _koren_grad(q[r, k] if pos else q[r, k + 3], q[r, k + 1] if pos else q[r, k + 2],
-                                        q[r, k + 2] if pos else q[r, k + 1])
-            gv = g[a, k] * U
-            w[0, k + 3] = gv * (du if pos else 0.0)
-            w[1, k + 3] = gv * (dc if pos else dd)
-            w[2, k + 3] = gv * (dd if pos else dc)
-            w[3, k + 3] = gv * (0.0 if pos else du)
-            w[4, k + 3] = 0.5 * g[a, k] * v
+            q0, q1, q2, q3 = qr[k], qr[k + 1], qr[k + 2], qr[k + 3]
+            v, du, dc, dd = _koren_grad(q0 if pos else q3, q1 if pos else q2, q2 if pos else q1)
+            gv = ga[k] * U
+            w0[k + 3] = gv * du if pos else 0.0
+            w1[k + 3] = gv * (dc if pos else dd)
+            w2[k + 3] = gv * (dd if pos else dc)
+            w3[k + 3] = 0.0 if pos else gv * du
+            w4[k] = 0.5 * ga[k] * v
+        gr = gq[a + 2]
         for m in range(n1 + 3):
-            gq[r, m] += w[0, m + 3] + w[1, m + 2] + w[2, m + 1] + w[3, m]
+            gr[m] += w0[m + 3] + w1[m + 2] + w2[m + 1] + w3[m]
+        s0 = gT[a + tr0, tc0:tc0 + n1]
         for k in range(n1):
-            gT[a + tr0, k + tc0] += w[4, k + 3]
+            s0[k] += w4[k]
+        s1 = gT[a + tr1, tc1:tc1 + n1]
         for k in range(n1):
-            gT[a + tr1, k + tc1] += w[4, k + 3]
-
+            s1[k] += w4[k]
 
 
 @jit
@@ -156,31 +162,6 @@ def _pad_adjoint(gP, slip, gv):
         gv[i, m - 3] -= gP[r, m + 3]
 
 
-@jit(inline="always")
-def _lap(P, r, c, inv_dx2):
-    return (P[r, c - 1] + P[r, c + 1] + P[r - 1, c] + P[r + 1, c] - 4 * P[r, c]) * inv_dx2
-
-
-@jit(inline="always")
-def _lap_adjoint(gP, r, c, g):
-    """Adds g d(_lap(P, r, c, 1))/dP into gP."""
-    gP[r, c - 1] += g
-    gP[r, c + 1] += g
-    gP[r - 1, c] += g
-    gP[r + 1, c] += g
-    gP[r, c] -= 4 * g
-
-
-@jit(inline="always")
-def _divergence_adjoint(gF, a, b, gG, c, d, g):
-    """Adds the adjoint of (F[a, b+1] - F[a, b] + G[c, d+1] - G[c, d]) for its gradient g (the
-    advection of one face from its two flux families, dx folded into g)."""
-    gF[a, b + 1] += g
-    gF[a, b] -= g
-    gG[c, d + 1] += g
-    gG[c, d] -= g
-
-
 # The four flux families, (q, T, tr0, tc0, tr1, tc1) of ``_family_forward``:
 #   F_x [H, W+2]     P,  P,  2, 1, 2, 2    U at the cell centres, from the x-faces
 #   G_x^T [W+1, H+1] PT, QT, 1, 2, 2, 2    V at the vertices, from the y-faces
@@ -208,75 +189,99 @@ def _fluxes(P, QT, PT, Q):
     return Fx, GxT, FyT, Gy
 
 
-@jit
+@jit(error_model="numpy")
 def _sample_forward(vx, vy, nu, dt, inv_dx, walls, wx, wy):
     H, W = vx.shape[0], vy.shape[1]
     P, QT, PT, Q = _padded(vx, vy, walls)
     Fx, GxT, FyT, Gy = _fluxes(P, QT, PT, Q)
+    Gx, Fy = np.ascontiguousarray(GxT.T), np.ascontiguousarray(FyT.T)    # [H+1, W+1], [H+2, W]
     inv_dx2 = inv_dx * inv_dx
     wx[:, :] = vx
     wy[:, :] = vy
     for i in range(H):
+        up, mid, down, f, g0, g1, out = P[i + 1], P[i + 2], P[i + 3], Fx[i], Gx[i], Gx[i + 1], wx[i]
         for j in range(1, W):
-            adv = (Fx[i, j + 1] - Fx[i, j] + GxT[j, i + 1] - GxT[j, i]) * inv_dx
-            wx[i, j] += dt * (nu * _lap(P, i + 2, j + 2, inv_dx2) - adv)
+            lap = (mid[j + 1] + mid[j + 3] + up[j + 2] + down[j + 2] - 4 * mid[j + 2]) * inv_dx2
+            out[j] += dt * (nu * lap - (f[j + 1] - f[j] + g1[j] - g0[j]) * inv_dx)
     for i in range(1, H):
+        up, mid, down, f0, f1, g, out = Q[i + 1], Q[i + 2], Q[i + 3], Fy[i], Fy[i + 1], Gy[i], wy[i]
         for j in range(W):
-            adv = (FyT[j, i + 1] - FyT[j, i] + Gy[i, j + 1] - Gy[i, j]) * inv_dx
-            wy[i, j] += dt * (nu * _lap(Q, i + 2, j + 2, inv_dx2) - adv)
+            lap = (mid[j + 1] + mid[j + 3] + up[j + 2] + down[j + 2] - 4 * mid[j + 2]) * inv_dx2
+            out[j] += dt * (nu * lap - (f1[j] - f0[j] + g[j + 1] - g[j]) * inv_dx)
 
 
-@jit
+@jit(error_model="numpy")
+def _stencil_adjoint(E, c, out):
+    """out[R, C] = c lap(E)[R, C] (the 5-point sum, unscaled by dx) for 1 <= R, C < shape - 1: the
+    stencil is symmetric, so this is its adjoint applied to E (E zero outside the faces it acts on)."""
+    for R in range(1, E.shape[0] - 1):
+        up, mid, down, o = E[R - 1], E[R], E[R + 1], out[R]
+        for C in range(1, E.shape[1] - 1):
+            o[C] = c * (mid[C - 1] + mid[C + 1] + up[C] + down[C] - 4 * mid[C])
+
+
+@jit(error_model="numpy")
 def _sample_backward(vx, vy, nu, dt, inv_dx, walls, gwx, gwy, gvx, gvy, need_dt):
     """Adds dL/dv into gvx, gvy; returns (dL/dnu, dL/dt) (dL/dt 0 unless need_dt: it recomputes
-    the fluxes)."""
+    the fluxes). Gather form: Ex, Ey hold dL/dw of the updated (interior) faces at their places
+    in P, Q (zero elsewhere), and every adjoint reads its neighbours there."""
     H, W = vx.shape[0], vy.shape[1]
     P, QT, PT, Q = _padded(vx, vy, walls)
+    inv_dx2 = inv_dx * inv_dx
+    Ex, Ey = np.zeros_like(P), np.zeros_like(Q)
+    for i in range(H):
+        Ex[i + 2, 3:W + 2] = gwx[i, 1:W]
+    for i in range(1, H):
+        Ey[i + 2, 2:W + 2] = gwy[i]
+    acc = np.zeros(W + 5)                # per column (a vectorised loop), then summed
+    for E, V in ((Ex, P), (Ey, Q)):
+        for R in range(2, E.shape[0] - 2):
+            e, up, mid, down = E[R], V[R - 1], V[R], V[R + 1]
+            for C in range(2, E.shape[1] - 2):
+                acc[C] += e[C] * (mid[C - 1] + mid[C + 1] + up[C] + down[C] - 4 * mid[C]) * inv_dx2
+    lap_sum, adv_sum = acc.sum(), 0.0    # sum of dL/dw (nu lap v) / nu and of dL/dw (v.grad v)
     if need_dt:
         Fx, GxT, FyT, Gy = _fluxes(P, QT, PT, Q)
-    inv_dx2 = inv_dx * inv_dx
+        for i in range(H):
+            for j in range(1, W):
+                adv_sum += Ex[i + 2, j + 2] * (Fx[i, j + 1] - Fx[i, j] + GxT[j, i + 1] - GxT[j, i]) * inv_dx
+        for i in range(1, H):
+            for j in range(W):
+                adv_sum += Ey[i + 2, j + 2] * (FyT[j, i + 1] - FyT[j, i] + Gy[i, j + 1] - Gy[i, j]) * inv_dx
     gP, gQ = np.zeros_like(P), np.zeros_like(Q)
-    gFx, gGxT = np.zeros((H, W + 2), vx.dtype), np.zeros((W + 1, H + 1), vx.dtype)
-    gFyT, gGy = np.zeros((W, H + 2), vx.dtype), np.zeros((H + 1, W + 1), vx.dtype)
-    g_nu, g_dt = 0.0, 0.0
-    for i in range(H):                      # w_x: v (all faces), + dt (nu lap - adv) (interior)
-        r = i + 2
+    _stencil_adjoint(Ex, dt * nu * inv_dx2, gP)
+    _stencil_adjoint(Ey, dt * nu * inv_dx2, gQ)
+    s = -dt * inv_dx                     # w -= dt (flux differences) / dx
+    gFx, gGx = np.empty((H, W + 2), vx.dtype), np.empty((H + 1, W + 1), vx.dtype)
+    gFy, gGy = np.empty((H + 2, W), vx.dtype), np.empty((H + 1, W + 1), vx.dtype)
+    for i in range(H):
+        e = Ex[i + 2]
+        for k in range(W + 2):
+            gFx[i, k] = s * (e[k + 1] - e[k + 2])
+    for m in range(H + 1):
+        e0, e1 = Ex[m + 1], Ex[m + 2]
         for j in range(W + 1):
-            gvx[i, j] += gwx[i, j]
-        for j in range(1, W):
-            c, g = j + 2, gwx[i, j]
-            lap = _lap(P, r, c, inv_dx2)
-            g_nu += g * dt * lap
-            g_dt += g * nu * lap
-            if need_dt:
-                g_dt -= g * (Fx[i, j + 1] - Fx[i, j] + GxT[j, i + 1] - GxT[j, i]) * inv_dx
-            _lap_adjoint(gP, r, c, g * dt * nu * inv_dx2)
-            _divergence_adjoint(gFx, i, j, gGxT, j, i, -g * dt * inv_dx)
+            gGx[m, j] = s * (e0[j + 2] - e1[j + 2])
+    for k in range(H + 2):
+        e0, e1 = Ey[k + 1], Ey[k + 2]
+        for j in range(W):
+            gFy[k, j] = s * (e0[j + 2] - e1[j + 2])
     for i in range(H + 1):
-        r = i + 2
-        for j in range(W):
-            gvy[i, j] += gwy[i, j]
-        if i == 0 or i == H:
-            continue
-        for j in range(W):
-            c, g = j + 2, gwy[i, j]
-            lap = _lap(Q, r, c, inv_dx2)
-            g_nu += g * dt * lap
-            g_dt += g * nu * lap
-            if need_dt:
-                g_dt -= g * (FyT[j, i + 1] - FyT[j, i] + Gy[i, j + 1] - Gy[i, j]) * inv_dx
-            _lap_adjoint(gQ, r, c, g * dt * nu * inv_dx2)
-            _divergence_adjoint(gFyT, j, i, gGy, i, j, -g * dt * inv_dx)
+        e = Ey[i + 2]
+        for m in range(W + 1):
+            gGy[i, m] = s * (e[m + 1] - e[m + 2])
     gPT, gQT = np.zeros_like(PT), np.zeros_like(QT)
     _family_backward(P, P, 2, 1, 2, 2, gFx, gP, gP)
-    _family_backward(PT, QT, 1, 2, 2, 2, gGxT, gPT, gQT)
-    _family_backward(QT, QT, 2, 1, 2, 2, gFyT, gQT, gQT)
+    _family_backward(PT, QT, 1, 2, 2, 2, np.ascontiguousarray(gGx.T), gPT, gQT)
+    _family_backward(QT, QT, 2, 1, 2, 2, np.ascontiguousarray(gFy.T), gQT, gQT)
     _family_backward(Q, P, 1, 2, 2, 2, gGy, gQ, gP)
     gP += gPT.T
     gQT += gQ.T
+    gvx += gwx
+    gvy += gwy
     _pad_adjoint(gP, walls[0], gvx)
     _pad_adjoint(gQT, walls[0], gvy.T)
-    return g_nu, g_dt
+    return dt * lap_sum, nu * lap_sum - adv_sum
 
 
 @jit(parallel=True)
