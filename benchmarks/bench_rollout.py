@@ -27,7 +27,7 @@ import torch
 from fishsim.config import load_config
 from fishsim.episode import build_episode
 from fishsim.errors import SimulationBlowUp
-from fishsim.fluid.kernels import Constrain, Predict
+from fishsim.fluid.kernels import Predict, SplitStep
 from fishsim.fluid.pressure import WeightedPoisson
 from fishsim.linalg.dct import NeumannPoisson
 from fishsim.rollout import PhaseTimer, SwimParams, rollout
@@ -101,7 +101,7 @@ def adjoint_clock(fluid_model):
         restore.append(lambda: setattr(cls, "backward", staticmethod(original)))
 
     timed(PDStepFunction, "solid")
-    for cls in (Predict, Constrain, NeumannPoisson, WeightedPoisson):
+    for cls in (Predict, SplitStep, NeumannPoisson, WeightedPoisson):
         timed(cls, "fluid")
     net = getattr(fluid_model, "model", None)
     if net is not None:

@@ -1,8 +1,10 @@
-"""Compiled (numba) loops of the numerical fluid's split stage on the CPU, with their hand-written
-adjoints: ``Predict`` computes ``numerical.predict`` (ghost values, Koren advection, 5-point
-diffusion, the explicit update) in one call, ``Constrain`` the K penalise -> project passes of
-``NumericalFluid._constrain``. Other devices, schemes and the rate penalisation use the torch
-formulas, which stay the reference (tests/fluid/test_kernels.py).
+"""Compiled (numba) loops of the numerical fluid's split scheme on the CPU, with their hand-written
+adjoints: ``SplitStep`` runs a step's sub-steps (``NumericalFluid._substeps``: per sub-step two
+stages of ``numerical.predict``, i.e. ghost values, Koren advection, 5-point diffusion and the
+explicit update, then the K penalise -> project passes of ``NumericalFluid._constrain``) in one
+call; ``Predict`` is the predictor alone (the rate penalisation's stages). Other devices and
+schemes use the torch formulas, which stay the reference (tests/fluid/test_kernels.py;
+``numerical.COMPILED``).
 
 Why: the torch formula tapes ~100 small full-grid temporaries per stage (the ghost layers'
 concatenations, the limiter's minima, maxima and selections, the slices) and its backward replays
@@ -460,56 +462,127 @@ def _penalize_divergence_adjoint(gux, guy, gdiv, wx, wy, bx, by, dx_, dy_, inv_d
                 gdy[n, i, j] += gd
 
 
-class Constrain(torch.autograd.Function):
-    """K passes of u = penalize(w), (w, phi) = project(u) (``numerical.penalize`` with lambda ->
-    infinity, ``numerical.project``) from w = (w_x, w_y) with the face masks b and body velocities
-    v_d (faces, broadcast to w's shape), ``inverse`` (``dct.neumann_inverse``, w's dtype), cell
-    size dx [m]; returns (v_x, v_y, sum of phi [m^2/s], sum of u - w over the passes (x, y) [m/s]).
-    CPU tensors; differentiable in w, b and v_d."""
+def _constrain(w, masks, inverse, inv_dx, passes):
+    """K passes u = penalize(w), (w, phi) = project(u) on numpy faces w = (w_x [N, H, W+1], w_y
+    [N, H+1, W]) with masks = (b_x, b_y, v_d,x, v_d,y) of w's shapes; returns (v, sum of phi,
+    sum of u - w (x, y), the passes' inputs: what ``_constrain_adjoint`` needs)."""
+    div = np.empty((*w[0].shape[:-1], w[0].shape[-1] - 1), w[0].dtype)
+    phi_sum, pen = np.zeros_like(div), (np.zeros_like(w[0]), np.zeros_like(w[1]))
+    inputs = []
+    for _ in range(passes):
+        inputs.append(w)
+        ux, uy = np.empty_like(w[0]), np.empty_like(w[1])
+        _penalize_divergence(*w, *masks, inv_dx, ux, uy, div, *pen)
+        phi = inverse_array(div, inverse)
+        w = (np.empty_like(ux), np.empty_like(uy))
+        _subtract_gradient(ux, uy, phi, inv_dx, *w, phi_sum)
+    return w, phi_sum, pen, inputs
+
+
+def _constrain_adjoint(gv, gphi, gpen, inputs, masks, inverse, inv_dx, gmasks):
+    """dL/dw of ``_constrain`` (its passes' ``inputs``) for dL/d(v, phi sum, pen) = (gv, gphi, gpen);
+    adds dL/d(b_x, b_y, v_d,x, v_d,y) into gmasks."""
+    for w in reversed(inputs):
+        g_phi = gphi.copy()
+        _gradient_adjoint(*gv, inv_dx, g_phi)
+        g_div = inverse_array(g_phi, inverse)
+        gu = [a + c for a, c in zip(gv, gpen)]              # pen = u - w, summed over the passes
+        new = (np.empty_like(gv[0]), np.empty_like(gv[1]))
+        _penalize_divergence_adjoint(*gu, g_div, *w, *masks, inv_dx, *new, *gmasks)
+        gv = [a - c for a, c in zip(new, gpen)]
+    return gv
+
+
+def _substep(v, masks, nu, dt, inv_dx, walls, inverse, passes):
+    """One Heun sub-step on numpy faces (``NumericalFluid._substep``): v1 = C(P(v)), v' =
+    C((v + P(v1)) / 2); returns (v', phi1/2 + phi2, pen1/2 + pen2, what the adjoint needs)."""
+    w1 = (np.empty_like(v[0]), np.empty_like(v[1]))
+    _forward(*v, nu, dt, inv_dx, walls, *w1)
+    v1, phi1, pen1, in1 = _constrain(w1, masks, inverse, inv_dx, passes)
+    w2 = (np.empty_like(v[0]), np.empty_like(v[1]))
+    _forward(*v1, nu, dt, inv_dx, walls, *w2)
+    w2 = tuple(0.5 * (c + q) for c, q in zip(v, w2))
+    v2, phi2, pen2, in2 = _constrain(w2, masks, inverse, inv_dx, passes)
+    return v2, 0.5 * phi1 + phi2, tuple(0.5 * a + b for a, b in zip(pen1, pen2)), (v1, in1, in2)
+
+
+class SplitStep(torch.autograd.Function):
+    """The sub-steps of one split-scheme step (``NumericalFluid``'s loop over ``_substep`` with
+    ``_constrain``'s K passes), compiled loops with hand-written adjoints, in one call: per
+    sub-step v1 = C(P(v)), v' = C((v + P(v1)) / 2), P the predictor (``Predict``'s loops), C the
+    penalise -> project passes; sample b keeps its state after its own n_b sub-steps.
+
+    Inputs: v = (v_x [B, C, H, W+1], v_y [B, C, H+1, W]) in m/s, the face masks b and body
+    velocities v_d (broadcast to v's shapes), nu [m^2/s] and dt [s] (scalars or [B, 1, 1, 1]; dt
+    is not differentiated), n [B] (int64 tensor), inverse (``dct.neumann_inverse``, v's dtype),
+    dx [m], walls (grid.WallBC), passes K. Returns (v'_x, v'_y, sum over the sub-steps of phi1/2 +
+    phi2 [m^2/s], of the penalisation's increments pen1/2 + pen2 (x, y) [m/s]). CPU tensors;
+    differentiable in v, b, v_d and nu. When a gradient is wanted the forward keeps what the
+    adjoints read (each sub-step's v and v1 and the passes' inputs: 2 + 4 K fields a sub-step),
+    in place of the ~100 taped ops and autograd nodes a step costs the torch loop."""
 
     @staticmethod
-    def forward(ctx, wx, wy, bx, by, dx_, dy_, inverse, dx: float, passes: int):
-        shapes = (wx.shape, wy.shape)
-        masks = [_flat(t.expand_as(w)) for t, w in ((bx, wx), (by, wy), (dx_, wx), (dy_, wy))]
-        w, inv_dx = (_flat(wx), _flat(wy)), 1.0 / dx
-        div = np.empty((*w[0].shape[:-1], w[0].shape[-1] - 1), w[0].dtype)
-        phi_sum, pen = np.zeros_like(div), (np.zeros_like(w[0]), np.zeros_like(w[1]))
-        ws = [w]
-        for _ in range(passes):
-            ux, uy = np.empty_like(w[0]), np.empty_like(w[1])
-            _penalize_divergence(*ws[-1], *masks, inv_dx, ux, uy, div, *pen)
-            phi = inverse_array(div, inverse)
-            vx, vy = np.empty_like(ux), np.empty_like(uy)
-            _subtract_gradient(ux, uy, phi, inv_dx, vx, vy, phi_sum)
-            ws.append((vx, vy))
-        ctx.save_for_backward(wx, wy, bx, by, dx_, dy_)    # (autograd checks they are not changed)
-        ctx.ws = ws[1:-1]                                  # the later passes' inputs (numpy, internal)
-        ctx.inverse, ctx.dx, ctx.passes = inverse, dx, passes
-        ctx.shapes = [t.shape for t in (bx, by, dx_, dy_)] + list(shapes)
-        phi_shape = (*wx.shape[:-1], wx.shape[-1] - 1)
-        return (*(torch.from_numpy(a).reshape(shape) for a, shape in zip(ws[-1], shapes)),
+    def forward(ctx, vx, vy, bx, by, dx_, dy_, nu, dt, n, inverse, dx: float, walls, passes: int):
+        shapes = (vx.shape, vy.shape)
+        wall_args = (bool(walls.slip), float(walls.u_bottom), float(walls.u_top), float(walls.v_left),
+                     float(walls.v_right))
+        masks = tuple(_flat(t.expand_as(w)) for t, w in ((bx, vx), (by, vy), (dx_, vx), (dy_, vy)))
+        nu_n, dt_n = _per_sample(nu, vx), _per_sample(dt, vx)
+        counts = np.repeat(n.numpy(), vx.shape[1])                       # per flattened sample
+        v, tape = (_flat(vx), _flat(vy)), []
+        phi_sum, pen_sum = 0.0, (0.0, 0.0)
+        for i in range(int(counts.max())):
+            new, phi, pen, inner = _substep(v, masks, nu_n, dt_n, 1.0 / dx, wall_args, inverse, passes)
+            if any(ctx.needs_input_grad):
+                tape.append((v, *inner))
+            if i >= counts.min():                    # samples past their own count keep their state
+                on = (i < counts).reshape(-1, 1, 1)
+                new = tuple(np.where(on, c, o) for c, o in zip(new, v))
+                phi, pen = phi * on, tuple(q * on for q in pen)
+            v, phi_sum = new, phi_sum + phi
+            pen_sum = tuple(s + q for s, q in zip(pen_sum, pen))
+        ctx.save_for_backward(vx, vy, bx, by, dx_, dy_)
+        ctx.tape, ctx.counts, ctx.args = tape, counts, (nu_n, dt_n, 1.0 / dx, wall_args, inverse)
+        ctx.nu_shape = (torch.as_tensor(nu).shape, isinstance(nu, torch.Tensor))
+        phi_shape = (*vx.shape[:-1], vx.shape[-1] - 1)
+        return (*(torch.from_numpy(a).reshape(shape) for a, shape in zip(v, shapes)),
                 torch.from_numpy(phi_sum).reshape(phi_shape),
-                *(torch.from_numpy(a).reshape(shape) for a, shape in zip(pen, shapes)))
+                *(torch.from_numpy(a).reshape(shape) for a, shape in zip(pen_sum, shapes)))
 
     @staticmethod
+    @torch.autograd.function.once_differentiable
     def backward(ctx, gvx, gvy, gphi, gpx, gpy):
-        wx, wy, *inputs = ctx.saved_tensors
-        bx, by, dx_, dy_ = (_flat(t.expand_as(w)) for t, w in zip(inputs, (wx, wy, wx, wy)))
-        ws = [(_flat(wx), _flat(wy)), *ctx.ws]
-        inverse, inv_dx = ctx.inverse, 1.0 / ctx.dx
-        gp = (_flat(gpx), _flat(gpy))
-        gw = (_flat(gvx), _flat(gvy))
-        g_phi_out = _flat(gphi)
-        gb, gd = (np.zeros_like(bx), np.zeros_like(by)), (np.zeros_like(dx_), np.zeros_like(dy_))
-        for k in reversed(range(ctx.passes)):
-            g_phi = g_phi_out.copy()
-            _gradient_adjoint(*gw, inv_dx, g_phi)
-            g_div = inverse_array(g_phi, inverse)
-            gu = [a + c for a, c in zip(gw, gp)]              # pen_k = u_k - w_k
-            new = (np.empty_like(gw[0]), np.empty_like(gw[1]))
-            _penalize_divergence_adjoint(*gu, g_div, *ws[k], bx, by, dx_, dy_, inv_dx, *new, *gb, *gd)
-            gw = [a - c for a, c in zip(new, gp)]
-        *mask_shapes, sx, sy = ctx.shapes
-        grads = [torch.from_numpy(g).reshape(like).sum_to_size(shape)
-                 for g, like, shape in zip((*gb, *gd), (sx, sy, sx, sy), mask_shapes)]
-        return torch.from_numpy(gw[0]).reshape(sx), torch.from_numpy(gw[1]).reshape(sy), *grads, None, None, None
+        vx, vy, *inputs = ctx.saved_tensors
+        nu_n, dt_n, inv_dx, walls, inverse = ctx.args
+        masks = tuple(_flat(t.expand_as(w)) for t, w in zip(inputs, (vx, vy, vx, vy)))
+        gmasks = tuple(np.zeros_like(m) for m in masks)
+        g_nu, g_stage, g_dt = np.zeros(len(nu_n)), np.zeros(len(nu_n)), np.zeros(len(nu_n))
+        gv = [np.array(_flat(g)) for g in (gvx, gvy)]
+        gphi_all, gpen_all = _flat(gphi), (_flat(gpx), _flat(gpy))
+        counts = ctx.counts
+        for i in reversed(range(len(ctx.tape))):
+            v, v1, in1, in2 = ctx.tape[i]
+            g_phi, g_pen, g_old = gphi_all, gpen_all, None
+            if i >= counts.min():
+                on = (i < counts).reshape(-1, 1, 1)
+                g_old = [g * ~on for g in gv]
+                gv, g_phi, g_pen = [g * on for g in gv], g_phi * on, tuple(q * on for q in g_pen)
+            g_w2 = _constrain_adjoint(gv, g_phi, g_pen, in2, masks, inverse, inv_dx, gmasks)
+            g_v1 = [np.zeros_like(c) for c in v1]
+            _backward(*v1, nu_n, dt_n, inv_dx, walls, *(0.5 * g for g in g_w2), *g_v1, g_stage, g_dt, False)
+            g_nu += g_stage
+            g_w1 = _constrain_adjoint(g_v1, 0.5 * g_phi, tuple(0.5 * q for q in g_pen), in1, masks, inverse,
+                                      inv_dx, gmasks)
+            gv = [0.5 * g for g in g_w2] if g_old is None else [0.5 * g + o for g, o in zip(g_w2, g_old)]
+            _backward(*v, nu_n, dt_n, inv_dx, walls, *g_w1, *gv, g_stage, g_dt, False)
+            g_nu += g_stage
+        shapes = (vx.shape, vy.shape, vx.shape, vy.shape)
+        grads = [torch.from_numpy(g).reshape(like).sum_to_size(t.shape) if t.requires_grad else None
+                 for g, like, t in zip(gmasks, shapes, inputs)]
+        shape, is_tensor = ctx.nu_shape
+        g_nu_t = None
+        if is_tensor and ctx.needs_input_grad[6]:
+            per_sample = torch.from_numpy(g_nu).to(vx.dtype).reshape(*vx.shape[:2], 1, 1)
+            g_nu_t = per_sample.sum_to_size(shape) if len(shape) else per_sample.sum()
+        return (torch.from_numpy(gv[0]).reshape(vx.shape), torch.from_numpy(gv[1]).reshape(vy.shape), *grads,
+                g_nu_t, None, None, None, None, None, None)

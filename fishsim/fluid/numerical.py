@@ -95,7 +95,7 @@ from fishsim.fluid.grid import (
     vector_to_faces,
     zero_walls,
 )
-from fishsim.fluid.kernels import Constrain, Predict
+from fishsim.fluid.kernels import Predict, SplitStep
 from fishsim.fluid.pressure import SchwarzPreconditioner, WeightedPoisson
 from fishsim.fluid.residual import per_sample
 from fishsim.linalg.dct import neumann_inverse, solve_neumann_poisson
@@ -200,6 +200,11 @@ def _prolong_vertices(a: Tensor, r: int) -> Tensor:
     return F.interpolate(a, size=(r * H + 1, r * W + 1), mode="bilinear", align_corners=True)
 
 
+COMPILED = True
+"""Run the CPU's split-scheme sub-steps and the Koren predictor as the compiled loops of
+``fishsim.fluid.kernels`` (False: the torch formulas everywhere; the tests' reference)."""
+
+
 def _mean_free(q: Tensor) -> Tensor:
     return q - q.mean(dim=(-2, -1), keepdim=True)
 
@@ -213,7 +218,7 @@ def predict(v: Faces, nu: Tensor, dt: Tensor | float, dx: float, walls: WallBC, 
     """Explicit momentum update without pressure: w = v + dt [ -(v.grad)v + nu lap v ].
     Wall faces keep their (prescribed) normal velocity. On the CPU with the Koren scheme the same
     formula runs compiled, with its hand-written adjoint (``kernels.Predict``)."""
-    if scheme == "koren" and v[0].device.type == "cpu":
+    if COMPILED and scheme == "koren" and v[0].device.type == "cpu":
         return Predict.apply(v[0], v[1], nu, dt, dx, walls)
     adv = advection(v, dx, walls, scheme)
     lap = zero_walls(laplacian_faces(v, dx, walls))
@@ -383,6 +388,25 @@ class NumericalFluid:
         nu = mu / rho
         n = self._count_substeps(v, b, v_d, nu, h)                      # [B]
         dt = (h / n.to(v[0])).view(-1, 1, 1, 1)
+        if self._compiled(v[0]):                      # the same sub-steps in one compiled call
+            vx, vy, p_sum, *pen_sum = SplitStep.apply(*v, *b, *v_d, nu, dt, n, self._inverse(v[0]), dx,
+                                                      self.walls, self.penalization_iterations)
+            v = (vx, vy)
+        else:
+            v, p_sum, pen_sum = self._substeps(v, b, v_d, nu, dt, n)
+        self._check_finite(v, h)
+        a = stream_function(v, dx)
+        p = _mean_free(rho * p_sum / h)
+        if r > 1:
+            new = RefinedState(a=_mean_free(a[..., ::r, ::r]), p=F.avg_pool2d(p, r), fine_a=a)
+        else:
+            new = FluidState(a=a, p=p)
+        diag = StepDiagnostics(n, tuple(q / h for q in pen_sum), dx, r, b, v_start, v, h)
+        return new, diag
+
+    def _substeps(self, v: Faces, b: Faces, v_d: Faces, nu: Tensor, dt: Tensor, n: Tensor):
+        """The step's sub-steps as torch formulas, sample b stopping after its own n_b; returns (v',
+        sum of the sub-steps' pressure potentials, of their penalisation increments)."""
         p_sum, pen_sum = 0.0, (0.0, 0.0)
         n_min, n_max = int(n.min()), int(n.max())
         last, precondition = None, None
@@ -398,15 +422,7 @@ class NumericalFluid:
             v = new
             p_sum = p_sum + phi
             pen_sum = tuple(s + q for s, q in zip(pen_sum, pen))
-        self._check_finite(v, h)
-        a = stream_function(v, dx)
-        p = _mean_free(rho * p_sum / h)
-        if r > 1:
-            new = RefinedState(a=_mean_free(a[..., ::r, ::r]), p=F.avg_pool2d(p, r), fine_a=a)
-        else:
-            new = FluidState(a=a, p=p)
-        diag = StepDiagnostics(n, tuple(q / h for q in pen_sum), dx, r, b, v_start, v, h)
-        return new, diag
+        return v, p_sum, pen_sum
 
     def _substep(self, v: Faces, b: Faces, v_d: Faces, nu: Tensor, dt: Tensor, start: Tensor | None = None,
                  precondition: SchwarzPreconditioner | None = None):
@@ -427,13 +443,10 @@ class NumericalFluid:
         ``precondition``: the step's). Else
         project(penalize(w)), repeated ``penalization_iterations`` times (alternating projections
         onto {v = v_d in the body} and {div v = 0}), phi and the increment summed over them
-        (compiled on the CPU: ``kernels.Constrain``)."""
+        (on the CPU the whole sub-step loop runs compiled: ``kernels.SplitStep``)."""
         if self.brinkman is not None:
             return immerse(w, b, v_d, self.brinkman * dt, self.fine.dx, start, precondition)
         inverse = self._inverse(w[0])
-        if w[0].device.type == "cpu":                 # the same passes, compiled
-            vx, vy, phi, px, py = Constrain.apply(*w, *b, *v_d, inverse, self.fine.dx, self.penalization_iterations)
-            return (vx, vy), phi, (px, py)
         phi_sum, pen_sum = 0.0, (0.0, 0.0)
         for _ in range(self.penalization_iterations):
             u, pen = penalize(w, b, v_d)
@@ -450,6 +463,12 @@ class NumericalFluid:
         if r > 1 and fine_a is not None and fine_a.shape[-2:] == (self.fine.H + 1, self.fine.W + 1):
             return fine_a
         return _prolong_vertices(state.a, r)
+
+    def _compiled(self, like: Tensor) -> bool:
+        """Whether the step's sub-steps run as ``kernels.SplitStep`` (the split scheme with Koren
+        advection on the CPU) rather than the torch formulas (other devices and schemes, the rate
+        penalisation; the reference the compiled loops are tested against)."""
+        return COMPILED and like.device.type == "cpu" and self.brinkman is None and self.scheme == "koren"
 
     def _inverse(self, like: Tensor) -> Tensor:
         return neumann_inverse(self.fine.H, self.fine.W, self.fine.dx, like.device, like.dtype)

@@ -1,14 +1,15 @@
-"""The compiled stage of the numerical fluid (fishsim.fluid.kernels: Predict, Constrain) against the
+"""The compiled loops of the numerical fluid (fishsim.fluid.kernels: Predict, SplitStep) against the
 torch formulas they replace on the CPU: values, vector-Jacobian products, central differences,
 batch independence."""
 
 import pytest
 import torch
 
+from fishsim.fields import Boundary, FluidParams, FluidState, Grid
+from fishsim.fluid import numerical
 from fishsim.fluid.grid import FREE_SLIP, NO_SLIP, WallBC, advection, laplacian_faces, zero_walls
-from fishsim.fluid.kernels import Constrain, Predict
-from fishsim.fluid.numerical import penalize, project
-from fishsim.linalg.dct import neumann_inverse
+from fishsim.fluid.kernels import Predict
+from fishsim.fluid.numerical import NumericalFluid
 
 WALLS = {"no-slip": NO_SLIP, "slip": FREE_SLIP, "moving": WallBC(u_bottom=-0.2, u_top=0.3, v_left=-0.1, v_right=0.4)}
 
@@ -63,36 +64,35 @@ def test_a_sample_does_not_depend_on_its_batch():
     assert torch.equal(batch[0][2:3], alone[0]) and torch.equal(batch[1][2:3], alone[1])
 
 
-def _torch_constrain(wx, wy, bx, by, dx_, dy_, inverse, dx, passes):
-    """NumericalFluid._constrain's split passes, written with numerical's torch functions."""
-    w, phi_sum, pen_sum = (wx, wy), 0.0, (0.0, 0.0)
-    for _ in range(passes):
-        u, pen = penalize(w, (bx, by), (dx_, dy_))
-        w, phi = project(u, dx, inverse)
-        phi_sum = phi_sum + phi
-        pen_sum = tuple(s + q for s, q in zip(pen_sum, pen))
-    return (*w, phi_sum, *pen_sum)
+def _step_outputs(passes, dtype, compiled, monkeypatch):
+    """One step of a 6 x 8-cell fluid, two samples (the second fast enough that the CFL bound gives
+    it more sub-steps than the first), random state, mask and body velocity; returns (a', p', the
+    penalisation density, d<weights, outputs>/d(a, mask, velocity, mu))."""
+    monkeypatch.setattr(numerical, "COMPILED", compiled)
+    g = torch.Generator().manual_seed(5)
+    grid = Grid(6, 8, 0.1)
+    a = torch.randn(2, 1, 7, 9, generator=g, dtype=dtype) * torch.tensor([0.01, 0.5], dtype=dtype).view(2, 1, 1, 1)
+    mask = torch.rand(2, 1, 6, 8, generator=g, dtype=dtype)
+    velocity = torch.randn(1, 2, 6, 8, generator=g, dtype=dtype).expand(2, -1, -1, -1)
+    mu = torch.tensor([1e-2, 2e-2], dtype=dtype)
+    x = [t.clone().requires_grad_() for t in (a, mask, velocity, mu)]
+    model = NumericalFluid(grid, substeps=2, cfl=0.5, penalization_iterations=passes)
+    new, diag = model.step_with_diagnostics(FluidState(a=x[0], p=torch.zeros(2, 1, 6, 8, dtype=dtype)),
+                                            Boundary(x[1], x[2]), FluidParams(torch.full((2,), 50.0, dtype=dtype), x[3]))
+    assert diag.substeps.tolist()[0] < diag.substeps.tolist()[1]
+    y = [new.a, new.p, *diag.penalty]
+    weights = [torch.randn(c.shape, generator=torch.Generator().manual_seed(k), dtype=dtype) for k, c in enumerate(y)]
+    sum((q * c).sum() for q, c in zip(weights, y)).backward()
+    return [c.detach() for c in y] + [c.grad for c in x]
 
 
 @pytest.mark.parametrize("passes", [1, 3])
 @pytest.mark.parametrize("dtype, tol", [(torch.float64, 1e-12), (torch.float32, 2e-5)])
-def test_constrain_matches_the_torch_passes_and_their_adjoint(passes, dtype, tol):
-    """Random w, masks in [0, 1] and body velocities (broadcast from one sample, as the rollout's
-    are not), 6 x 8 cells, two samples: outputs and d<weights, outputs>/d(w, b, v_d)."""
-    H, W, dx = 6, 8, 0.1
-    w = _field(2, H, W, dtype)
-    g = torch.Generator().manual_seed(5)
-    b = tuple(torch.rand(c.shape, generator=g, dtype=dtype) for c in w)
-    v_d = tuple(torch.randn(1, *c.shape[1:], generator=g, dtype=dtype) for c in w)
-    inverse = neumann_inverse(H, W, dx, dtype=dtype)
-    outs = []
-    for fn in (Constrain.apply, _torch_constrain):
-        x = [c.clone().requires_grad_() for c in (*w, *b, *v_d)]
-        y = fn(*x, inverse, dx, passes)
-        weights = [torch.randn(c.shape, generator=torch.Generator().manual_seed(k), dtype=dtype)
-                   for k, c in enumerate(y)]
-        sum((q * c).sum() for q, c in zip(weights, y)).backward()
-        outs.append(list(y) + [c.grad for c in x])
-    names = ["vx", "vy", "phi", "pen_x", "pen_y", "dwx", "dwy", "dbx", "dby", "dvdx", "dvdy"]
-    for name, x, y in zip(names, *outs):
+def test_split_step_matches_the_torch_loop_and_its_adjoint(passes, dtype, tol, monkeypatch):
+    """kernels.SplitStep (the CPU's sub-steps in one compiled call) against the torch loop it
+    replaces: the step's outputs and their vector-Jacobian product w.r.t. the state,
+    the mask, the body velocity and mu, with samples of different sub-step counts."""
+    got, want = (_step_outputs(passes, dtype, c, monkeypatch) for c in (True, False))
+    names = ["a", "p", "pen_x", "pen_y", "da", "dmask", "dvelocity", "dmu"]
+    for name, x, y in zip(names, got, want):
         assert x.shape == y.shape and (x - y).abs().max() <= tol * y.abs().max(), name
