@@ -518,7 +518,7 @@ class SplitStep(torch.autograd.Function):
     dx [m], walls (grid.WallBC), passes K. Returns (v'_x, v'_y, sum over the sub-steps of phi1/2 +
     phi2 [m^2/s], of the penalisation's increments pen1/2 + pen2 (x, y) [m/s]). CPU tensors;
     differentiable in v, b, v_d and nu. When a gradient is wanted the forward keeps what the
-    adjoints read (each sub-step's v and v1 and the passes' inputs: 2 + 4 K fields a sub-step),
+    adjoints read (each sub-step's v and v1 and the passes' inputs: 4 + 4 K fields a sub-step),
     in place of the ~100 taped ops and autograd nodes a step costs the torch loop."""
 
     @staticmethod
