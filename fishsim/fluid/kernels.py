@@ -442,22 +442,27 @@ def _blend_adjoint(g, wall, w, b, d):
 
 
 @jit
-def _penalize_divergence_adjoint(gux, guy, gdiv, wx, wy, bx, by, dx_, dy_, inv_dx, gwx, gwy, gbx, gby, gdx, gdy):
-    """Given dL/du (gux, guy, consumed) and dL/ddiv: writes dL/dw, adds dL/db and dL/dv_d."""
+def _penalize_divergence_adjoint(gvx, gvy, gpx, gpy, gdiv, wx, wy, bx, by, dx_, dy_, inv_dx, gwx, gwy, gbx, gby,
+                                 gdx, gdy):
+    """One pass's adjoint of u = penalize(w), div = div u, pen += u - w: given dL/du = gv + gp
+    (through the projection and the increment) and dL/ddiv, writes dL/dw (gwx, gwy; the
+    increment's -gp included), adds dL/db and dL/dv_d."""
     N, H, W = gdiv.shape
     for n in range(N):
         for i in range(H):
             for j in range(W + 1):
-                g = gux[n, i, j] + ((gdiv[n, i, j - 1] if j >= 1 else 0.0)
-                                    - (gdiv[n, i, j] if j < W else 0.0)) * inv_dx
+                g = (gvx[n, i, j] + gpx[n, i, j]) + ((gdiv[n, i, j - 1] if j >= 1 else 0.0)
+                                                     - (gdiv[n, i, j] if j < W else 0.0)) * inv_dx
                 gwx[n, i, j], gb, gd = _blend_adjoint(g, j == 0 or j == W, wx[n, i, j], bx[n, i, j], dx_[n, i, j])
+                gwx[n, i, j] -= gpx[n, i, j]
                 gbx[n, i, j] += gb
                 gdx[n, i, j] += gd
         for i in range(H + 1):
             for j in range(W):
-                g = guy[n, i, j] + ((gdiv[n, i - 1, j] if i >= 1 else 0.0)
-                                    - (gdiv[n, i, j] if i < H else 0.0)) * inv_dx
+                g = (gvy[n, i, j] + gpy[n, i, j]) + ((gdiv[n, i - 1, j] if i >= 1 else 0.0)
+                                                     - (gdiv[n, i, j] if i < H else 0.0)) * inv_dx
                 gwy[n, i, j], gb, gd = _blend_adjoint(g, i == 0 or i == H, wy[n, i, j], by[n, i, j], dy_[n, i, j])
+                gwy[n, i, j] -= gpy[n, i, j]
                 gby[n, i, j] += gb
                 gdy[n, i, j] += gd
 
@@ -486,10 +491,9 @@ def _constrain_adjoint(gv, gphi, gpen, inputs, masks, inverse, inv_dx, gmasks):
         g_phi = gphi.copy()
         _gradient_adjoint(*gv, inv_dx, g_phi)
         g_div = inverse_array(g_phi, inverse)
-        gu = [a + c for a, c in zip(gv, gpen)]              # pen = u - w, summed over the passes
         new = (np.empty_like(gv[0]), np.empty_like(gv[1]))
-        _penalize_divergence_adjoint(*gu, g_div, *w, *masks, inv_dx, *new, *gmasks)
-        gv = [a - c for a, c in zip(new, gpen)]
+        _penalize_divergence_adjoint(*gv, *gpen, g_div, *w, *masks, inv_dx, *new, *gmasks)
+        gv = new
     return gv
 
 
