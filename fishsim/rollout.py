@@ -26,13 +26,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 from fishsim.coupling import CouplingConfig, exchange_to_solid, fluid_to_solid, solid_to_fluid
 from fishsim.coupling.added_mass import mass_centroid, stabilise_translation, stabilising_force
 from fishsim.coupling.config import AVERAGE
 from fishsim.errors import ConfigError, SimulationBlowUp
-from fishsim.fields import Boundary, FluidModel, FluidParams, FluidState
+from fishsim.fields import Boundary, FluidModel, FluidParams, FluidState, Grid
 from fishsim.fluid.grid import curl, faces_to_centres, union
 from fishsim.mesh.triangulate import element_areas
 from fishsim.solid import SolidModel, SolverCache, pd_step, predicted_start
@@ -188,17 +189,20 @@ class Swimmer:
         """Step 1: the fish's soft mask and velocity, united with the tank walls."""
         return self.fish_and_boundary(state)[1]
 
-    def fish_and_boundary(self, state: SwimState) -> tuple[Boundary, Boundary]:
-        """(the fish's own Boundary, the fish united with the tank walls)."""
-        fish = solid_to_fluid(state.q, state.qdot, self.surface, self.fluid.grid, self.coupling,
-                              dtype=self.fluid_dtype)
+    def fish_and_boundary(self, state: SwimState, grid: Grid | None = None) -> tuple[Boundary, Boundary]:
+        """(the fish's own Boundary, the fish united with the tank walls) on ``grid``: the fluid's
+        (default) or a finer one, r times (the walls' cell bands prolonged exactly)."""
+        grid = self.fluid.grid if grid is None else grid
+        fish = solid_to_fluid(state.q, state.qdot, self.surface, grid, self.coupling, dtype=self.fluid_dtype)
         if self.walls is None:
             return fish, fish
-        B = state.q.shape[0]
+        B, r = state.q.shape[0], grid.W // self.fluid.grid.W
         velocity = self.walls.velocity.expand(B, -1, -1, -1)
         if self.tunnel:                                 # the water comes at the fish (facing +x) at U
             velocity = velocity * -state.tunnel[:, 0].to(velocity.dtype).view(B, 1, 1, 1)
         walls = Boundary(self.walls.mask.expand(B, -1, -1, -1), velocity)
+        if r > 1:
+            walls = Boundary(*(F.interpolate(x, scale_factor=r, mode="nearest") for x in (walls.mask, walls.velocity)))
         return fish, union(fish, walls)
 
     def tunnel_speed(self, state: SwimState, f_ext: Tensor, rho: Tensor, mass: Tensor) -> Tensor:
@@ -241,17 +245,23 @@ class Swimmer:
                    t: int, start: SwimState | None, mass: Tensor, timer: PhaseTimer) -> tuple[FluidState, Tensor]:
         """Steps 2-3: the fluid's step and the force it exerts on the fish's nodes, by the sampled
         pressure or (``coupling.force=exchange``) by momentum exchange (fishsim.coupling); mass:
-        the nodal masses [N] (how averaged forces are shared); timer: where the phases' time goes."""
+        the nodal masses [N] (how averaged forces are shared); timer: where the phases' time goes.
+        The fluid reads the body on its ``boundary_grid`` if it has a finer one (a refined
+        numerical fluid: the fish's mask is sampled on its fine cells); ``fish`` and ``boundary``
+        are on the fluid's grid, where the sampled pressure is read."""
         t0, dev = time.perf_counter(), state.q.device
+        fine = getattr(self.fluid, "boundary_grid", self.fluid.grid)
+        body, body_boundary = (fish, boundary) if fine == self.fluid.grid else self.fish_and_boundary(state, fine)
+        t0 = timer.add("coupling", t0, dev)
         if self.coupling.force == "exchange":
-            fluid, diag = self.fluid.step_with_diagnostics(state.fluid, boundary, params.fluid)
+            fluid, diag = self.fluid.step_with_diagnostics(state.fluid, body_boundary, params.fluid)
         else:
-            fluid = self.fluid.step(state.fluid, boundary, params.fluid,
+            fluid = self.fluid.step(state.fluid, body_boundary, params.fluid,
                                     start=None if start is None else start.fluid.p)
         require_finite(fluid_vector_potential_a=fluid.a, fluid_pressure_p=fluid.p)
         t0 = timer.add("fluid", t0, dev)
         if self.coupling.force == "exchange":
-            share = diag.body_share(fish.mask, boundary.mask)
+            share = diag.body_share(body.mask, body_boundary.mask)
             f_ext = exchange_to_solid(state.q, diag.cell_forces(params.fluid.rho, share), self.surface,
                                       self.fluid.grid, self.coupling, step=t + 1, mass=mass)
         else:

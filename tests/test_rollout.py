@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from fishsim.config import load_config
-from fishsim.coupling import fluid_to_solid
+from fishsim.coupling import fluid_to_solid, solid_to_fluid
 from fishsim.coupling.config import CouplingConfig
 from fishsim.episode import batch_params, build_episode
 from fishsim.errors import ConfigError, SimulationBlowUp
@@ -434,6 +434,28 @@ def test_a_refined_fluid_keeps_its_fine_flow_across_checkpoint_segments():
     (g_plain,) = torch.autograd.grad(plain.q[..., 1].sum(), C)
     (g_checkpointed,) = torch.autograd.grad(checkpointed.q[..., 1].sum(), C)
     torch.testing.assert_close(g_checkpointed, g_plain, rtol=1e-6, atol=0)
+
+
+def test_a_refined_fluid_reads_the_fish_sampled_on_its_own_grid(monkeypatch):
+    """fluid.refinement=2: the rollout hands the fluid the fish's soft mask and velocity sampled on
+    the fine cells (one body model, resolved, instead of the r = 1 samples' bilinear interpolant)
+    and the walls' cell bands prolonged exactly; the fluid reads them as given."""
+    cfg = load_config("simulate", [*SMALL, "fluid=numerical", "fluid.refinement=2"])
+    ep = build_episode(cfg)
+    sw, fine = ep.swimmer, ep.swimmer.fluid.fine
+    seen, step = [], sw.fluid.step
+    monkeypatch.setattr(sw.fluid, "step", lambda s, b, *a, **k: seen.append(b) or step(s, b, *a, **k))
+    state = sw.initial_state(ep.params, ep.origin)
+    rollout(sw, state, ep.params, 1)
+    _, want = sw.fish_and_boundary(state, fine)
+    assert seen[0].mask.shape[-2:] == (fine.H, fine.W)
+    torch.testing.assert_close(seen[0].mask, want.mask, rtol=0, atol=0)
+    torch.testing.assert_close(seen[0].velocity, want.velocity, rtol=0, atol=0)
+    fish = solid_to_fluid(state.q, state.qdot, sw.surface, fine, sw.coupling, dtype=sw.fluid_dtype)
+    walls = torch.nn.functional.interpolate(sw.walls.mask, scale_factor=2, mode="nearest")
+    torch.testing.assert_close(want.mask, 1 - (1 - fish.mask) * (1 - walls), rtol=0, atol=1e-7)
+    coarse, _ = sw.fish_and_boundary(state)
+    assert coarse.mask.shape[-2:] == (sw.fluid.grid.H, sw.fluid.grid.W)
 
 
 def test_the_vacuum_is_a_fluid_model_whose_episodes_checkpoint_like_any():
