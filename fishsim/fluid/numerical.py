@@ -186,15 +186,16 @@ class StepDiagnostics:
         belongs to ``body`` (its cell mask [B, 1, ., .] on the fine or the r = 1 grid) when the
         fluid was given the united mask ``total`` (b_total = 1 - (1 - b_body)(1 - b_other)); 0
         where nothing is penalised, 1 wherever only the body is."""
-        H, W = self.penalty[0].shape[-2], self.penalty[0].shape[-1] - 1
-        pairs = zip(*(face_masks(_on_grid(m, (H, W), self.refinement)) for m in (body, total)))
+        r, px = self.refinement, self.penalty[0]
+        fine = None if r == 1 else (px.shape[-2], px.shape[-1] - 1)
+        pairs = zip(*(face_masks(_on_grid(m, fine, r)) for m in (body, total)))
         return tuple(b / t.clamp_min(MASK_FLOOR) for b, t in pairs)
 
 
-def _on_grid(q: Tensor, shape: tuple[int, int], r: int) -> Tensor:
-    """A cell field [B, C, ., .] on the fine grid of ``shape`` (H, W): as given if it is there,
-    else (on the r = 1 grid) prolonged bilinearly."""
-    return q if q.shape[-2:] == shape else _prolong_centres(q, r)
+def _on_grid(q: Tensor, shape: tuple[int, int] | None, r: int) -> Tensor:
+    """A cell field [B, C, ., .] on the fine grid of ``shape`` (H, W): as given if it is there
+    (or r = 1), else (on the r = 1 grid) prolonged bilinearly."""
+    return q if r == 1 or q.shape[-2:] == shape else _prolong_centres(q, r)
 
 
 def _prolong_centres(q: Tensor, r: int) -> Tensor:
