@@ -107,11 +107,18 @@ def frequency_study(cfg: SwimStudyConfig, device: str = "cpu",
 # ------------------------------------------------------------------------------------------------
 
 
+MIN_RICHARDSON_ORDER = 0.5
+"""The lowest observed order a Richardson estimate is given for: below it e2 / (r^p - 1)
+extrapolates the last change more than 2.4-fold (14-fold at p = 0.1), so the sequence is not
+in its asymptotic range and the estimate would mean nothing."""
+
+
 def observed_order(values, d) -> dict:
     """From results d at settings ``values`` (coarse to fine, constant ratio r), the observed
     order p = ln(e1 / e2) / ln r of the last three (e1 = d2 - d1, e2 = d3 - d2; NaN unless they
-    converge monotonically) and the Richardson estimate d_inf = d3 + e2 / (r^p - 1); with two
-    settings only the last change. All per column of d [n_values, n]."""
+    converge monotonically) and the Richardson estimate d_inf = d3 + e2 / (r^p - 1) (NaN below
+    ``MIN_RICHARDSON_ORDER``); with two settings only the last change. All per column of d
+    [n_values, n]."""
     d = np.asarray(d, float)
     v = np.asarray(values, float)
     last_change = d[-1] - d[-2]
@@ -124,7 +131,8 @@ def observed_order(values, d) -> dict:
         if e1[j] * e2[j] > 0 and abs(e2[j]) < abs(e1[j]):
             p = math.log(abs(e1[j] / e2[j])) / math.log(r)
             out["order"][j] = p
-            out["richardson"][j] = float(d[-1, j] + e2[j] / (r ** p - 1))
+            if p >= MIN_RICHARDSON_ORDER:
+                out["richardson"][j] = float(d[-1, j] + e2[j] / (r ** p - 1))
     return out
 
 

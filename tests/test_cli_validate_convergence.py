@@ -29,6 +29,8 @@ def test_order_and_richardson_of_an_exact_sequence(p):
     assert down["order"][0] == pytest.approx(1.0) and down["richardson"][0] == pytest.approx(1.0)
     oscillating = observed_order(values, np.array([[1.0], [2.0], [1.5]]))
     assert np.isnan(oscillating["order"][0])
+    slow = observed_order(values, np.array([[0.3600], [0.3528], [0.3460]]))      # the grid study's 3 Hz fish
+    assert 0 < slow["order"][0] < 0.1 and np.isnan(slow["richardson"][0])
 
 
 def test_validate_convergence_small(tmp_path):
