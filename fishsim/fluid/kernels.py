@@ -68,6 +68,14 @@ def _koren_grad(u, c, d):
     return v, -1.0 / 6.0 * ft - 2.0 * fe, fc + 5.0 / 6.0 * ft + 3.0 * fe, 1.0 / 3.0 * ft + fd
 
 
+@jit(inline="always")
+def _upwind(qr, k, pos):
+    """(u, c, d) of Koren's face value between qr[k+1] and qr[k+2] for a transporting velocity
+    pointing to +k (``pos``) or -k: selects of four contiguous loads, so the loops vectorise."""
+    q0, q1, q2, q3 = qr[k], qr[k + 1], qr[k + 2], qr[k + 3]
+    return (q0 if pos else q3, q1 if pos else q2, q2 if pos else q1)
+
+
 @jit(error_model="numpy")
 def _family_forward(q, T, tr0, tc0, tr1, tc1, F):
     """One flux family along rows: F[a, k] = U upwind(q[a+2, k .. k+3], U), U = (T[a+tr0, k+tc0]
@@ -79,9 +87,8 @@ def _family_forward(q, T, tr0, tc0, tr1, tc1, F):
         t0, t1 = T[a + tr0, tc0:tc0 + n], T[a + tr1, tc1:tc1 + n]
         for k in range(n):
             U = 0.5 * (t0[k] + t1[k])
-            pos = U >= 0
-            q0, q1, q2, q3 = qr[k], qr[k + 1], qr[k + 2], qr[k + 3]
-            out[k] = U * _koren(q0 if pos else q3, q1 if pos else q2, q2 if pos else q1)
+            u, c, d = _upwind(qr, k, U >= 0)
+            out[k] = U * _koren(u, c, d)
 
 
 @jit(error_model="numpy")
@@ -99,8 +106,8 @@ def _family_backward(q, T, tr0, tc0, tr1, tc1, g, gq, gT):
         for k in range(n1):
             U = 0.5 * (t0[k] + t1[k])
             pos = U >= 0
-            q0, q1, q2, q3 = qr[k], qr[k + 1], qr[k + 2], qr[k + 3]
-            v, du, dc, dd = _koren_grad(q0 if pos else q3, q1 if pos else q2, q2 if pos else q1)
+            u, c, d = _upwind(qr, k, pos)
+            v, du, dc, dd = _koren_grad(u, c, d)
             gv = ga[k] * U
             w0[k + 3] = gv * du if pos else 0.0
             w1[k + 3] = gv * (dc if pos else dd)
@@ -535,9 +542,10 @@ class SplitStep(torch.autograd.Function):
         counts = np.repeat(n.numpy(), vx.shape[1])                       # per flattened sample
         v, tape = (_flat(vx), _flat(vy)), []
         phi_sum, pen_sum = 0.0, (0.0, 0.0)
+        keep = any(ctx.needs_input_grad)
         for i in range(int(counts.max())):
             new, phi, pen, inner = _substep(v, masks, nu_n, dt_n, 1.0 / dx, wall_args, inverse, passes)
-            if any(ctx.needs_input_grad):
+            if keep:
                 tape.append((v, *inner))
             if i >= counts.min():                    # samples past their own count keep their state
                 on = (i < counts).reshape(-1, 1, 1)

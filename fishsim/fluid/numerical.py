@@ -391,10 +391,11 @@ class NumericalFluid:
         """``step`` plus what it did (sub-step count, penalization force density)."""
         r, dx, h = self.refinement, self.fine.dx, params.h
         v = v_start = curl(self._fine_potential(state), dx)
-        b = face_masks(_on_grid(boundary.mask, (self.fine.H, self.fine.W), r))
+        fine = (self.fine.H, self.fine.W)
+        b = face_masks(_on_grid(boundary.mask, fine, r))
         if self.brinkman is not None:
             b = tuple(penalised_fraction(x) for x in b)
-        v_d = vector_to_faces(_on_grid(boundary.velocity, (self.fine.H, self.fine.W), r))
+        v_d = vector_to_faces(_on_grid(boundary.velocity, fine, r))
         rho, mu = per_sample(params.rho, v[0]), per_sample(params.mu, v[0])
         nu = mu / rho
         n = self._count_substeps(v, b, v_d, nu, h)                      # [B]
