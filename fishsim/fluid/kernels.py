@@ -41,7 +41,7 @@ import torch
 from numba import prange
 from torch import Tensor
 
-from fishsim.compiled import jit
+from fishsim.compiled import each_sample, jit
 from fishsim.linalg.dct import inverse_array
 
 
@@ -379,65 +379,80 @@ class Predict(torch.autograd.Function):
 
 
 @jit
-def _penalize_divergence(wx, wy, bx, by, dx_, dy_, inv_dx, ux, uy, div, px, py):
-    """u = w + b (v_d - w) on the interior faces, b v_d on the wall faces; div = div u; the
-    penalisation's increment summed over the passes: (px, py) += u - w."""
-    N, H, W = div.shape
-    for n in range(N):
-        for i in range(H):
-            for j in range(W + 1):
-                wall = j == 0 or j == W
-                ux[n, i, j] = bx[n, i, j] * dx_[n, i, j] if wall else wx[n, i, j] + bx[n, i, j] * (
-                    dx_[n, i, j] - wx[n, i, j])
-                px[n, i, j] += ux[n, i, j] - wx[n, i, j]
-        for i in range(H + 1):
-            for j in range(W):
-                wall = i == 0 or i == H
-                uy[n, i, j] = by[n, i, j] * dy_[n, i, j] if wall else wy[n, i, j] + by[n, i, j] * (
-                    dy_[n, i, j] - wy[n, i, j])
-                py[n, i, j] += uy[n, i, j] - wy[n, i, j]
-        for i in range(H):
-            for j in range(W):
-                div[n, i, j] = (ux[n, i, j + 1] - ux[n, i, j] + uy[n, i + 1, j] - uy[n, i, j]) * inv_dx
-
-
-@jit
-def _subtract_gradient(ux, uy, phi, inv_dx, vx, vy, phi_sum):
-    """v = u - grad phi on the interior faces, u on the wall faces; phi summed over the passes
-    (phi_sum += phi)."""
-    N, H, W = phi.shape
-    for n in range(N):
-        for i in range(H):
-            for j in range(W):
-                phi_sum[n, i, j] += phi[n, i, j]
-        for i in range(H):
-            vx[n, i, 0], vx[n, i, W] = ux[n, i, 0], ux[n, i, W]
-            for j in range(1, W):
-                vx[n, i, j] = ux[n, i, j] - (phi[n, i, j] - phi[n, i, j - 1]) * inv_dx
+def _penalize_divergence_sample(wx, wy, bx, by, dx_, dy_, inv_dx, ux, uy, div, px, py):
+    """One sample's u = w + b (v_d - w) on the interior faces, b v_d on the wall faces; div =
+    div u; the penalisation's increment summed over the passes: (px, py) += u - w."""
+    H, W = div.shape
+    for i in range(H):
+        for j in range(W + 1):
+            wall = j == 0 or j == W
+            ux[i, j] = bx[i, j] * dx_[i, j] if wall else wx[i, j] + bx[i, j] * (dx_[i, j] - wx[i, j])
+            px[i, j] += ux[i, j] - wx[i, j]
+    for i in range(H + 1):
         for j in range(W):
-            vy[n, 0, j], vy[n, H, j] = uy[n, 0, j], uy[n, H, j]
-        for i in range(1, H):
-            for j in range(W):
-                vy[n, i, j] = uy[n, i, j] - (phi[n, i, j] - phi[n, i - 1, j]) * inv_dx
+            wall = i == 0 or i == H
+            uy[i, j] = by[i, j] * dy_[i, j] if wall else wy[i, j] + by[i, j] * (dy_[i, j] - wy[i, j])
+            py[i, j] += uy[i, j] - wy[i, j]
+    for i in range(H):
+        for j in range(W):
+            div[i, j] = (ux[i, j + 1] - ux[i, j] + uy[i + 1, j] - uy[i, j]) * inv_dx
+
+
+@jit(parallel=True)
+def _penalize_divergence_parallel(wx, wy, bx, by, dx_, dy_, inv_dx, ux, uy, div, px, py):
+    for n in prange(div.shape[0]):
+        _penalize_divergence_sample(wx[n], wy[n], bx[n], by[n], dx_[n], dy_[n], inv_dx, ux[n], uy[n], div[n],
+                                    px[n], py[n])
 
 
 @jit
-def _gradient_adjoint(gx, gy, inv_dx, out):
-    """out += -grad^T g = div of g with its wall faces zeroed (the adjoint of - grad phi)."""
-    N, H, W = out.shape
-    for n in range(N):
-        for i in range(H):
-            for j in range(W):
-                s = 0.0
-                if j >= 1:
-                    s -= gx[n, i, j]
-                if j + 1 <= W - 1:
-                    s += gx[n, i, j + 1]
-                if i >= 1:
-                    s -= gy[n, i, j]
-                if i + 1 <= H - 1:
-                    s += gy[n, i + 1, j]
-                out[n, i, j] += s * inv_dx
+def _subtract_gradient_sample(ux, uy, phi, inv_dx, vx, vy, phi_sum):
+    """One sample's v = u - grad phi on the interior faces, u on the wall faces; phi summed over
+    the passes (phi_sum += phi)."""
+    H, W = phi.shape
+    for i in range(H):
+        for j in range(W):
+            phi_sum[i, j] += phi[i, j]
+    for i in range(H):
+        vx[i, 0], vx[i, W] = ux[i, 0], ux[i, W]
+        for j in range(1, W):
+            vx[i, j] = ux[i, j] - (phi[i, j] - phi[i, j - 1]) * inv_dx
+    for j in range(W):
+        vy[0, j], vy[H, j] = uy[0, j], uy[H, j]
+    for i in range(1, H):
+        for j in range(W):
+            vy[i, j] = uy[i, j] - (phi[i, j] - phi[i - 1, j]) * inv_dx
+
+
+@jit(parallel=True)
+def _subtract_gradient_parallel(ux, uy, phi, inv_dx, vx, vy, phi_sum):
+    for n in prange(phi.shape[0]):
+        _subtract_gradient_sample(ux[n], uy[n], phi[n], inv_dx, vx[n], vy[n], phi_sum[n])
+
+
+@jit
+def _gradient_adjoint_sample(gx, gy, inv_dx, out):
+    """One sample's out += -grad^T g = div of g with its wall faces zeroed (the adjoint of
+    - grad phi)."""
+    H, W = out.shape
+    for i in range(H):
+        for j in range(W):
+            s = 0.0
+            if j >= 1:
+                s -= gx[i, j]
+            if j + 1 <= W - 1:
+                s += gx[i, j + 1]
+            if i >= 1:
+                s -= gy[i, j]
+            if i + 1 <= H - 1:
+                s += gy[i + 1, j]
+            out[i, j] += s * inv_dx
+
+
+@jit(parallel=True)
+def _gradient_adjoint_parallel(gx, gy, inv_dx, out):
+    for n in prange(out.shape[0]):
+        _gradient_adjoint_sample(gx[n], gy[n], inv_dx, out[n])
 
 
 @jit(inline="always")
@@ -449,29 +464,34 @@ def _blend_adjoint(g, wall, w, b, d):
 
 
 @jit
-def _penalize_divergence_adjoint(gvx, gvy, gpx, gpy, gdiv, wx, wy, bx, by, dx_, dy_, inv_dx, gwx, gwy, gbx, gby,
-                                 gdx, gdy):
-    """One pass's adjoint of u = penalize(w), div = div u, pen += u - w: given dL/du = gv + gp
-    (through the projection and the increment) and dL/ddiv, writes dL/dw (gwx, gwy; the
+def _penalize_divergence_adjoint_sample(gvx, gvy, gpx, gpy, gdiv, wx, wy, bx, by, dx_, dy_, inv_dx, gwx, gwy,
+                                        gbx, gby, gdx, gdy):
+    """One sample's adjoint of one pass u = penalize(w), div = div u, pen += u - w: given dL/du =
+    gv + gp (through the projection and the increment) and dL/ddiv, writes dL/dw (gwx, gwy; the
     increment's -gp included), adds dL/db and dL/dv_d."""
-    N, H, W = gdiv.shape
-    for n in range(N):
-        for i in range(H):
-            for j in range(W + 1):
-                g = (gvx[n, i, j] + gpx[n, i, j]) + ((gdiv[n, i, j - 1] if j >= 1 else 0.0)
-                                                     - (gdiv[n, i, j] if j < W else 0.0)) * inv_dx
-                gwx[n, i, j], gb, gd = _blend_adjoint(g, j == 0 or j == W, wx[n, i, j], bx[n, i, j], dx_[n, i, j])
-                gwx[n, i, j] -= gpx[n, i, j]
-                gbx[n, i, j] += gb
-                gdx[n, i, j] += gd
-        for i in range(H + 1):
-            for j in range(W):
-                g = (gvy[n, i, j] + gpy[n, i, j]) + ((gdiv[n, i - 1, j] if i >= 1 else 0.0)
-                                                     - (gdiv[n, i, j] if i < H else 0.0)) * inv_dx
-                gwy[n, i, j], gb, gd = _blend_adjoint(g, i == 0 or i == H, wy[n, i, j], by[n, i, j], dy_[n, i, j])
-                gwy[n, i, j] -= gpy[n, i, j]
-                gby[n, i, j] += gb
-                gdy[n, i, j] += gd
+    H, W = gdiv.shape
+    for i in range(H):
+        for j in range(W + 1):
+            g = (gvx[i, j] + gpx[i, j]) + ((gdiv[i, j - 1] if j >= 1 else 0.0) - (gdiv[i, j] if j < W else 0.0)) * inv_dx
+            gwx[i, j], gb, gd = _blend_adjoint(g, j == 0 or j == W, wx[i, j], bx[i, j], dx_[i, j])
+            gwx[i, j] -= gpx[i, j]
+            gbx[i, j] += gb
+            gdx[i, j] += gd
+    for i in range(H + 1):
+        for j in range(W):
+            g = (gvy[i, j] + gpy[i, j]) + ((gdiv[i - 1, j] if i >= 1 else 0.0) - (gdiv[i, j] if i < H else 0.0)) * inv_dx
+            gwy[i, j], gb, gd = _blend_adjoint(g, i == 0 or i == H, wy[i, j], by[i, j], dy_[i, j])
+            gwy[i, j] -= gpy[i, j]
+            gby[i, j] += gb
+            gdy[i, j] += gd
+
+
+@jit(parallel=True)
+def _penalize_divergence_adjoint_parallel(gvx, gvy, gpx, gpy, gdiv, wx, wy, bx, by, dx_, dy_, inv_dx, gwx, gwy,
+                                          gbx, gby, gdx, gdy):
+    for n in prange(gdiv.shape[0]):
+        _penalize_divergence_adjoint_sample(gvx[n], gvy[n], gpx[n], gpy[n], gdiv[n], wx[n], wy[n], bx[n], by[n],
+                                            dx_[n], dy_[n], inv_dx, gwx[n], gwy[n], gbx[n], gby[n], gdx[n], gdy[n])
 
 
 def _constrain(w, masks, inverse, inv_dx, passes):
@@ -484,10 +504,11 @@ def _constrain(w, masks, inverse, inv_dx, passes):
     for _ in range(passes):
         inputs.append(w)
         ux, uy = np.empty_like(w[0]), np.empty_like(w[1])
-        _penalize_divergence(*w, *masks, inv_dx, ux, uy, div, *pen)
+        each_sample(_penalize_divergence_sample, _penalize_divergence_parallel, *w, *masks, inv_dx, ux, uy, div,
+                     *pen)
         phi = inverse_array(div, inverse)
         w = (np.empty_like(ux), np.empty_like(uy))
-        _subtract_gradient(ux, uy, phi, inv_dx, *w, phi_sum)
+        each_sample(_subtract_gradient_sample, _subtract_gradient_parallel, ux, uy, phi, inv_dx, *w, phi_sum)
     return w, phi_sum, pen, inputs
 
 
@@ -496,10 +517,11 @@ def _constrain_adjoint(gv, gphi, gpen, inputs, masks, inverse, inv_dx, gmasks):
     adds dL/d(b_x, b_y, v_d,x, v_d,y) into gmasks."""
     for w in reversed(inputs):
         g_phi = gphi.copy()
-        _gradient_adjoint(*gv, inv_dx, g_phi)
+        each_sample(_gradient_adjoint_sample, _gradient_adjoint_parallel, *gv, inv_dx, g_phi)
         g_div = inverse_array(g_phi, inverse)
         new = (np.empty_like(gv[0]), np.empty_like(gv[1]))
-        _penalize_divergence_adjoint(*gv, *gpen, g_div, *w, *masks, inv_dx, *new, *gmasks)
+        each_sample(_penalize_divergence_adjoint_sample, _penalize_divergence_adjoint_parallel, *gv, *gpen, g_div,
+                     *w, *masks, inv_dx, *new, *gmasks)
         gv = new
     return gv
 

@@ -17,9 +17,10 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.fft as sfft
 import torch
+from numba import prange
 from torch import Tensor
 
-from fishsim.compiled import jit
+from fishsim.compiled import each_sample, jit
 
 
 def _phase(N: int, sign: float, like: Tensor) -> Tensor:
@@ -72,7 +73,7 @@ class NeumannInverse:
 
     inv [H, W]: 1 / eigenvalue of every DCT-II mode, 0 for the constant one (the 2D transform
         solve, any device).
-    pivots [H, W] (numpy, inv's dtype): the CPU solve's Thomas factors (``_tridiagonal``),
+    pivots [H, W] (numpy, inv's dtype): the CPU solve's Thomas factors (``_tridiagonal_sample``),
         computed in float64."""
 
     inv: Tensor
@@ -107,36 +108,40 @@ def _thomas_pivots(H: int, W: int, dx: float) -> np.ndarray:
 
 
 @jit
-def _tridiagonal(F, inv_pivot, dx):
-    """Solves, in place, A_l phi_l = F[:, :, l] for every sample and x-mode l ([N, H, W], the
-    x-DCT of the right-hand side): Thomas' sweeps over the rows, vectorised over l >= 1; l = 0
-    (A_0 = T, singular: the constant) by integrating twice, phi_0[0] = 0, mean-free right-hand
-    side, then the mean removed (the minimum-norm solution, as the 2D transform's)."""
-    N, H, W = F.shape
+def _tridiagonal_sample(f, inv_pivot, dx):
+    """Solves, in place, A_l phi_l = f[:, l] for every x-mode l of one sample ([H, W], the x-DCT of
+    the right-hand side): Thomas' sweeps over the rows, vectorised over l >= 1; l = 0 (A_0 = T,
+    singular: the constant) by integrating twice, phi_0[0] = 0, mean-free right-hand side, then the
+    mean removed (the minimum-norm solution, as the 2D transform's)."""
+    H, W = f.shape
     off, dx2 = 1.0 / (dx * dx), dx * dx
     col = np.empty(H)
-    for n in range(N):
-        f = F[n]
-        mean = 0.0
-        for i in range(H):
-            mean += f[i, 0]
-        mean /= H
-        flux, phi, total = 0.0, 0.0, 0.0
-        for i in range(H):                  # (phi[i+1] - phi[i]) / dx^2 = sum_{j <= i} (f_j - mean)
-            col[i] = phi
-            total += phi
-            flux += dx2 * (f[i, 0] - mean)
-            phi += flux
+    mean = 0.0
+    for i in range(H):
+        mean += f[i, 0]
+    mean /= H
+    flux, phi, total = 0.0, 0.0, 0.0
+    for i in range(H):                  # (phi[i+1] - phi[i]) / dx^2 = sum_{j <= i} (f_j - mean)
+        col[i] = phi
+        total += phi
+        flux += dx2 * (f[i, 0] - mean)
+        phi += flux
+    for k in range(1, W):
+        f[0, k] *= inv_pivot[0, k]
+    for i in range(1, H):
         for k in range(1, W):
-            f[0, k] *= inv_pivot[0, k]
-        for i in range(1, H):
-            for k in range(1, W):
-                f[i, k] = (f[i, k] - off * f[i - 1, k]) * inv_pivot[i, k]
-        for i in range(H - 2, -1, -1):
-            for k in range(1, W):
-                f[i, k] -= off * inv_pivot[i, k] * f[i + 1, k]
-        for i in range(H):
-            f[i, 0] = col[i] - total / H
+            f[i, k] = (f[i, k] - off * f[i - 1, k]) * inv_pivot[i, k]
+    for i in range(H - 2, -1, -1):
+        for k in range(1, W):
+            f[i, k] -= off * inv_pivot[i, k] * f[i + 1, k]
+    for i in range(H):
+        f[i, 0] = col[i] - total / H
+
+
+@jit(parallel=True)
+def _tridiagonal_parallel(F, inv_pivot, dx):
+    for n in prange(F.shape[0]):
+        _tridiagonal_sample(F[n], inv_pivot, dx)
 
 
 def solve_neumann_poisson(f: Tensor, dx: float, inverse: NeumannInverse | None = None) -> Tensor:
@@ -164,7 +169,7 @@ class NeumannPoisson(torch.autograd.Function):
 
 def apply_inverse(f: Tensor, inverse: NeumannInverse) -> Tensor:
     """L^+ f (no autograd), f [..., H, W]. On the CPU: scipy.fft's DCT-II along x, a tridiagonal
-    solve along y per x-mode (``_tridiagonal``, compiled), the inverse DCT: 0.3 ms per 100 x 300
+    solve along y per x-mode (``_tridiagonal_sample``, compiled), the inverse DCT: 0.3 ms per 100 x 300
     solve against 0.7 ms for scipy's 2D transforms with a division and 0.85 ms for the FFT-based
     ``dct`` / ``idct`` above, which serve other devices (2D transforms)."""
     if f.device.type == "cpu":
@@ -181,6 +186,6 @@ def inverse_array(x: np.ndarray, inverse: NeumannInverse) -> np.ndarray:
     workers took 53 against 25 ms forward)."""
     workers = min(torch.get_num_threads(), x.shape[0])
     F = sfft.dct(x, type=2, axis=-1, workers=workers)
-    _tridiagonal(F, inverse.pivots, inverse.dx)
+    each_sample(_tridiagonal_sample, _tridiagonal_parallel, F, inverse.pivots, inverse.dx)
     y = sfft.idct(F, type=2, axis=-1, workers=workers, overwrite_x=True)
     return np.ascontiguousarray(y, dtype=x.dtype)
