@@ -22,7 +22,6 @@ import hashlib
 from pathlib import Path
 
 import numba
-import numpy as np
 from numba.core import caching
 
 PACKAGE = Path(__file__).resolve().parent
@@ -125,16 +124,11 @@ def jit(*args, **options):
     return numba.njit(*args, cache=True, **options)
 
 
-def each_sample(sample, parallel, *args) -> None:
-    """Runs a compiled kernel over the samples of a batch: ``sample`` works on one sample,
-    ``parallel`` is its driver over the samples with ``numba.prange``. The first argument is a
-    batched array [N, ...]; so is every array argument of its rank (lower-rank arrays and scalars
-    are shared by the samples). A single sample runs in the calling thread (a parallel region's
-    start costs more than one sample's pass, and its spinning threads slow a busy machine); a
-    batch runs its samples in parallel over numba's threads, each sample's loops serial and in a
-    fixed order (its result does not depend on its batch)."""
-    if args[0].shape[0] != 1:
-        parallel(*args)
-        return
-    rank = args[0].ndim
-    sample(*(a[0] if isinstance(a, np.ndarray) and a.ndim == rank else a for a in args))
+def each_sample(serial, parallel, *args) -> None:
+    """Runs a compiled kernel over the samples of a batch, the first argument a batched array
+    [N, ...]: ``serial`` (a loop over the samples) for one sample, which runs in the calling thread
+    (a parallel region's start costs more than one sample's pass, and its spinning threads slow a
+    busy machine), else ``parallel``, the same loop with ``numba.prange``. Both call one
+    per-sample kernel whose loops are serial and in a fixed order, so a sample's result does not
+    depend on its batch."""
+    (serial if args[0].shape[0] == 1 else parallel)(*args)

@@ -398,6 +398,13 @@ def _penalize_divergence_sample(wx, wy, bx, by, dx_, dy_, inv_dx, ux, uy, div, p
             div[i, j] = (ux[i, j + 1] - ux[i, j] + uy[i + 1, j] - uy[i, j]) * inv_dx
 
 
+@jit
+def _penalize_divergence_serial(wx, wy, bx, by, dx_, dy_, inv_dx, ux, uy, div, px, py):
+    for n in range(div.shape[0]):
+        _penalize_divergence_sample(wx[n], wy[n], bx[n], by[n], dx_[n], dy_[n], inv_dx, ux[n], uy[n], div[n],
+                                  px[n], py[n])
+
+
 @jit(parallel=True)
 def _penalize_divergence_parallel(wx, wy, bx, by, dx_, dy_, inv_dx, ux, uy, div, px, py):
     for n in prange(div.shape[0]):
@@ -424,6 +431,12 @@ def _subtract_gradient_sample(ux, uy, phi, inv_dx, vx, vy, phi_sum):
             vy[i, j] = uy[i, j] - (phi[i, j] - phi[i - 1, j]) * inv_dx
 
 
+@jit
+def _subtract_gradient_serial(ux, uy, phi, inv_dx, vx, vy, phi_sum):
+    for n in range(phi.shape[0]):
+        _subtract_gradient_sample(ux[n], uy[n], phi[n], inv_dx, vx[n], vy[n], phi_sum[n])
+
+
 @jit(parallel=True)
 def _subtract_gradient_parallel(ux, uy, phi, inv_dx, vx, vy, phi_sum):
     for n in prange(phi.shape[0]):
@@ -447,6 +460,12 @@ def _gradient_adjoint_sample(gx, gy, inv_dx, out):
             if i + 1 <= H - 1:
                 s += gy[i + 1, j]
             out[i, j] += s * inv_dx
+
+
+@jit
+def _gradient_adjoint_serial(gx, gy, inv_dx, out):
+    for n in range(out.shape[0]):
+        _gradient_adjoint_sample(gx[n], gy[n], inv_dx, out[n])
 
 
 @jit(parallel=True)
@@ -486,6 +505,14 @@ def _penalize_divergence_adjoint_sample(gvx, gvy, gpx, gpy, gdiv, wx, wy, bx, by
             gdy[i, j] += gd
 
 
+@jit
+def _penalize_divergence_adjoint_serial(gvx, gvy, gpx, gpy, gdiv, wx, wy, bx, by, dx_, dy_, inv_dx, gwx, gwy,
+                                        gbx, gby, gdx, gdy):
+    for n in range(gdiv.shape[0]):
+        _penalize_divergence_adjoint_sample(gvx[n], gvy[n], gpx[n], gpy[n], gdiv[n], wx[n], wy[n], bx[n], by[n],
+                                          dx_[n], dy_[n], inv_dx, gwx[n], gwy[n], gbx[n], gby[n], gdx[n], gdy[n])
+
+
 @jit(parallel=True)
 def _penalize_divergence_adjoint_parallel(gvx, gvy, gpx, gpy, gdiv, wx, wy, bx, by, dx_, dy_, inv_dx, gwx, gwy,
                                           gbx, gby, gdx, gdy):
@@ -504,11 +531,11 @@ def _constrain(w, masks, inverse, inv_dx, passes):
     for _ in range(passes):
         inputs.append(w)
         ux, uy = np.empty_like(w[0]), np.empty_like(w[1])
-        each_sample(_penalize_divergence_sample, _penalize_divergence_parallel, *w, *masks, inv_dx, ux, uy, div,
+        each_sample(_penalize_divergence_serial, _penalize_divergence_parallel, *w, *masks, inv_dx, ux, uy, div,
                      *pen)
         phi = inverse_array(div, inverse)
         w = (np.empty_like(ux), np.empty_like(uy))
-        each_sample(_subtract_gradient_sample, _subtract_gradient_parallel, ux, uy, phi, inv_dx, *w, phi_sum)
+        each_sample(_subtract_gradient_serial, _subtract_gradient_parallel, ux, uy, phi, inv_dx, *w, phi_sum)
     return w, phi_sum, pen, inputs
 
 
@@ -517,10 +544,10 @@ def _constrain_adjoint(gv, gphi, gpen, inputs, masks, inverse, inv_dx, gmasks):
     adds dL/d(b_x, b_y, v_d,x, v_d,y) into gmasks."""
     for w in reversed(inputs):
         g_phi = gphi.copy()
-        each_sample(_gradient_adjoint_sample, _gradient_adjoint_parallel, *gv, inv_dx, g_phi)
+        each_sample(_gradient_adjoint_serial, _gradient_adjoint_parallel, *gv, inv_dx, g_phi)
         g_div = inverse_array(g_phi, inverse)
         new = (np.empty_like(gv[0]), np.empty_like(gv[1]))
-        each_sample(_penalize_divergence_adjoint_sample, _penalize_divergence_adjoint_parallel, *gv, *gpen, g_div,
+        each_sample(_penalize_divergence_adjoint_serial, _penalize_divergence_adjoint_parallel, *gv, *gpen, g_div,
                      *w, *masks, inv_dx, *new, *gmasks)
         gv = new
     return gv

@@ -138,6 +138,12 @@ def _tridiagonal_sample(f, inv_pivot, dx):
         f[i, 0] = col[i] - total / H
 
 
+@jit
+def _tridiagonal_serial(F, inv_pivot, dx):
+    for n in range(F.shape[0]):
+        _tridiagonal_sample(F[n], inv_pivot, dx)
+
+
 @jit(parallel=True)
 def _tridiagonal_parallel(F, inv_pivot, dx):
     for n in prange(F.shape[0]):
@@ -186,6 +192,6 @@ def inverse_array(x: np.ndarray, inverse: NeumannInverse) -> np.ndarray:
     workers took 53 against 25 ms forward)."""
     workers = min(torch.get_num_threads(), x.shape[0])
     F = sfft.dct(x, type=2, axis=-1, workers=workers)
-    each_sample(_tridiagonal_sample, _tridiagonal_parallel, F, inverse.pivots, inverse.dx)
+    each_sample(_tridiagonal_serial, _tridiagonal_parallel, F, inverse.pivots, inverse.dx)
     y = sfft.idct(F, type=2, axis=-1, workers=workers, overwrite_x=True)
     return np.ascontiguousarray(y, dtype=x.dtype)
