@@ -121,6 +121,7 @@ CYLINDER_LARGE = {"cells_per_d": 20, "length": 24.0, "width": 32.0, "x_centre": 
 # U = 0.1 m/s (0.05 D/U), the fish's sub-steps and passes (NumericalFluid's defaults), float64.
 CYLINDER_FISH_GRID = {"cells_per_d": 8, "length": 24.0, "width": 32.0, "x_centre": 6.0, "t_end": 120.0, "window": 40.0,
                       "h": 0.05, "dtype": torch.float64, "stepping": {}}
+CYLINDER_FISH_GRID_16 = {**CYLINDER_FISH_GRID, "cells_per_d": 16}   # a 4 cm cylinder in the fish's 2.5 mm cells
 
 
 def coupling_drag(g: Grid, s: FluidState, bd: Boundary) -> torch.Tensor:
@@ -163,7 +164,8 @@ def validation(large: bool = True) -> dict:
     * Lid-driven cavity Re = 100, 64 x 64, t = 12: max |u - u_Ghia| (lid-speed units).
     * Cylinder Re = 100: St, mean C_D, C_L amplitude (penalization force within 1.5 D) at the
       CI-reduced size, on the fish's grid and stepping (``CYLINDER_FISH_GRID``, with the coupling's
-      IBM pressure and traction drag coefficients) and, with ``large``, at ``CYLINDER_LARGE``.
+      IBM pressure and traction drag coefficients) and, with ``large``, at ``CYLINDER_LARGE`` and
+      on the fish's grid with 16 cells per D (``CYLINDER_FISH_GRID_16``, 16 min on one thread).
     """
     out = {"threads": 1}
     with _threads(1):
@@ -184,6 +186,7 @@ def validation(large: bool = True) -> dict:
         out["cylinder_re100_fish_grid"] = _cylinder(CYLINDER_FISH_GRID, coupling_drag)
         if large:
             out["cylinder_re100_large"] = _cylinder(CYLINDER_LARGE)
+            out["cylinder_re100_fish_grid_16"] = _cylinder(CYLINDER_FISH_GRID_16, coupling_drag)
     return out
 
 

@@ -1,5 +1,7 @@
 """Ship a trained HydroNet:
-``python -m fishsim.learn.ship CHECKPOINT VALIDATE_DIR LINEAGE.json [SWIM_DIR ...]``.
+``python -m fishsim.learn.ship CHECKPOINT VALIDATE_DIR LINEAGE.json [SWIM_DIR ...]``; record
+frequency studies of the shipped model re-measured since: ``python -m fishsim.learn.ship --record
+SWIM_DIR ...`` (``record_swim_studies``).
 
 * ``fishsim/assets/hydronet.pt``: the weights of CHECKPOINT (a ckpt.pt or best.pt;
   ``export_model``), the model ``fishsim simulate fluid=hydronet`` uses by default;
@@ -96,8 +98,29 @@ def ship(checkpoint: Path, validate_dir: Path, lineage: list, swim_dirs: tuple[P
     return meta
 
 
+def record_swim_studies(swim_dirs: tuple[Path, ...], meta_path: Path | None = None) -> dict:
+    """Frequency studies of the shipped model re-measured after shipping (each SWIM_DIR/metrics.json,
+    from ``fishsim validate suite=swim`` at that day's defaults and reference) into its metadata's
+    "swim_studies", each stamped with the date it was recorded; the entries they replace move to
+    "swim_studies_earlier" (newest last); meta_path: default the shipped model's. Returns the
+    metadata written."""
+    meta_path = SHIPPED_HYDRONET.with_suffix(".json") if meta_path is None else meta_path
+    meta = json.loads(meta_path.read_text())
+    for d in swim_dirs:
+        metrics = json.loads((d / "metrics.json").read_text())
+        key = f"frames_{metrics['swim']['frames']}"
+        if key in meta["swim_studies"]:
+            meta.setdefault("swim_studies_earlier", {}).setdefault(key, []).append(meta["swim_studies"][key])
+        meta["swim_studies"][key] = {**metrics, "recorded": time.strftime("%Y-%m-%d"), "from": str(d)}
+    meta_path.write_text(json.dumps(meta, indent=2, default=str) + "\n")
+    return meta
+
+
 if __name__ == "__main__":
     args = sys.argv[1:]
+    if args[:1] == ["--record"] and len(args) > 1:
+        record_swim_studies(tuple(Path(a) for a in args[1:]))
+        sys.exit(0)
     if len(args) < 3:
         sys.exit(__doc__)
     meta = ship(Path(args[0]), Path(args[1]), json.loads(Path(args[2]).read_text()), tuple(Path(a) for a in args[3:]))

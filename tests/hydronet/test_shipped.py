@@ -83,3 +83,21 @@ def test_save_load_round_trip_and_deterministic_steps(shipped, tmp_path):
     assert json.loads(path.with_suffix(".json").read_text()) == {"note": "round trip", "training_range": trained}
     assert torch.load(path, weights_only=False)["training_range"] == trained == again.training_range
     assert np.isfinite(a.p.numpy()).all() and a.p.abs().max() > 0
+
+
+def test_a_re_measured_frequency_study_replaces_the_recorded_one_and_keeps_it(tmp_path):
+    """``ship --record``: the new study under "swim_studies" with its date and source, the one it
+    replaces appended to "swim_studies_earlier", the other entries untouched."""
+    from fishsim.learn.ship import record_swim_studies
+
+    meta = tmp_path / "hydronet.json"
+    meta.write_text(json.dumps({"net": {}, "swim_studies": {"frames_120": {"old": 1}, "frames_300": {"kept": 1}}}))
+    study = tmp_path / "study"
+    study.mkdir()
+    (study / "metrics.json").write_text(json.dumps({"swim": {"frames": 120}, "fluids": {"hydronet": {}}}))
+    out = record_swim_studies((study,), meta)
+    assert json.loads(meta.read_text()) == out
+    assert out["swim_studies"]["frames_120"]["fluids"] == {"hydronet": {}}
+    assert out["swim_studies"]["frames_120"]["from"] == str(study) and "recorded" in out["swim_studies"]["frames_120"]
+    assert out["swim_studies_earlier"] == {"frames_120": [{"old": 1}]}
+    assert out["swim_studies"]["frames_300"] == {"kept": 1}
