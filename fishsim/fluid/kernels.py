@@ -402,7 +402,7 @@ def _penalize_divergence_sample(wx, wy, bx, by, dx_, dy_, inv_dx, ux, uy, div, p
 def _penalize_divergence_serial(wx, wy, bx, by, dx_, dy_, inv_dx, ux, uy, div, px, py):
     for n in range(div.shape[0]):
         _penalize_divergence_sample(wx[n], wy[n], bx[n], by[n], dx_[n], dy_[n], inv_dx, ux[n], uy[n], div[n],
-                                  px[n], py[n])
+                                    px[n], py[n])
 
 
 @jit(parallel=True)
@@ -510,7 +510,7 @@ def _penalize_divergence_adjoint_serial(gvx, gvy, gpx, gpy, gdiv, wx, wy, bx, by
                                         gbx, gby, gdx, gdy):
     for n in range(gdiv.shape[0]):
         _penalize_divergence_adjoint_sample(gvx[n], gvy[n], gpx[n], gpy[n], gdiv[n], wx[n], wy[n], bx[n], by[n],
-                                          dx_[n], dy_[n], inv_dx, gwx[n], gwy[n], gbx[n], gby[n], gdx[n], gdy[n])
+                                            dx_[n], dy_[n], inv_dx, gwx[n], gwy[n], gbx[n], gby[n], gdx[n], gdy[n])
 
 
 @jit(parallel=True)
