@@ -28,9 +28,9 @@ can differ where the limiter's branches meet exactly; in water at rest U = 0 mak
 
 P, Q are vx, vy with their ghost layers ([H+4, W+5], [H+5, W+4] per sample) and PT, QT their
 transposes, so that every flux family runs along the rows of one array. Each sample's loops are
-serial and in a fixed order (its result does not depend on its batch); the predictor runs the samples
-of a batch in parallel over numba's threads, a single sample in the calling thread (a parallel
-region's start costs more than one sample's passes, and its spinning threads slow a busy machine).
+serial and in a fixed order (its result does not depend on its batch); every kernel runs the samples
+of a batch in parallel over numba's threads and a single sample in the calling thread
+(``fishsim.compiled.each_sample``: a parallel region's start costs more than one sample's pass).
 Grids need at least 3 cells a side.
 """
 
@@ -293,10 +293,23 @@ def _sample_backward(vx, vy, nu, dt, inv_dx, walls, gwx, gwy, gvx, gvy, need_dt)
     return dt * lap_sum, nu * lap_sum - adv_sum
 
 
+@jit
+def _forward_serial(vx, vy, nu, dt, inv_dx, walls, wx, wy):
+    for n in range(vx.shape[0]):
+        _sample_forward(vx[n], vy[n], nu[n], dt[n], inv_dx, walls, wx[n], wy[n])
+
+
 @jit(parallel=True)
 def _forward_parallel(vx, vy, nu, dt, inv_dx, walls, wx, wy):
     for n in prange(vx.shape[0]):
         _sample_forward(vx[n], vy[n], nu[n], dt[n], inv_dx, walls, wx[n], wy[n])
+
+
+@jit
+def _backward_serial(vx, vy, nu, dt, inv_dx, walls, gwx, gwy, gvx, gvy, g_nu, g_dt, need_dt):
+    for n in range(vx.shape[0]):
+        g_nu[n], g_dt[n] = _sample_backward(vx[n], vy[n], nu[n], dt[n], inv_dx, walls, gwx[n], gwy[n],
+                                            gvx[n], gvy[n], need_dt)
 
 
 @jit(parallel=True)
@@ -304,21 +317,6 @@ def _backward_parallel(vx, vy, nu, dt, inv_dx, walls, gwx, gwy, gvx, gvy, g_nu, 
     for n in prange(vx.shape[0]):
         g_nu[n], g_dt[n] = _sample_backward(vx[n], vy[n], nu[n], dt[n], inv_dx, walls, gwx[n], gwy[n],
                                             gvx[n], gvy[n], need_dt)
-
-
-def _forward(vx, vy, nu, dt, inv_dx, walls, wx, wy):
-    if vx.shape[0] == 1:        # one sample: no parallel region (its start costs more than it saves)
-        _sample_forward(vx[0], vy[0], nu[0], dt[0], inv_dx, walls, wx[0], wy[0])
-    else:
-        _forward_parallel(vx, vy, nu, dt, inv_dx, walls, wx, wy)
-
-
-def _backward(vx, vy, nu, dt, inv_dx, walls, gwx, gwy, gvx, gvy, g_nu, g_dt, need_dt):
-    if vx.shape[0] == 1:
-        g_nu[0], g_dt[0] = _sample_backward(vx[0], vy[0], nu[0], dt[0], inv_dx, walls, gwx[0], gwy[0], gvx[0],
-                                            gvy[0], need_dt)
-    else:
-        _backward_parallel(vx, vy, nu, dt, inv_dx, walls, gwx, gwy, gvx, gvy, g_nu, g_dt, need_dt)
 
 
 def _flat(t: Tensor) -> np.ndarray:
@@ -348,7 +346,8 @@ class Predict(torch.autograd.Function):
         nu_n, dt_n = _per_sample(nu, vx), _per_sample(dt, vx)
         wx, wy = torch.empty_like(vx, memory_format=torch.contiguous_format), torch.empty_like(
             vy, memory_format=torch.contiguous_format)
-        _forward(_flat(vx), _flat(vy), nu_n, dt_n, 1.0 / dx, wall_args, _flat(wx), _flat(wy))
+        each_sample(_forward_serial, _forward_parallel, _flat(vx), _flat(vy), nu_n, dt_n, 1.0 / dx, wall_args,
+                    _flat(wx), _flat(wy))
         ctx.save_for_backward(vx, vy)
         ctx.args = (nu_n, dt_n, 1.0 / dx, wall_args)
         ctx.shapes = [(torch.as_tensor(x).shape, isinstance(x, Tensor)) for x in (nu, dt)]
@@ -360,8 +359,8 @@ class Predict(torch.autograd.Function):
         nu_n, dt_n, inv_dx, wall_args = ctx.args
         gvx, gvy = torch.zeros(vx.shape, dtype=vx.dtype), torch.zeros(vy.shape, dtype=vy.dtype)
         g = np.zeros((2, nu_n.shape[0]))
-        _backward(_flat(vx), _flat(vy), nu_n, dt_n, inv_dx, wall_args, _flat(gwx), _flat(gwy), _flat(gvx),
-                  _flat(gvy), g[0], g[1], bool(ctx.needs_input_grad[3]))
+        each_sample(_backward_serial, _backward_parallel, _flat(vx), _flat(vy), nu_n, dt_n, inv_dx, wall_args,
+                    _flat(gwx), _flat(gwy), _flat(gvx), _flat(gvy), g[0], g[1], bool(ctx.needs_input_grad[3]))
         g_params = []
         for (shape, is_tensor), gs, need in zip(ctx.shapes, g, ctx.needs_input_grad[2:4]):
             if not (is_tensor and need):
@@ -557,10 +556,10 @@ def _substep(v, masks, nu, dt, inv_dx, walls, inverse, passes):
     """One Heun sub-step on numpy faces (``NumericalFluid._substep``): v1 = C(P(v)), v' =
     C((v + P(v1)) / 2); returns (v', phi1/2 + phi2, pen1/2 + pen2, what the adjoint needs)."""
     w1 = (np.empty_like(v[0]), np.empty_like(v[1]))
-    _forward(*v, nu, dt, inv_dx, walls, *w1)
+    each_sample(_forward_serial, _forward_parallel, *v, nu, dt, inv_dx, walls, *w1)
     v1, phi1, pen1, in1 = _constrain(w1, masks, inverse, inv_dx, passes)
     w2 = (np.empty_like(v[0]), np.empty_like(v[1]))
-    _forward(*v1, nu, dt, inv_dx, walls, *w2)
+    each_sample(_forward_serial, _forward_parallel, *v1, nu, dt, inv_dx, walls, *w2)
     w2 = tuple(0.5 * (c + q) for c, q in zip(v, w2))
     v2, phi2, pen2, in2 = _constrain(w2, masks, inverse, inv_dx, passes)
     return v2, 0.5 * phi1 + phi2, tuple(0.5 * a + b for a, b in zip(pen1, pen2)), (v1, in1, in2)
@@ -630,12 +629,14 @@ class SplitStep(torch.autograd.Function):
                 gv, g_phi, g_pen = [g * on for g in gv], g_phi * on, tuple(q * on for q in g_pen)
             g_w2 = _constrain_adjoint(gv, g_phi, g_pen, in2, masks, inverse, inv_dx, gmasks)
             g_v1 = [np.zeros_like(c) for c in v1]
-            _backward(*v1, nu_n, dt_n, inv_dx, walls, *(0.5 * g for g in g_w2), *g_v1, g_stage, g_dt, False)
+            each_sample(_backward_serial, _backward_parallel, *v1, nu_n, dt_n, inv_dx, walls,
+                        *(0.5 * g for g in g_w2), *g_v1, g_stage, g_dt, False)
             g_nu += g_stage
             g_w1 = _constrain_adjoint(g_v1, 0.5 * g_phi, tuple(0.5 * q for q in g_pen), in1, masks, inverse,
                                       inv_dx, gmasks)
             gv = [0.5 * g for g in g_w2] if g_old is None else [0.5 * g + o for g, o in zip(g_w2, g_old)]
-            _backward(*v, nu_n, dt_n, inv_dx, walls, *g_w1, *gv, g_stage, g_dt, False)
+            each_sample(_backward_serial, _backward_parallel, *v, nu_n, dt_n, inv_dx, walls, *g_w1, *gv, g_stage,
+                        g_dt, False)
             g_nu += g_stage
         shapes = (vx.shape, vy.shape, vx.shape, vy.shape)
         grads = [torch.from_numpy(g).reshape(like).sum_to_size(t.shape) if t.requires_grad else None
