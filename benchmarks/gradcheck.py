@@ -5,13 +5,23 @@ differences at several step sizes, for the objectives `fishsim optimize` offers.
     python -m benchmarks.gradcheck --fluid hydronet --objective thrust --frames 300
     python -m benchmarks.gradcheck --param amplitude --points 10 12.1 15 --deltas 1e-3 1e-4 1e-5
     python -m benchmarks.gradcheck --frames 50 100 200 300 --points 5    # growth with the horizon
+    python -m benchmarks.gradcheck --frames 300 --objective thrust --trend 0.05 --truncate 0 25 50 100
     (the speed objective needs frames h >= objective.cycles / 2 Hz, the lowest frequency allowed)
 
 For each parameter point x: J and dJ/dx by autograd (one episode forward and backward), and the
 central differences (J(x + d) - J(x - d)) / 2d for every relative step d (one batched episode of
 2 x len(deltas) fish). Reported: each difference quotient, its spread over the steps (a flat,
 smooth frame map gives the same value at every step) and autograd's error against the
-difference quotient at the middle step. With several ``--frames`` horizons T it also fits the
+difference quotient at the middle step.
+
+Over long horizons J is rough on scales finer than an optimiser's steps, so its local slope is not
+the direction an optimiser wants. ``--trend S`` also fits a line through J at ``--trend-points``
+points evenly spread over x (1 +- S) (in the same batched episode as the differences): its slope
+(the finite difference of the objective at the scale S, with its standard error from the scatter
+about the line), the slope over the middle half (x (1 +- S/2): the two agree when the trend is
+well defined) and the scatter's RMS. Each ``--truncate`` window W (frames; 0: full
+backpropagation) gives its own autograd row, reported against the middle difference and against
+the trend: the bias of truncated backpropagation, measured on the same objective. With several ``--frames`` horizons T it also fits the
 growth rate per second of |dJ/dx| (autograd, and the middle-step difference quotient) as the
 least-squares slope of ln|dJ/dx| against T h: a rate well above the objective's own growth is an
 exponentially ill-conditioned episode (chaotic flow, or amplification through a network's
@@ -25,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import time
 
 import torch
@@ -36,7 +47,8 @@ DEFAULT_POINTS = {"frequency": [3.0, 5.0, 7.0], "amplitude": [10.0, 12.1, 15.0],
 BOUNDS = {"frequency": (2.0, 20.0), "amplitude": (1.0, 40.0), "wave_number": (5.0, 80.0), "youngs_modulus": (1e5, 5e6)}
 
 
-def check(fluid: str, objective: str, frames: int, param: str, points, deltas, overrides=(), truncate: int = 0) -> list[dict]:
+def check(fluid: str, objective: str, frames: int, param: str, points, deltas, overrides=(), truncate=(0,),
+          trend: float = 0.0, trend_points: int = 9) -> list[dict]:
     from fishsim.config import load_config
     from fishsim.optimize.problem import Problem, Space
 
@@ -47,21 +59,67 @@ def check(fluid: str, objective: str, frames: int, param: str, points, deltas, o
     cfg = load_config("optimize", [f"fluid={fluid}", "fluid.dtype=float64", f"objective={objective}",
                                    f"frames={frames}", *held, *spec, *overrides])
     space = Space(list(cfg.params), list(cfg.params.values()))
-    problem = Problem(cfg, space, cfg.objective, truncate=truncate)
+    problem = Problem(cfg, space, cfg.objective)
     rows = []
     for x0 in points:
         t0 = time.perf_counter()
-        J0, autograd = autograd_at(problem, space, x0)
-        t_ad = time.perf_counter() - t0
-        fd = central_differences(problem, space, x0, deltas)
-        mid = fd[len(fd) // 2]
-        spread = (max(fd) - min(fd)) / abs(mid) if mid else float("inf")
-        rows.append({"fluid": fluid, "objective": objective, "frames": frames, "h": cfg.h, "param": param, "x": x0,
-                     "J": J0, "autograd": autograd, "deltas": list(deltas), "central": fd,
-                     "fd_spread": spread, "autograd_error": (autograd - mid) / abs(mid) if mid else float("inf"),
-                     "truncate": truncate, "seconds_autograd": t_ad, "seconds_total": time.perf_counter() - t0})
-        print(markdown(rows[-1:], header=not rows[:-1]), flush=True)
+        fd, fit = sampled_slopes(problem, space, x0, deltas, trend, trend_points)
+        t_fd = time.perf_counter() - t0
+        mid = fd[len(fd) // 2] if fd else float("nan")
+        spread = (max(fd) - min(fd)) / abs(mid) if fd and mid else float("nan")
+        for window in truncate:
+            t1 = time.perf_counter()
+            problem.truncate = window
+            J0, autograd = autograd_at(problem, space, x0)
+            slope = fit.get("slope", float("nan"))
+            rows.append({"fluid": fluid, "objective": objective, "frames": frames, "h": cfg.h, "param": param, "x": x0,
+                         "J": J0, "autograd": autograd, "deltas": list(deltas), "central": fd,
+                         "fd_spread": spread, "autograd_error": relative(autograd, mid),
+                         "trend": fit, "autograd_vs_trend": relative(autograd, slope),
+                         "truncate": window, "seconds_autograd": time.perf_counter() - t1, "seconds_samples": t_fd})
+            print(markdown(rows[-1:], header=len(rows) == 1), flush=True)
     return rows
+
+
+def relative(value: float, reference: float) -> float:
+    return (value - reference) / abs(reference) if reference and math.isfinite(reference) else float("nan")
+
+
+def sampled_slopes(problem, space, x0: float, deltas, span: float, n: int) -> tuple[list[float], dict]:
+    """The central differences (J(x0 + d) - J(x0 - d)) / 2d for each relative step (d = delta |x0|)
+    and, if span > 0, the trend fit over n points across x0 (1 +- span) (``trend_fit``): one
+    batched evaluation of 2 len(deltas) + n samples."""
+    import numpy as np
+
+    steps = [d * abs(x0) for d in deltas]
+    sweep = list(np.linspace(x0 - span * abs(x0), x0 + span * abs(x0), n)) if span > 0 else []
+    xs = [x0 + s for s in steps] + [x0 - s for s in steps] + sweep
+    J = problem.evaluate(space.to_z(torch.tensor([[x] for x in xs], dtype=torch.float64))).J.numpy()
+    k = len(steps)
+    fd = [float(J[i] - J[k + i]) / (2 * s) for i, s in enumerate(steps)]
+    return fd, (trend_fit(np.array(sweep), J[2 * k:], x0, span) if sweep else {})
+
+
+def central_differences(problem, space, x0: float, deltas) -> list[float]:
+    """(J(x0 + d) - J(x0 - d)) / 2d for each relative step (d = delta |x0|), one batched evaluation."""
+    return sampled_slopes(problem, space, x0, deltas, 0.0, 0)[0]
+
+
+def trend_fit(x, J, x0: float, span: float) -> dict:
+    """Least-squares line J ~ a + s x through the finite samples: the slope s, its standard error
+    (from the scatter about the line), the slope through the samples within x0 (1 +- span / 2)
+    and the scatter's RMS (J's units)."""
+    import numpy as np
+
+    ok = np.isfinite(J)
+    x, J = x[ok], J[ok]
+    if len(x) < 4:
+        return {"span": span, "x": x.tolist(), "J": J.tolist(), "slope": float("nan")}
+    (s, a), cov = np.polyfit(x, J, 1, cov=True)
+    inner = np.abs(x - x0) <= span * abs(x0) / 2 + 1e-12
+    s_inner = float(np.polyfit(x[inner], J[inner], 1)[0]) if inner.sum() >= 2 else float("nan")
+    return {"span": span, "x": x.tolist(), "J": J.tolist(), "slope": float(s), "stderr": float(np.sqrt(cov[0, 0])),
+            "slope_inner": s_inner, "rms": float(np.sqrt(np.mean((J - (a + s * x)) ** 2)))}
 
 
 def autograd_at(problem, space, x0: float) -> tuple[float, float]:
@@ -72,16 +130,6 @@ def autograd_at(problem, space, x0: float) -> tuple[float, float]:
     return float(ev.J[0]), float(ev.grad_z[0, 0]) / (spec.upper - spec.lower)
 
 
-def central_differences(problem, space, x0: float, deltas) -> list[float]:
-    """(J(x0 + d) - J(x0 - d)) / 2d for each relative step (d = delta |x0|), one batched
-    evaluation of 2 len(deltas) samples."""
-    steps = [d * abs(x0) for d in deltas]
-    xs = torch.tensor([[x0 + s] for s in steps] + [[x0 - s] for s in steps], dtype=torch.float64)
-    J = problem.evaluate(space.to_z(xs)).J
-    n = len(steps)
-    return [float(J[i] - J[n + i]) / (2 * s) for i, s in enumerate(steps)]
-
-
 def growth_rates(rows: list[dict]) -> list[dict]:
     """Per (fluid, objective, param, x): the slope of ln|dJ/dx| against the horizon T h (1/s),
     for autograd and the middle-step central difference, over the rows' horizons."""
@@ -89,7 +137,7 @@ def growth_rates(rows: list[dict]) -> list[dict]:
 
     groups: dict = {}
     for r in rows:
-        groups.setdefault((r["fluid"], r["objective"], r["param"], r["x"]), []).append(r)
+        groups.setdefault((r["fluid"], r["objective"], r["param"], r["x"], r["truncate"]), []).append(r)
     out = []
     for key, rs in groups.items():
         if len({r["frames"] for r in rs}) < 2:
@@ -98,17 +146,25 @@ def growth_rates(rows: list[dict]) -> list[dict]:
         fit = {name: float(np.polyfit(t, np.log(np.abs([f(r) for r in rs])), 1)[0])
                for name, f in (("autograd", lambda r: r["autograd"]),
                                ("central", lambda r: r["central"][len(r["central"]) // 2]))}
-        out.append(dict(zip(("fluid", "objective", "param", "x"), key)) | {"horizons": [r["frames"] for r in rs]}
+        out.append(dict(zip(("fluid", "objective", "param", "x", "truncate"), key)) | {"horizons": [r["frames"] for r in rs]}
                    | {f"rate_{k}_per_s": v for k, v in fit.items()})
     return out
 
 
 def markdown(rows: list[dict], header: bool = True) -> str:
-    columns = ["fluid", "objective", "frames", "param", "x", "autograd dJ/dx", "central differences (delta rel.)",
-               "spread", "autograd vs mid"]
-    cells = [[r["fluid"], r["objective"], str(r["frames"]), r["param"], f"{r['x']:g}", f"{r['autograd']:.4g}",
-              ", ".join(f"{v:.4g} ({d:g})" for v, d in zip(r["central"], r["deltas"])),
-              f"{100 * r['fd_spread']:.1f} %", f"{100 * r['autograd_error']:+.1f} %"] for r in rows]
+    columns = ["fluid", "objective", "frames", "param", "x", "J", "truncate", "autograd dJ/dx",
+               "central differences (delta rel.)", "spread", "autograd vs mid", "trend slope (span)", "half-span slope",
+               "autograd vs trend"]
+    cells = []
+    for r in rows:
+        t = r["trend"]
+        cells.append([r["fluid"], r["objective"], str(r["frames"]), r["param"], f"{r['x']:g}", f"{r['J']:.4g}",
+                      str(r["truncate"] or "full"), f"{r['autograd']:.4g}",
+                      ", ".join(f"{v:.4g} ({d:g})" for v, d in zip(r["central"], r["deltas"])),
+                      f"{100 * r['fd_spread']:.1f} %", f"{100 * r['autograd_error']:+.1f} %",
+                      f"{t['slope']:.4g} +- {t.get('stderr', float('nan')):.2g} ({t['span']:g})" if t else "-",
+                      f"{t.get('slope_inner', float('nan')):.4g}" if t else "-",
+                      f"{100 * r['autograd_vs_trend']:+.1f} %" if t else "-"])
     return markdown_table(columns, cells, header)
 
 
@@ -120,16 +176,18 @@ def main() -> None:
     ap.add_argument("--param", default="frequency", choices=list(DEFAULT_POINTS))
     ap.add_argument("--points", type=float, nargs="*")
     ap.add_argument("--deltas", type=float, nargs="*", default=[1e-4, 1e-5, 1e-6])
-    ap.add_argument("--truncate", type=int, default=0)
+    ap.add_argument("--truncate", type=int, nargs="+", default=[0], help="backpropagation windows (0: full)")
+    ap.add_argument("--trend", type=float, default=0.0, help="relative half-span of the trend fit (0: none)")
+    ap.add_argument("--trend-points", type=int, default=9)
     ap.add_argument("--out", default="outputs/gradcheck.json")
     ap.add_argument("overrides", nargs="*", help="more `fishsim optimize` overrides")
     args = ap.parse_args()
     rows = [r for frames in args.frames
             for r in check(args.fluid, args.objective, frames, args.param, args.points or DEFAULT_POINTS[args.param],
-                           args.deltas, args.overrides, args.truncate)]
+                           args.deltas, args.overrides, args.truncate, args.trend, args.trend_points)]
     growth = growth_rates(rows)
     for g in growth:
-        print(f"growth of |dJ/d{g['param']}| at {g['x']:g} over {g['horizons']} frames: autograd "
+        print(f"growth of |dJ/d{g['param']}| at {g['x']:g} (truncate {g['truncate']}) over {g['horizons']} frames: autograd "
               f"{g['rate_autograd_per_s']:.2f} /s, central differences {g['rate_central_per_s']:.2f} /s", flush=True)
     with open(args.out, "w") as f:
         json.dump({"rows": rows, "growth": growth}, f, indent=1)
