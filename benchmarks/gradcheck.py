@@ -6,6 +6,7 @@ differences at several step sizes, for the objectives `fishsim optimize` offers.
     python -m benchmarks.gradcheck --param amplitude --points 10 12.1 15 --deltas 1e-3 1e-4 1e-5
     python -m benchmarks.gradcheck --frames 50 100 200 300 --points 5    # growth with the horizon
     python -m benchmarks.gradcheck --frames 300 --objective thrust --trend 0.05 --truncate 0 25 50 100
+    python -m benchmarks.gradcheck --table run1.json run2.json              # their trend table, joined
     (the speed objective needs frames h >= objective.cycles / 2 Hz, the lowest frequency allowed)
 
 For each parameter point x: J and dJ/dx by autograd (one episode forward and backward), and the
@@ -168,6 +169,34 @@ def markdown(rows: list[dict], header: bool = True) -> str:
     return markdown_table(columns, cells, header)
 
 
+def trend_table(rows: list[dict]) -> str:
+    """One line per (fluid, objective, frames, param, x): J, the trend slope (+- its standard
+    error; the half-span slope) and autograd with each truncation window, with its bias against
+    the trend. Rows of several runs join: a run without ``--trend`` lends its windows to one with."""
+    groups: dict = {}
+    for r in rows:
+        g = groups.setdefault((r["fluid"], r["objective"], r["frames"], r["param"], r["x"]), {"J": r["J"], "windows": {}})
+        if r["trend"]:
+            g["trend"] = r["trend"]
+        g["windows"][r["truncate"]] = r["autograd"]
+    windows = sorted({w for g in groups.values() for w in g["windows"]}, key=lambda w: w or math.inf)
+    columns = ["fluid", "objective", "frames", "x", "J", "trend slope +- s.e. (half span)"] + [
+        f"W = {w}" if w else "full" for w in windows]
+    cells = []
+    for (fluid, objective, frames, _, x), g in groups.items():
+        t = g.get("trend", {"slope": math.nan})
+        trend = f"{t['slope']:.3g} +- {t.get('stderr', math.nan):.2g} ({t.get('slope_inner', math.nan):.3g})"
+        cells.append([fluid, objective, str(frames), f"{x:g}", f"{g['J']:.4g}", trend] + [
+            f"{g['windows'][w]:.3g} ({100 * relative(g['windows'][w], t['slope']):+.0f} %)" if w in g["windows"] else "-"
+            for w in windows])
+    return markdown_table(columns, cells)
+
+
+def read_rows(path: str) -> list[dict]:
+    with open(path) as f:
+        return json.load(f)["rows"]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--fluid", default="numerical", choices=["numerical", "hydronet"])
@@ -180,8 +209,12 @@ def main() -> None:
     ap.add_argument("--trend", type=float, default=0.0, help="relative half-span of the trend fit (0: none)")
     ap.add_argument("--trend-points", type=int, default=9)
     ap.add_argument("--out", default="outputs/gradcheck.json")
+    ap.add_argument("--table", nargs="+", metavar="JSON", help="only print the trend table of earlier --out files")
     ap.add_argument("overrides", nargs="*", help="more `fishsim optimize` overrides")
     args = ap.parse_args()
+    if args.table:
+        print(trend_table([r for path in args.table for r in read_rows(path)]))
+        return
     rows = [r for frames in args.frames
             for r in check(args.fluid, args.objective, frames, args.param, args.points or DEFAULT_POINTS[args.param],
                            args.deltas, args.overrides, args.truncate, args.trend, args.trend_points)]
@@ -191,6 +224,8 @@ def main() -> None:
               f"{g['rate_autograd_per_s']:.2f} /s, central differences {g['rate_central_per_s']:.2f} /s", flush=True)
     with open(args.out, "w") as f:
         json.dump({"rows": rows, "growth": growth}, f, indent=1)
+    if args.trend or len(args.truncate) > 1:
+        print(trend_table(rows))
 
 
 if __name__ == "__main__":
