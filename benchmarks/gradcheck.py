@@ -95,6 +95,8 @@ def sampled_slopes(problem, space, x0: float, deltas, span: float, n: int) -> tu
     steps = [d * abs(x0) for d in deltas]
     sweep = list(np.linspace(x0 - span * abs(x0), x0 + span * abs(x0), n)) if span > 0 else []
     xs = [x0 + s for s in steps] + [x0 - s for s in steps] + sweep
+    if not xs:                                      # windows only (--deltas with no steps, no --trend)
+        return [], {}
     J = problem.evaluate(space.to_z(torch.tensor([[x] for x in xs], dtype=torch.float64))).J.numpy()
     k = len(steps)
     fd = [float(J[i] - J[k + i]) / (2 * s) for i, s in enumerate(steps)]
