@@ -22,14 +22,15 @@ points evenly spread over x (1 +- S) (in the same batched episode as the differe
 about the line), the slope over the middle half (x (1 +- S/2): the two agree when the trend is
 well defined) and the scatter's RMS. Each ``--truncate`` window W (frames; 0: full
 backpropagation) gives its own autograd row, reported against the middle difference and against
-the trend: the bias of truncated backpropagation, measured on the same objective. With several ``--frames`` horizons T it also fits the
-growth rate per second of |dJ/dx| (autograd, and the middle-step difference quotient) as the
-least-squares slope of ln|dJ/dx| against T h: a rate well above the objective's own growth is an
-exponentially ill-conditioned episode (chaotic flow, or amplification through a network's
-rollout). ``thrust`` runs the paper's set-up (fish held in x,
-averaged forces). The fluid runs in float64 (``fluid.dtype=float32`` as an override checks the
-default precision; its rounding limits the steps to >= 1e-3). Writes --out (JSON) and prints a
-Markdown table.
+the trend: the bias of truncated backpropagation, measured on the same objective.
+
+With several ``--frames`` horizons T it also fits the growth rate per second of |dJ/dx|
+(autograd, and the middle-step difference quotient) as the least-squares slope of ln|dJ/dx|
+against T h: a rate well above the objective's own growth is an exponentially ill-conditioned
+episode (chaotic flow, or amplification through a network's rollout). ``thrust`` runs the
+paper's set-up (fish held in x, averaged forces). The fluid runs in float64
+(``fluid.dtype=float32`` as an override checks the default precision; its rounding limits the
+steps to >= 1e-3). Writes --out (JSON) and prints a Markdown table.
 """
 
 from __future__ import annotations
@@ -134,7 +135,7 @@ def autograd_at(problem, space, x0: float) -> tuple[float, float]:
 
 
 def growth_rates(rows: list[dict]) -> list[dict]:
-    """Per (fluid, objective, param, x): the slope of ln|dJ/dx| against the horizon T h (1/s),
+    """Per (fluid, objective, param, x, truncation window): the slope of ln|dJ/dx| against the horizon T h (1/s),
     for autograd and the middle-step central difference, over the rows' horizons."""
     import numpy as np
 
