@@ -69,11 +69,11 @@ def check(fluid: str, objective: str, frames: int, param: str, points, deltas, o
         t_fd = time.perf_counter() - t0
         mid = fd[len(fd) // 2] if fd else float("nan")
         spread = (max(fd) - min(fd)) / abs(mid) if fd and mid else float("nan")
+        slope = fit.get("slope", float("nan"))
         for window in truncate:
             t1 = time.perf_counter()
             problem.truncate = window
             J0, autograd = autograd_at(problem, space, x0)
-            slope = fit.get("slope", float("nan"))
             rows.append({"fluid": fluid, "objective": objective, "frames": frames, "h": cfg.h, "param": param, "x": x0,
                          "J": J0, "autograd": autograd, "deltas": list(deltas), "central": fd,
                          "fd_spread": spread, "autograd_error": relative(autograd, mid),
