@@ -7,6 +7,7 @@ differences at several step sizes, for the objectives `fishsim optimize` offers.
     python -m benchmarks.gradcheck --frames 50 100 200 300 --points 5    # growth with the horizon
     python -m benchmarks.gradcheck --frames 300 --objective thrust --trend 0.05 --truncate 0 25 50 100
     python -m benchmarks.gradcheck --table run1.json run2.json              # their trend table, joined
+    python -m benchmarks.gradcheck --report results/gradients/report/*.json  # the report table, joined
     (the speed objective needs frames h >= objective.cycles / 2 Hz, the lowest frequency allowed)
 
 For each parameter point x: J and dJ/dx by autograd (one episode forward and backward), and the
@@ -50,7 +51,8 @@ BOUNDS = {"frequency": (2.0, 20.0), "amplitude": (1.0, 40.0), "wave_number": (5.
 
 
 def check(fluid: str, objective: str, frames: int, param: str, points, deltas, overrides=(), truncate=(0,),
-          trend: float = 0.0, trend_points: int = 9) -> list[dict]:
+          trend: float = 0.0, trend_points: int = 9):
+    """Yields one row per (point, truncation window), as each is measured."""
     from fishsim.config import load_config
     from fishsim.optimize.problem import Problem, Space
 
@@ -62,7 +64,7 @@ def check(fluid: str, objective: str, frames: int, param: str, points, deltas, o
                                    f"frames={frames}", *held, *spec, *overrides])
     space = Space(list(cfg.params), list(cfg.params.values()))
     problem = Problem(cfg, space, cfg.objective)
-    rows = []
+    first = True
     for x0 in points:
         t0 = time.perf_counter()
         fd, fit = sampled_slopes(problem, space, x0, deltas, trend, trend_points)
@@ -74,13 +76,15 @@ def check(fluid: str, objective: str, frames: int, param: str, points, deltas, o
             t1 = time.perf_counter()
             problem.truncate = window
             J0, autograd = autograd_at(problem, space, x0)
-            rows.append({"fluid": fluid, "objective": objective, "frames": frames, "h": cfg.h, "param": param, "x": x0,
-                         "J": J0, "autograd": autograd, "deltas": list(deltas), "central": fd,
-                         "fd_spread": spread, "autograd_error": relative(autograd, mid),
-                         "trend": fit, "autograd_vs_trend": relative(autograd, slope),
-                         "truncate": window, "seconds_autograd": time.perf_counter() - t1, "seconds_samples": t_fd})
-            print(markdown(rows[-1:], header=len(rows) == 1), flush=True)
-    return rows
+            row = {"fluid": fluid, "objective": objective, "frames": frames, "h": cfg.h, "param": param, "x": x0,
+                   "dtype": cfg.fluid.dtype, "overrides": list(overrides),
+                   "J": J0, "autograd": autograd, "deltas": list(deltas), "central": fd,
+                   "fd_spread": spread, "autograd_error": relative(autograd, mid),
+                   "trend": fit, "autograd_vs_trend": relative(autograd, slope),
+                   "truncate": window, "seconds_autograd": time.perf_counter() - t1, "seconds_samples": t_fd}
+            print(markdown([row], header=first), flush=True)
+            first = False
+            yield row
 
 
 def relative(value: float, reference: float) -> float:
@@ -195,6 +199,41 @@ def trend_table(rows: list[dict]) -> str:
     return markdown_table(columns, cells)
 
 
+def report_table(rows: list[dict]) -> str:
+    """Issue 16's report: one line per (objective, frames, fluid, param, x) with full backpropagation:
+    J, autograd, the central differences at each step, their spread and autograd against the middle
+    one, and the trend slope (+- its standard error) where a run measured it. Rows of several runs
+    join; for each key the last run with central differences gives them (with its autograd and
+    precision), the last run with a trend gives the trend."""
+    groups: dict = {}
+    for r in rows:
+        g = groups.setdefault((r["objective"], r["frames"], r["fluid"], r["param"], r["x"]), {})
+        if r.get("truncate", 0) == 0 and (r["central"] or "row" not in g):
+            g["row"] = r
+        if r.get("trend"):
+            g["trend"] = r["trend"]
+    columns = ["objective", "frames", "fluid", "precision", "x", "J", "autograd dJ/dx",
+               "central differences (step rel. to x)", "spread", "autograd vs middle", "trend +- s.e. (span)"]
+    cells = []
+    for key in sorted(groups, key=lambda k: (k[0], k[1], k[2], k[3], k[4])):
+        g = groups[key]
+        if "row" not in g:
+            continue
+        r, t = g["row"], g.get("trend")
+        cells.append([r["objective"], str(r["frames"]), r["fluid"], r.get("dtype", "float64"), f"{r['x']:g}",
+                      f"{r['J']:.4g}", f"{r['autograd']:.4g}",
+                      " / ".join(f"{v:.4g} ({d:g})" for v, d in zip(r["central"], r["deltas"])) or "-",
+                      f"{100 * r['fd_spread']:.0f} %" if r["central"] else "-",
+                      f"{100 * r['autograd_error']:+.1f} %" if r["central"] else "-",
+                      f"{t['slope']:.3g} +- {t.get('stderr', math.nan):.2g} ({100 * t['span']:g} %)" if t else "-"])
+    return markdown_table(columns, cells)
+
+
+def write(path: str, rows: list[dict], growth: list[dict]) -> None:
+    with open(path, "w") as f:
+        json.dump({"rows": rows, "growth": growth}, f, indent=1)
+
+
 def read_rows(path: str) -> list[dict]:
     with open(path) as f:
         return json.load(f)["rows"]
@@ -213,20 +252,26 @@ def main() -> None:
     ap.add_argument("--trend-points", type=int, default=9)
     ap.add_argument("--out", default="outputs/gradcheck.json")
     ap.add_argument("--table", nargs="+", metavar="JSON", help="only print the trend table of earlier --out files")
+    ap.add_argument("--report", nargs="+", metavar="JSON", help="only print the report table of earlier --out files")
     ap.add_argument("overrides", nargs="*", help="more `fishsim optimize` overrides")
     args = ap.parse_args()
     if args.table:
         print(trend_table([r for path in args.table for r in read_rows(path)]))
         return
-    rows = [r for frames in args.frames
-            for r in check(args.fluid, args.objective, frames, args.param, args.points or DEFAULT_POINTS[args.param],
-                           args.deltas, args.overrides, args.truncate, args.trend, args.trend_points)]
+    if args.report:
+        print(report_table([r for path in args.report for r in read_rows(path)]))
+        return
+    rows = []
+    for frames in args.frames:
+        for row in check(args.fluid, args.objective, frames, args.param, args.points or DEFAULT_POINTS[args.param],
+                         args.deltas, args.overrides, args.truncate, args.trend, args.trend_points):
+            rows.append(row)
+            write(args.out, rows, [])                # each row as it comes: a stopped run keeps what it measured
     growth = growth_rates(rows)
     for g in growth:
         print(f"growth of |dJ/d{g['param']}| at {g['x']:g} (truncate {g['truncate']}) over {g['horizons']} frames: autograd "
               f"{g['rate_autograd_per_s']:.2f} /s, central differences {g['rate_central_per_s']:.2f} /s", flush=True)
-    with open(args.out, "w") as f:
-        json.dump({"rows": rows, "growth": growth}, f, indent=1)
+    write(args.out, rows, growth)
     if args.trend or len(args.truncate) > 1:
         print(trend_table(rows))
 
