@@ -25,7 +25,7 @@ FLUIDS = {"numerical": ["fluid=numerical", "tank.H=48", "tank.W=144", "tank.dx=5
           "hydronet": ["fluid=hydronet", "tank.H=48", "tank.W=144", "origin=[0.1,0.06]"]}
 F0 = 5.0                      # Hz; central differences at a 1e-5 relative step (the episode's J is
                               # curved enough that 1e-4 is 0.16 % off, 1e-3 0.9 %)
-STEPS = (1e-4, 1e-5, 1e-6)    # HydroNet's relative steps (its central differences scatter, below)
+STEPS = (1e-7, 1e-8)          # HydroNet's relative steps (its map is rough on coarser scales, below)
 
 
 def problem(fluid: str, dtype: str, device: str = "cpu", extra=()) -> tuple[Problem, Space]:
@@ -59,20 +59,17 @@ def reference(request):
 
 
 def test_float64_gradient_matches_central_differences(reference):
-    """The numerical fluid: within 1e-3 of the 1e-5 difference (measured with the IBM weight
-    "outside": differences 1.4481 / 1.4733 / 1.4710 / 1.4723 / 1.4875 e-2 at steps 1e-3 to 1e-7,
-    flat within 0.16 % over 1e-4 to 1e-6, autograd 1.4705e-2, 0.03 % from the 1e-5 one).
-    HydroNet's map is rough on fine scales (a ReLU network is piecewise linear, so every step
-    crosses activation kinks): its differences are 7.400 / 9.369 / 9.407 / 9.352 / 9.483 e-3 and
-    autograd 9.3705e-3, the local slope, inside the band the differences over 1e-4 to 1e-6 span
-    (with the former weight 1 - b: 4.737 / 4.333 / 4.185 / 4.310 / 4.184 e-3 and 4.339e-3, 0.14 %
-    above it); checked as: inside that band widened by 1 % of its centre."""
+    """Within 1e-3 of every central difference computed. The numerical fluid: the 1e-5 step
+    (measured with the IBM weight "outside": differences 1.4481 / 1.4733 / 1.4710 / 1.4723 /
+    1.4875 e-2 at steps 1e-3 to 1e-7, flat within 0.16 % over 1e-4 to 1e-6, autograd 1.4705e-2,
+    0.03 % from the 1e-5 one). HydroNet's map is rough on coarser scales (a ReLU network is
+    piecewise linear, so a step crosses activation kinks): differences 9.4077 / 9.3503 / 9.3676 /
+    9.3622 / 9.3698 e-3 at steps 1e-5 to 1e-9, autograd 9.3626e-3: 0.05 % and 0.003 % from the
+    1e-7 and 1e-8 ones. (Before the solid's line search took the approximate Wolfe test, its
+    stalled solves left noise of several per cent in the 1e-8 and 1e-9 differences.)"""
     fluid, _, _, fd, grad = reference
-    if fluid == "numerical":
-        assert abs(grad - fd[0]) <= 1e-3 * abs(fd[0]), (fluid, fd, grad)
-    else:
-        margin = 1e-2 * abs(sum(fd) / len(fd))
-        assert min(fd) - margin <= grad <= max(fd) + margin, (fluid, fd, grad)
+    for value in fd:
+        assert abs(grad - value) <= 1e-3 * abs(value), (fluid, fd, grad)
 
 
 def test_float32_gradient_is_within_its_rounding_of_float64(reference):
@@ -105,15 +102,17 @@ def test_gradient_is_bitwise_repeatable_and_thread_count_independent(reference):
 def test_recovered_pressure_gradient_matches_central_differences():
     """HydroNet's recovered pressure, computed from its velocities by a PCG solve to
     fluid.pressure_tol (1e-6): autograd (implicit differentiation of the solve) inside the band of
-    the central differences over STEPS, widened by 1 % as above. Measured: differences 7.283 /
-    5.480 / 5.734 e-4 at steps 1e-4 / 1e-5 / 1e-6, autograd 5.719e-4 (0.26 % from the 1e-6 one);
+    the central differences at steps 1e-4 / 1e-5 / 1e-6, widened by 1 % of its centre. The PCG
+    solve's stopping test leaves its map noisy at small steps: differences 7.283 / 5.481 / 5.727 /
+    5.690 / 5.657 / 5.635 e-4 at steps 1e-4 to 1e-9, autograd 5.667e-4 (0.2-1 % from those at
+    1e-6 to 1e-9; 5.719e-4 while the solid's solves stalled);
     with the former IBM weight 1 - b (which sampled the band, README "Which pressure the fish
     feels") the map was smoother here: 1.973 / 1.811 / 1.807 e-3 and 1.815e-3. With the former
     tolerance, 1e-2, the solve depended on its warm start, which the implicit gradient does not
     see: autograd was 1.04 % off on the 5 mm grid with the model shipped before 2026-11-26, and
     2.8x off over 100 frames at full scale (README "Gradients")."""
     pr, space = problem("hydronet", "float64", extra=["fluid.pressure=recovered"])
-    fd = central_differences(pr, space, F0, STEPS)
+    fd = central_differences(pr, space, F0, (1e-4, 1e-5, 1e-6))
     margin = 1e-2 * abs(sum(fd) / len(fd))
     grad = autograd(pr, space)
     assert min(fd) - margin <= grad <= max(fd) + margin, (fd, grad)

@@ -132,6 +132,25 @@ def test_averaged_forces_exert_no_torque_about_the_centre_of_mass():
     assert max(t / s for t, s in zip(torques, scales) if s > 0) < 1e-10
 
 
+@pytest.mark.parametrize("preconditioner", ["lagged_newton", "rest_newton"])
+def test_the_solid_converges_to_a_tight_tolerance_in_the_coupled_episode(preconditioner):
+    """At atol = 1e-10 N (the gradient checks' tolerances) every PD solve of a coupled episode
+    converges, on the compiled (lagged Newton) and numpy (rest Newton) paths. Near the minimiser
+    the decrease of Phi is below its round-off; with Armijo's test alone such steps were rejected
+    at random and t halved to nothing: over these 20 frames 16 (compiled) and 13 (numpy) solves
+    stalled at 500 iterations with residuals of 2e-10 to 2.5e-6 N (3 at atol = 1e-8 N). The
+    approximate Wolfe test on Phi' accepts them (measured: none stalls)."""
+    import warnings
+
+    cfg = load_config("simulate", [*SMALL, "fluid=numerical", "fluid.dtype=float64", "solid.pd.atol=1e-10",
+                                   f"solid.pd.preconditioner={preconditioner}"])
+    ep = build_episode(cfg)
+    with warnings.catch_warnings():
+        warnings.filterwarnings("error", message="PD step did not converge")
+        with torch.no_grad():
+            rollout(ep.swimmer, ep.swimmer.initial_state(ep.params, ep.origin), ep.params, 20)
+
+
 @pytest.mark.slow
 def test_averaged_forces_leave_a_held_fish_its_heading():
     """The paper's Fig. 5 set-up (held in x and y, averaged forces, 2 Hz), the real fish and

@@ -226,9 +226,9 @@ def _lbfgs_pack(X, Y, mass_h2, triangles, grad, w_corotated, w_volume, muscle_of
     """The forward solve of a pack, in place on X [N, 2, W] (to the minimiser of each lane's Phi;
     g receives grad Phi there). If `stale`, each lane's Newton matrix at X is first factorised
     into L (_factor_newton; ok [W] = 1.0 where one was positive definite); a lane without a
-    factor does not move. Then L-BFGS (history m, the factor as H0, Armijo backtracking) on all
-    lanes in lock step: a lane stops (its direction becomes 0) once its residual is <= atol, and
-    keeps its own step lengths. iterations [W] receives each lane's iterations."""
+    factor does not move. Then L-BFGS (history m, the factor as H0, backtracking to Armijo's or
+    the approximate Wolfe test as in solve._line_search) on all lanes in lock step: a lane stops
+    (its direction becomes 0) once its residual is <= atol, and keeps its own step lengths. iterations [W] receives each lane's iterations."""
     W = width(proto)
     if stale:
         store(ok, 0, _factor_newton(X, triangles, grad, w_corotated, w_volume, muscle_of, w_muscle, stretch, slot,
@@ -236,7 +236,7 @@ def _lbfgs_pack(X, Y, mass_h2, triangles, grad, w_corotated, w_volume, muscle_of
     lanes_ok = load(ok, 0, proto)
     if lanes_set(lanes_ok) == 0:
         return
-    c1, round_off = 1e-4, 64 * np.finfo(np.float64).eps
+    c1, round_off, sigma, flat = 1e-4, 64 * np.finfo(np.float64).eps, 0.9, 1e-10
     size = X.size
     Xf, gf = X.reshape(-1), g.reshape(-1)
     S, Yp = np.zeros((m, size)), np.zeros((m, size))                # pairs s, y; ring of m
@@ -275,7 +275,7 @@ def _lbfgs_pack(X, Y, mass_h2, triangles, grad, w_corotated, w_volume, muscle_of
             for o in range(0, size, W):
                 store(d, o, select(uphill, -load(g_new, o, proto), load(d, o, proto)))
             slope = _dot(gf, d, proto)
-        t, accepted = fill(proto, 1.0), 1.0 - active                # Armijo backtracking per lane
+        t, accepted = fill(proto, 1.0), 1.0 - active                # backtracking per lane (solve._line_search)
         for halvings in range(31):
             if halvings:
                 t = select(accepted, t, t * 0.5)
@@ -283,7 +283,11 @@ def _lbfgs_pack(X, Y, mass_h2, triangles, grad, w_corotated, w_volume, muscle_of
                 store(X_new, o, load(Xf, o, proto) + t * load(d, o, proto))
             phi_new = _objective(Xn, Y, mass_h2, triangles, grad, w_corotated, w_volume, muscle_of, w_muscle, stretch,
                                  gn, proto)
-            accepted = maximum(accepted, mask(phi_new - phi <= c1 * t * slope + round_off * absolute(phi)))
+            armijo = mask(phi_new - phi <= c1 * t * slope + round_off * absolute(phi))
+            dphi = _dot(g_new, d, proto)                                # Phi'(t): exact to the gradient's round-off
+            wolfe = (mask(dphi <= (2.0 * c1 - 1.0) * slope) * mask(dphi >= sigma * slope)
+                     * mask(phi_new - phi <= flat * absolute(phi)))
+            accepted = maximum(accepted, maximum(armijo, wolfe))
             if lanes_set(accepted) == W:
                 break
         for o in range(0, size, W):                                 # history: s, y, rho = 1 / s.y

@@ -7,16 +7,17 @@ Forward (docs/physics.md section 3): q+ = argmin Phi(q),
 
 by L-BFGS (DiffPD's solver) with a prefactorised initial inverse Hessian (preconditioner.py: the
 lagged Newton matrix by default; the rotated rest-shape Newton matrix; or DiffPD's PD matrix
-A(E), with which the first iteration is exactly one local-global step), Armijo backtracking,
-until the residual's largest nodal norm is <= atol. With the default preconditioner the whole
-solve is compiled (packed.lbfgs, one code for both widths):
-from PACK_MIN samples on, eight samples per pack in the SIMD lanes, in lock step, each with the
-Newton matrix factorised afresh at the step's start; below that, one sample per thread with its
-lagged factor. Otherwise the batched numpy iteration (_lbfgs) runs, with the objective and
-two-loop recursion compiled where possible. All take the same steps for the same H0 up to the
-dot products' round-off. The net residual sum_i g_i
-is then removed by a rigid translation of q+ (exact: f_int is translation invariant), so linear
-momentum is conserved to round-off whatever atol is.
+A(E), with which the first iteration is exactly one local-global step), backtracking to
+Armijo's test or, near the minimiser where Phi's decrease is below its round-off, the
+approximate Wolfe test on Phi' (_line_search), until the residual's largest nodal norm is
+<= atol. With the default preconditioner the whole solve is compiled (packed.lbfgs, one code
+for both widths): from PACK_MIN samples on, eight samples per pack in the SIMD lanes, in lock
+step, each with the Newton matrix factorised afresh at the step's start; below that, one sample
+per thread with its lagged factor. Otherwise the batched numpy iteration (_lbfgs) runs, with the
+objective and two-loop recursion compiled where possible. All take the same steps for the same
+H0 up to the dot products' round-off. The net residual sum_i g_i is then removed by a rigid
+translation of q+ (exact: f_int is translation invariant), so linear momentum is conserved to
+round-off whatever atol is.
 
 Adjoint: (A - dA) x = b with A - dA = M/h^2 - df_int/dq, the Newton matrix at q+ (symmetric,
 indefinite only under strong compression): by default a direct solve per sample of the assembled
@@ -297,17 +298,25 @@ def _remove_net_residual(model: SolidModel, X: np.ndarray, g: np.ndarray):
     return X - shift, g - model.mass_h2[None, :, None] * shift
 
 
-def _line_search(objective, X, phi, g, d, slope, active, c1: float = 1e-4, max_halvings: int = 30):
-    """Armijo backtracking per sample: Phi(X + t d) <= Phi + c1 t slope, starting at t = 1; a
-    change within round-off of Phi counts as sufficient (needed at tight tolerances). Only the
-    `active` [B] samples move (and are evaluated); the others keep X, phi and g."""
+def _line_search(objective, X, phi, g, d, slope, active, c1: float = 1e-4, sigma: float = 0.9,
+                 flat: float = 1e-10, max_halvings: int = 30):
+    """Backtracking per sample from t = 1, halving t until the step is accepted: by Armijo's
+    test Phi(X + t d) <= Phi + c1 t slope (a change within round-off of Phi counts), or by the
+    approximate Wolfe test (Hager & Zhang 2005) sigma slope <= Phi'(t) <= (2 c1 - 1) slope with
+    Phi(X + t d) <= (1 + flat) Phi, where Phi'(t) = grad Phi(X + t d) . d. Near the minimiser the
+    decrease of Phi falls below its round-off while Phi' stays exact to the gradient's: Armijo's
+    test alone then rejected good steps at random, halving t to nothing, and tight tolerances
+    stalled. Only the `active` [B] samples move (and are evaluated); the others keep X, phi and g."""
     t = np.ones_like(phi)
     X_new = X + d
     phi_new, g_new = objective(X_new, active)
     rest = ~active
     phi_new[rest], g_new[rest] = phi[rest], g[rest]
     for _ in range(max_halvings):
-        ok = rest | (phi_new - phi <= c1 * t * slope + 64 * np.finfo(float).eps * np.abs(phi))
+        dphi = sample_dot(g_new, d)
+        armijo = phi_new - phi <= c1 * t * slope + 64 * np.finfo(float).eps * np.abs(phi)
+        wolfe = (dphi <= (2 * c1 - 1) * slope) & (dphi >= sigma * slope) & (phi_new - phi <= flat * np.abs(phi))
+        ok = rest | armijo | wolfe
         if ok.all():
             break
         redo = ~ok
