@@ -159,6 +159,13 @@ def growth_rates(rows: list[dict]) -> list[dict]:
     return out
 
 
+def print_growth(growth: list[dict]) -> None:
+    for g in growth:
+        print(f"growth of |dJ/d{g['param']}| ({g['fluid']}, {g['objective']}) at {g['x']:g} (truncate {g['truncate']}) "
+              f"over {g['horizons']} frames: autograd {g['rate_autograd_per_s']:.2f} /s, central differences "
+              f"{g['rate_central_per_s']:.2f} /s", flush=True)
+
+
 def markdown(rows: list[dict], header: bool = True) -> str:
     columns = ["fluid", "objective", "frames", "param", "x", "J", "truncate", "autograd dJ/dx",
                "central differences (delta rel.)", "spread", "autograd vs mid", "trend slope (span)", "half-span slope",
@@ -199,12 +206,10 @@ def trend_table(rows: list[dict]) -> str:
     return markdown_table(columns, cells)
 
 
-def report_table(rows: list[dict]) -> str:
-    """Issue 16's report: one line per (objective, frames, fluid, param, x) with full backpropagation:
-    J, autograd, the central differences at each step, their spread and autograd against the middle
-    one, and the trend slope (+- its standard error) where a run measured it. Rows of several runs
-    join; for each key the last run with central differences gives them (with its autograd and
-    precision), the last run with a trend gives the trend."""
+def report_rows(rows: list[dict]) -> dict:
+    """Rows of several runs joined per (objective, frames, fluid, param, x), full backpropagation
+    only: for each key the last run with central differences gives them (with its J, autograd and
+    precision) as "row", the last run with a trend gives "trend"."""
     groups: dict = {}
     for r in rows:
         g = groups.setdefault((r["objective"], r["frames"], r["fluid"], r["param"], r["x"]), {})
@@ -212,13 +217,17 @@ def report_table(rows: list[dict]) -> str:
             g["row"] = r
         if r.get("trend"):
             g["trend"] = r["trend"]
+    return {key: groups[key] for key in sorted(groups) if "row" in groups[key]}
+
+
+def report_table(rows: list[dict]) -> str:
+    """Issue 16's report (``report_rows``), one line per point: J, autograd, the central
+    differences at each step, their spread and autograd against the middle one, and the trend
+    slope (+- its standard error) where a run measured it."""
     columns = ["objective", "frames", "fluid", "precision", "x", "J", "autograd dJ/dx",
                "central differences (step rel. to x)", "spread", "autograd vs middle", "trend +- s.e. (span)"]
     cells = []
-    for key in sorted(groups, key=lambda k: (k[0], k[1], k[2], k[3], k[4])):
-        g = groups[key]
-        if "row" not in g:
-            continue
+    for g in report_rows(rows).values():
         r, t = g["row"], g.get("trend")
         cells.append([r["objective"], str(r["frames"]), r["fluid"], r.get("dtype", "float64"), f"{r['x']:g}",
                       f"{r['J']:.4g}", f"{r['autograd']:.4g}",
@@ -259,7 +268,9 @@ def main() -> None:
         print(trend_table([r for path in args.table for r in read_rows(path)]))
         return
     if args.report:
-        print(report_table([r for path in args.report for r in read_rows(path)]))
+        rows = [r for path in args.report for r in read_rows(path)]
+        print(report_table(rows))
+        print_growth(growth_rates([g["row"] for g in report_rows(rows).values() if g["row"]["central"]]))
         return
     rows = []
     for frames in args.frames:
@@ -268,9 +279,7 @@ def main() -> None:
             rows.append(row)
             write(args.out, rows, [])                # each row as it comes: a stopped run keeps what it measured
     growth = growth_rates(rows)
-    for g in growth:
-        print(f"growth of |dJ/d{g['param']}| at {g['x']:g} (truncate {g['truncate']}) over {g['horizons']} frames: autograd "
-              f"{g['rate_autograd_per_s']:.2f} /s, central differences {g['rate_central_per_s']:.2f} /s", flush=True)
+    print_growth(growth)
     write(args.out, rows, growth)
     if args.trend or len(args.truncate) > 1:
         print(trend_table(rows))
