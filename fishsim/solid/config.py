@@ -60,9 +60,14 @@ class PDOptions:
 
     atol: forward stopping rule, max over nodes of |M/h^2 (q+ - y) - f_int(q+)| <= atol, in N
         (per unit depth). Absolute, so it does not depend on where the fish is (DiffPD's
-        relative rule scales with |q|). 1e-5 N is ~1e-7 of the largest nodal muscle forces of
-        the default fish (~100 N) and ~1e-3 of the nodal inertial forces at 5 Hz; the net
-        residual is removed exactly (solve.py), so momentum does not drift with atol.
+        relative rule scales with |q|). 1e-8 N is ~1e-10 of the largest nodal muscle forces of
+        the default fish (~100 N) and ~1e-6 of the nodal inertial forces at 5 Hz; the net
+        residual is removed exactly (solve.py), so momentum does not drift with atol. Measured
+        (100 frames, default fish and tank, numerical fluid, one thread, 2026-11-28): the solid
+        takes 1.2-1.4 s at 1e-5 N, 1.5 s at 1e-8 N, 1.8 s at 1e-10 N; the mean x of the fish
+        differs from the 1e-10 N one by 8e-8 m at 1e-5 N and 2e-9 m at 1e-8 N, and HydroNet's
+        d(distance)/d(frequency) by -1.5 % at 1e-5 N and 0.02 % at 1e-8 N. (1e-5 N was the
+        default while tighter solves stalled in the line search; docs/physics.md section 3.)
     max_iter: forward L-BFGS iterations before giving up (a warning, and info.converged False).
     history: L-BFGS memory (pairs kept).
     backward_rtol: adjoint stopping rule, |(A - dA) x - b|_max <= backward_rtol |b|_max.
@@ -92,7 +97,7 @@ class PDOptions:
         12 and 16 measured within this machine's 10-30 % noise.
     """
 
-    atol: float = 1e-5
+    atol: float = 1e-8
     max_iter: int = 500
     history: int = 8
     backward_rtol: float = 1e-8
