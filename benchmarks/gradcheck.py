@@ -7,7 +7,7 @@ differences at several step sizes, for the objectives `fishsim optimize` offers.
     python -m benchmarks.gradcheck --frames 50 100 200 300 --points 5    # growth with the horizon
     python -m benchmarks.gradcheck --frames 300 --objective thrust --trend 0.05 --truncate 0 25 50 100
     python -m benchmarks.gradcheck --table run1.json run2.json              # their trend table, joined
-    python -m benchmarks.gradcheck --report results/gradients/report/*.json  # the report table, joined
+    python -m benchmarks.gradcheck --report @runs.txt                  # the report of the JSON runs listed
     (the speed objective needs frames h >= objective.cycles / 2 Hz, the lowest frequency allowed)
 
 For each parameter point x: J and dJ/dx by autograd (one episode forward and backward), and the
@@ -249,7 +249,7 @@ def read_rows(path: str) -> list[dict]:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0], fromfile_prefix_chars="@")
     ap.add_argument("--fluid", default="numerical", choices=["numerical", "hydronet"])
     ap.add_argument("--objective", default="distance", choices=["distance", "thrust", "speed", "cost_of_transport"])
     ap.add_argument("--frames", type=int, nargs="+", default=[100], help="horizons (several: growth rates)")
