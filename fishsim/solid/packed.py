@@ -228,7 +228,8 @@ def _lbfgs_pack(X, Y, mass_h2, triangles, grad, w_corotated, w_volume, muscle_of
     into L (_factor_newton; ok [W] = 1.0 where one was positive definite); a lane without a
     factor does not move. Then L-BFGS (history m, the factor as H0, backtracking to Armijo's or
     the approximate Wolfe test as in solve._line_search) on all lanes in lock step: a lane stops
-    (its direction becomes 0) once its residual is <= atol, and keeps its own step lengths. iterations [W] receives each lane's iterations."""
+    (its direction becomes 0) once its residual is <= atol, and keeps its own step lengths.
+    iterations [W] receives each lane's iterations."""
     W = width(proto)
     if stale:
         store(ok, 0, _factor_newton(X, triangles, grad, w_corotated, w_volume, muscle_of, w_muscle, stretch, slot,
