@@ -183,16 +183,29 @@ def markdown(rows: list[dict], header: bool = True) -> str:
     return markdown_table(columns, cells, header)
 
 
-def trend_table(rows: list[dict]) -> str:
-    """One line per (fluid, objective, frames, param, x): J, the trend slope (+- its standard
-    error; the half-span slope) and autograd with each truncation window, with its bias against
-    the trend. Rows of several runs join: a run without ``--trend`` lends its windows to one with."""
+def join_runs(rows: list[dict]) -> dict:
+    """Rows of several runs joined per point (fluid, objective, frames, param, x), in the order
+    first seen: "J" (the first run's), "windows" {truncation window: autograd} (the last run's
+    for each), "trend" (the last run that fitted one) and "row", the full-backpropagation row
+    whose central differences the report shows (the last run with differences)."""
     groups: dict = {}
     for r in rows:
         g = groups.setdefault((r["fluid"], r["objective"], r["frames"], r["param"], r["x"]), {"J": r["J"], "windows": {}})
-        if r["trend"]:
+        if r.get("trend"):
             g["trend"] = r["trend"]
-        g["windows"][r["truncate"]] = r["autograd"]
+        window = r.get("truncate", 0)
+        g["windows"][window] = r["autograd"]
+        if window == 0 and (r["central"] or "row" not in g):
+            g["row"] = r
+    return groups
+
+
+def trend_table(rows: list[dict]) -> str:
+    """One line per (fluid, objective, frames, param, x): J, the trend slope (+- its standard
+    error; the half-span slope) and autograd with each truncation window, with its bias against
+    the trend. Rows of several runs join (``join_runs``): a run without ``--trend`` lends its
+    windows to one with."""
+    groups = join_runs(rows)
     windows = sorted({w for g in groups.values() for w in g["windows"]}, key=lambda w: w or math.inf)
     columns = ["fluid", "objective", "frames", "x", "J", "trend slope +- s.e. (half span)"] + [
         f"W = {w}" if w else "full" for w in windows]
@@ -206,18 +219,12 @@ def trend_table(rows: list[dict]) -> str:
     return markdown_table(columns, cells)
 
 
-def report_rows(rows: list[dict]) -> dict:
-    """Rows of several runs joined per (objective, frames, fluid, param, x), full backpropagation
-    only: for each key the last run with central differences gives them (with its J, autograd and
-    precision) as "row", the last run with a trend gives "trend"."""
-    groups: dict = {}
-    for r in rows:
-        g = groups.setdefault((r["objective"], r["frames"], r["fluid"], r["param"], r["x"]), {})
-        if r.get("truncate", 0) == 0 and (r["central"] or "row" not in g):
-            g["row"] = r
-        if r.get("trend"):
-            g["trend"] = r["trend"]
-    return {key: groups[key] for key in sorted(groups) if "row" in groups[key]}
+def report_rows(rows: list[dict]) -> list[dict]:
+    """The points of ``join_runs`` that have a full-backpropagation row, ordered by objective,
+    horizon, fluid, parameter and x."""
+    groups = join_runs(rows)
+    order = sorted((k for k in groups if "row" in groups[k]), key=lambda k: (k[1], k[2], k[0], k[3], k[4]))
+    return [groups[k] for k in order]
 
 
 def report_table(rows: list[dict]) -> str:
@@ -227,7 +234,7 @@ def report_table(rows: list[dict]) -> str:
     columns = ["objective", "frames", "fluid", "precision", "x", "J", "autograd dJ/dx",
                "central differences (step rel. to x)", "spread", "autograd vs middle", "trend +- s.e. (span)"]
     cells = []
-    for g in report_rows(rows).values():
+    for g in report_rows(rows):
         r, t = g["row"], g.get("trend")
         cells.append([r["objective"], str(r["frames"]), r["fluid"], r.get("dtype", "float64"), f"{r['x']:g}",
                       f"{r['J']:.4g}", f"{r['autograd']:.4g}",
@@ -270,7 +277,7 @@ def main() -> None:
     if args.report:
         rows = [r for path in args.report for r in read_rows(path)]
         print(report_table(rows))
-        print_growth(growth_rates([g["row"] for g in report_rows(rows).values() if g["row"]["central"]]))
+        print_growth(growth_rates([g["row"] for g in report_rows(rows) if g["row"]["central"]]))
         return
     rows = []
     for frames in args.frames:
