@@ -51,6 +51,10 @@ from fishsim.linalg.simd import (
 )
 from fishsim.solid import element
 
+# The forward line search's tests (solve._line_search documents them): Armijo's c1 and the
+# round-off slack on Phi, the approximate Wolfe test's sigma and its bound on Phi's relative rise.
+ARMIJO_C1, PHI_ROUND_OFF, WOLFE_SIGMA, WOLFE_FLAT = 1e-4, 64 * np.finfo(np.float64).eps, 0.9, 1e-10
+
 
 def prototype(X):
     """The lane prototype of packs whose nodal array is X: a Vec for [P, N, 2, LANES] (compiled
@@ -237,7 +241,6 @@ def _lbfgs_pack(X, Y, mass_h2, triangles, grad, w_corotated, w_volume, muscle_of
     lanes_ok = load(ok, 0, proto)
     if lanes_set(lanes_ok) == 0:
         return
-    c1, round_off, sigma, flat = 1e-4, 64 * np.finfo(np.float64).eps, 0.9, 1e-10
     size = X.size
     Xf, gf = X.reshape(-1), g.reshape(-1)
     S, Yp = np.zeros((m, size)), np.zeros((m, size))                # pairs s, y; ring of m
@@ -284,10 +287,10 @@ def _lbfgs_pack(X, Y, mass_h2, triangles, grad, w_corotated, w_volume, muscle_of
                 store(X_new, o, load(Xf, o, proto) + t * load(d, o, proto))
             phi_new = _objective(Xn, Y, mass_h2, triangles, grad, w_corotated, w_volume, muscle_of, w_muscle, stretch,
                                  gn, proto)
-            armijo = mask(phi_new - phi <= c1 * t * slope + round_off * absolute(phi))
+            armijo = mask(phi_new - phi <= ARMIJO_C1 * t * slope + PHI_ROUND_OFF * absolute(phi))
             dphi = _dot(g_new, d, proto)                                # Phi'(t): exact to the gradient's round-off
-            wolfe = (mask(dphi <= (2.0 * c1 - 1.0) * slope) * mask(dphi >= sigma * slope)
-                     * mask(phi_new - phi <= flat * absolute(phi)))
+            wolfe = (mask(dphi <= (2.0 * ARMIJO_C1 - 1.0) * slope) * mask(dphi >= WOLFE_SIGMA * slope)
+                     * mask(phi_new - phi <= WOLFE_FLAT * absolute(phi)))
             accepted = maximum(accepted, maximum(armijo, wolfe))
             if lanes_set(accepted) == W:
                 break

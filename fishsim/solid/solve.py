@@ -298,12 +298,13 @@ def _remove_net_residual(model: SolidModel, X: np.ndarray, g: np.ndarray):
     return X - shift, g - model.mass_h2[None, :, None] * shift
 
 
-def _line_search(objective, X, phi, g, d, slope, active, c1: float = 1e-4, sigma: float = 0.9,
-                 flat: float = 1e-10, max_halvings: int = 30):
+def _line_search(objective, X, phi, g, d, slope, active, max_halvings: int = 30):
     """Backtracking per sample from t = 1, halving t until the step is accepted: by Armijo's
     test Phi(X + t d) <= Phi + c1 t slope (a change within round-off of Phi counts), or by the
     approximate Wolfe test (Hager & Zhang 2005) sigma slope <= Phi'(t) <= (2 c1 - 1) slope with
-    Phi(X + t d) <= (1 + flat) Phi, where Phi'(t) = grad Phi(X + t d) . d. Near the minimiser the
+    Phi(X + t d) <= (1 + flat) Phi, where Phi'(t) = grad Phi(X + t d) . d (c1 = 1e-4,
+    sigma = 0.9, flat = 1e-10: packed.ARMIJO_C1, WOLFE_SIGMA, WOLFE_FLAT, shared with the
+    compiled solve). Near the minimiser the
     decrease of Phi falls below its round-off while Phi' stays exact to the gradient's: Armijo's
     test alone then rejected good steps at random, halving t to nothing, and tight tolerances
     stalled. Only the `active` [B] samples move (and are evaluated); the others keep X, phi and g."""
@@ -314,8 +315,9 @@ def _line_search(objective, X, phi, g, d, slope, active, c1: float = 1e-4, sigma
     phi_new[rest], g_new[rest] = phi[rest], g[rest]
     for _ in range(max_halvings):
         dphi = sample_dot(g_new, d)
-        armijo = phi_new - phi <= c1 * t * slope + 64 * np.finfo(float).eps * np.abs(phi)
-        wolfe = (dphi <= (2 * c1 - 1) * slope) & (dphi >= sigma * slope) & (phi_new - phi <= flat * np.abs(phi))
+        armijo = phi_new - phi <= packed.ARMIJO_C1 * t * slope + packed.PHI_ROUND_OFF * np.abs(phi)
+        wolfe = ((dphi <= (2 * packed.ARMIJO_C1 - 1) * slope) & (dphi >= packed.WOLFE_SIGMA * slope)
+                 & (phi_new - phi <= packed.WOLFE_FLAT * np.abs(phi)))
         ok = rest | armijo | wolfe
         if ok.all():
             break
