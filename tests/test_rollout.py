@@ -3,6 +3,7 @@ checkpointing equals plain backprop, and the physics of a fish in the numerical 
 
 import dataclasses
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -140,8 +141,6 @@ def test_the_solid_converges_to_a_tight_tolerance_in_the_coupled_episode(precond
     at random and t halved to nothing: over these 20 frames 16 (compiled) and 13 (numpy) solves
     stalled at 500 iterations with residuals of 2e-10 to 2.5e-6 N (3 at atol = 1e-8 N). The
     approximate Wolfe test on Phi' accepts them (measured: none stalls)."""
-    import warnings
-
     cfg = load_config("simulate", [*SMALL, "fluid=numerical", "fluid.dtype=float64", "solid.pd.atol=1e-10",
                                    f"solid.pd.preconditioner={preconditioner}"])
     ep = build_episode(cfg)
