@@ -6,6 +6,8 @@ returning the measured numbers:
 * ``taylor_green``: decay rate of the Taylor-Green mode vs the discrete-Laplacian rate.
 * ``lid_driven_cavity``: centreline velocity of the Re = 100 cavity vs Ghia, Ghia & Shin 1982.
 * ``cylinder_wake``: Strouhal number, mean drag and lift amplitude of the Re = 100 cylinder.
+* ``oscillating_cylinder``: the in-phase (added-mass) force on a cylinder oscillating in still
+  fluid vs Stokes and Wang.
 
 and the helpers they and the rigid-body tests use: ``disc_mask``, ``moving`` (rigid translation
 velocity), ``disc_polyline`` (the disc's ccw surface for the IBM), ``control_volume_force``
@@ -234,3 +236,71 @@ def cylinder_wake(
     st = (len(t_up) - 1) / (t_up[-1] - t_up[0]) * Dc / U
     mean_probe = tuple(float(x) for x in np.mean(probed, 0)) if probed else ()
     return CylinderWake(float(st), float(cd.mean()), float((cl.max() - cl.min()) / 2), mean_probe)
+
+
+# ----------------------------------------------------------------------------------------------
+# Oscillating cylinder
+# ----------------------------------------------------------------------------------------------
+
+
+class OscillatingCylinder(NamedTuple):
+    beta: float  # Stokes number f D^2 / nu
+    stokes_wang: float  # in-phase C_m of the unbounded viscous fluid, 1 + 4 / sqrt(pi beta)
+    confinement: float  # potential-flow added mass in the box's inscribed circle / unbounded
+    exchange: float  # in-phase C_m of the force the penalisation exchanges with the fluid
+    probe: tuple[float, ...] = ()  # in-phase C_m of each of ``probe``'s forces
+
+
+def in_phase_added_mass(force: np.ndarray, acceleration: np.ndarray, velocity: np.ndarray, mass: float) -> float:
+    """C_m of the least-squares fit F = -C_m M a - c v of a force [N/m] in time (M [kg/m] the
+    displaced fluid's mass): the part of F in phase with the body's acceleration, over M a."""
+    coef = np.linalg.lstsq(np.stack([acceleration, velocity], 1), -force, rcond=None)[0]
+    return float(coef[0] / mass)
+
+
+def oscillating_cylinder(
+    radius_cells=8, box_cells=160, dx=2.5e-3, rho=50.0, mu=1.25e-4, freq=2.0, amplitude=5e-3, periods=4, h=0.01,
+    dtype=torch.float64, stepping: dict | None = None,
+    probe: Callable[[Grid, FluidState, Boundary, tuple[float, float], tuple[float, float]], Tensor] | None = None,
+) -> OscillatingCylinder:
+    """A rigid cylinder oscillating across still fluid, y(t) = y0 - A cos(w t), from rest, in a
+    closed square box of ``box_cells``^2 cells of ``dx`` [m] (walls two cells thick), on the fish's
+    stepping by default (``NumericalFluid``'s defaults; h [s] a frame).
+
+    The hydrodynamic force on the body is the penalisation force within 2 R of the centre plus
+    rho V dv_d/dt, the momentum put into the fluid inside the disc.  Its part in phase with the
+    acceleration, over rho pi R^2 A w^2 (``in_phase_added_mass``, the last two periods), is compared
+    with the unbounded viscous value of Stokes and Wang (1968, small KC = 2 pi A / D),
+    C_m = 1 + 4 / sqrt(pi beta) + O(1 / beta), beta = f D^2 / nu, times the confinement of potential
+    flow in a concentric circular box of radius R_b (the box's inscribed circle),
+    (R_b^2 + R^2) / (R_b^2 - R^2).  probe(grid, state, boundary, centre [m], velocity [m/s]) -> y
+    forces [k] (N/m, e.g. the coupling's IBM force summed over the surface) of each step's state.
+    """
+    g = Grid(box_cells, box_cells, dx)
+    R, w, L = radius_cells * dx, 2 * math.pi * freq, box_cells * dx
+    tank = G.closed_tank(g, 2, 2, dtype=dtype)
+    m = NumericalFluid(g, **({} if stepping is None else stepping))
+    pr = FluidParams(torch.tensor([rho], dtype=dtype), torch.tensor([mu], dtype=dtype), h)
+    c = g.cell_centres(dtype=torch.float64)
+    region = (((c[..., 0] - L / 2) ** 2 + (c[..., 1] - L / 2) ** 2).sqrt() < 2 * R).to(dtype)[None, None]
+    s = m.initial_state(1, dtype=dtype)
+    rows, v_prev = [], 0.0
+    for k in range(round(periods / (freq * h))):
+        y, vy = L / 2 - amplitude * math.cos(w * k * h), amplitude * w * math.sin(w * k * h)
+        body = disc_mask(g, L / 2, y, R, dtype)
+        bd = G.union(tank, Boundary(body, moving(body, 0.0, vy)))
+        s, diag = m.step_with_diagnostics(s, bd, pr)
+        inertia = rho * body.sum().item() * dx**2 * (vy - v_prev) / h
+        probed = probe(g, s, bd, (L / 2, y), (0.0, vy)).tolist() if probe is not None else []
+        t = (k + 1) * h  # the step's end, where the state is
+        rows.append([t, diag.force(rho, region)[0][1].item() + inertia, *probed,
+                     amplitude * w * w * math.cos(w * t), amplitude * w * math.sin(w * t)])
+        v_prev = vy
+    a = np.array(rows)
+    a = a[a[:, 0] > (periods - 2) / freq]
+    M = rho * math.pi * R**2
+    cm = [in_phase_added_mass(a[:, i], a[:, -2], a[:, -1], M) for i in range(1, a.shape[1] - 2)]
+    beta = freq * (2 * R) ** 2 * rho / mu
+    Rb = L / 2 - 2 * dx
+    return OscillatingCylinder(beta, 1 + 4 / math.sqrt(math.pi * beta), (Rb**2 + R**2) / (Rb**2 - R**2), cm[0],
+                               tuple(cm[1:]))

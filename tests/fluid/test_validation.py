@@ -21,6 +21,7 @@ from fishsim.fluid.cases import (
     disc_polyline,
     lid_driven_cavity,
     moving,
+    oscillating_cylinder,
 )
 from fishsim.fluid.numerical import NumericalFluid
 
@@ -165,3 +166,29 @@ def test_oscillating_disc_ibm_pressure_force_is_its_added_mass(stepping):
     assert abs(np.abs(f_ibm).max() - added_mass) < 0.1 * added_mass
     assert 0.7 <= (f_ibm @ f_hyd) / (f_hyd @ f_hyd) <= 0.9
     assert (f_ibm @ f_hyd) / (f_hyd @ f_hyd) < ((f_ibm + f_visc) @ f_hyd) / (f_hyd @ f_hyd) <= 0.95
+
+
+def test_oscillating_cylinder_on_the_fish_grid_has_its_published_added_mass():
+    """A 4 cm cylinder (16 cells per D) oscillating at 2 Hz, A = 5 mm, in the paper's fluid
+    (rho 50, mu 1.25e-4: beta = f D^2 / nu = 1280, KC = 0.8) on the fish's grid and stepping, in a
+    40 cm box (``oscillating_cylinder``): the in-phase (added-mass) force, in rho pi R^2 A w^2,
+    against Stokes-Wang 1 + 4 / sqrt(pi beta) = 1.063 times the box's confinement, 1.021 (1.086).
+
+    Measured: the penalisation's exchanged force 1.071 (-1.4 %); the coupling's IBM force
+    (``ibm_force``, 63 nodes ~0.8 cells apart, the viscous traction adds < 0.1 %) 0.996 (-8.3 %,
+    -7.0 % of the exchange; the Stokes layer, 0.6 mm, is under a cell and its share of the in-phase
+    force, 2 / sqrt(pi beta) = 3 %, is missed).  In 60 / 80 cm boxes: exchange 1.059 / 1.055,
+    IBM 0.985 / 0.981, reference 1.073 / 1.069.  At 8 cells per D (radius 1 cm, 60 cm box) the
+    IBM force is 0.904 against 1.129 (-20 %), the exchange -5.7 %: the issue's 5-10 % holds from
+    16 cells per D.  Tolerances: exchange within 5 %, IBM within 10 % of both."""
+    R = 8 * 2.5e-3
+
+    def ibm(g, s, bd, centre, velocity):
+        qs = disc_polyline(*centre, R, 63)
+        return ibm_force(qs, s.p, bd.mask, g, sigma_prime=g.dx**2).sum(1)[0, 1:]
+
+    res = oscillating_cylinder(8, 160, probe=ibm)
+    reference = res.stokes_wang * res.confinement
+    assert abs(res.exchange / reference - 1) < 0.05
+    assert abs(res.probe[0] / reference - 1) < 0.10
+    assert abs(res.probe[0] / res.exchange - 1) < 0.10
