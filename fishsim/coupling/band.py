@@ -127,12 +127,16 @@ def _inside(centres: Tensor, qs: Tensor, h: int, w: int) -> Tensor:
 
 @torch.no_grad()
 def surface_band(qs: Tensor, grid: Grid, margin: int, k_nearest: int = 24,
-                 distance: str = SEGMENT) -> SurfaceBand:
+                 distance: str = SEGMENT, sigma: float | None = None) -> SurfaceBand:
     """Band cells, inside flags and K + 1 nearest segments/nodes of the surface ``qs`` [B, S, 2].
 
     The selection runs relative to each fish's centre, compiled in float64 on the CPU
     (fishsim.coupling.kernels), else in float32 (|x| < 0.15 m: the squared distances are off by
-    < 1e-9 m^2 = xi / 500); it only selects, it is never differentiated.
+    < 1e-9 m^2 = xi / 500); it only selects, it is never differentiated.  With the mask's
+    softness ``sigma`` [m^2], the compiled selection leaves unranked the cells outside the body
+    whose mask is below 4e-18 (farther than sqrt(40 sigma), 1.8 cells at the default), to which
+    the compiled mask then gives b = v_d = 0 (kernels._far); the torch formulas (soft_mask,
+    boundary_velocity) need ranked cells: leave sigma None for them.
     """
     if distance not in (SEGMENT, NODE):
         raise ValueError(f"distance must be 'segment' or 'node', got {distance!r}")
@@ -142,9 +146,10 @@ def surface_band(qs: Tensor, grid: Grid, margin: int, k_nearest: int = 24,
     S, k = qs.shape[1], min(k_nearest + 1, qs.shape[1])
     truncated = k_nearest + 1 < S
     if qs.device.type == "cpu":                      # compiled, in float64 (fishsim.coupling.kernels)
-        from fishsim.coupling.kernels import nearest_and_inside
+        from fishsim.coupling.kernels import NEGLIGIBLE, nearest_and_inside
 
-        nearest, inside = nearest_and_inside(qs - origin, centres, k, distance == SEGMENT, w)
+        far = math.inf if sigma is None else NEGLIGIBLE * sigma
+        nearest, inside = nearest_and_inside(qs - origin, centres, k, distance == SEGMENT, w, far)
     else:
         nearest, inside = torch_nearest_and_inside(qs - origin, centres, k, distance, (h, w))
     return SurfaceBand(flat, origin, centres, inside, nearest, distance, truncated)

@@ -80,10 +80,23 @@ _CHUNK = 8   # consecutive surface elements sharing one bounding box in the near
 
 
 @jit
-def _fish_nearest(q, centres, width, segment, nearest, inside):
+def _beyond(box, x0, y, far):
+    """Whether the point (x0, y) is farther than sqrt(far) from every chunk's bounding box."""
+    for c in range(box.shape[0]):
+        gx = max(box[c, 0] - x0, 0.0, x0 - box[c, 1])
+        gy = max(box[c, 2] - y, 0.0, y - box[c, 3])
+        if gx * gx + gy * gy <= far:
+            return False
+    return True
+
+
+@jit
+def _fish_nearest(q, centres, width, segment, far, nearest, inside):
     """For each cell p of one fish's window (rows of ``width`` cells, row-major): its
     nearest.shape[1] nearest elements and whether its centre is inside the polyline (even-odd
-    rule: crossings of the horizontal ray to +x, found once per row).
+    rule: crossings of the horizontal ray to +x, found once per row).  A cell outside the body
+    whose squared distance to every element's bounding box exceeds ``far`` (m^2) gets the first
+    elements instead of ranking them (BandBoundary gives it b = v_d = 0: ``_far``).
 
     The distance to the polyline is 1-Lipschitz, so the k-th nearest squared distance of a cell
     is at most (sqrt(D) + |x - x'|)^2 with D that of the previous cell x' of its row (of the
@@ -122,6 +135,13 @@ def _fish_nearest(q, centres, width, segment, nearest, inside):
             for j in range(n_cross):
                 right += crossing[j] > x0
             inside[p] = right % 2 == 1
+            if not inside[p] and _beyond(box, x0, y, far):
+                for j in range(k):
+                    nearest[p, j] = j
+                kth = np.inf                                # the next cell ranks from scratch
+                if col == 0:
+                    first_kth, last_y = kth, y
+                continue
             bound = kth if col == 0 else (math.sqrt(kth) + abs(x0 - centres[p - 1, 0])) ** 2
             n = 0
             for c in range(chunks):
@@ -153,19 +173,21 @@ def _fish_nearest(q, centres, width, segment, nearest, inside):
 
 
 @jit(parallel=True)
-def _nearest_parallel(q, centres, width, segment, nearest, inside):
+def _nearest_parallel(q, centres, width, segment, far, nearest, inside):
     for b in prange(q.shape[0]):
-        _fish_nearest(q[b], centres[b], width, segment, nearest[b], inside[b])
+        _fish_nearest(q[b], centres[b], width, segment, far, nearest[b], inside[b])
 
 
-def nearest_and_inside(qs: Tensor, centres: Tensor, k: int, segment: bool, width: int) -> tuple[Tensor, Tensor]:
+def nearest_and_inside(qs: Tensor, centres: Tensor, k: int, segment: bool, width: int,
+                       far: float = math.inf) -> tuple[Tensor, Tensor]:
     """The k nearest elements [B, P, k] (long, in no particular order) and inside flags [B, P] of
     the band cells ``centres`` [B, P, 2] (a row-major window ``width`` cells wide) for the
-    polylines ``qs`` [B, S, 2] (both relative to the band's origin, m; CPU)."""
+    polylines ``qs`` [B, S, 2] (both relative to the band's origin, m; CPU).  Cells outside the
+    body farther than sqrt(far) [m] from it get elements 0..k-1, unranked (``_fish_nearest``)."""
     q, x = _f64(qs), _f64(centres)
     B, P = x.shape[:2]
     nearest, inside = np.empty((B, P, k), np.int64), np.empty((B, P), np.bool_)
-    _each_fish(_fish_nearest, _nearest_parallel, q, x, width, segment, nearest, inside)
+    _each_fish(_fish_nearest, _nearest_parallel, q, x, width, segment, float(far), nearest, inside)
     return torch.from_numpy(nearest), torch.from_numpy(inside)
 
 
@@ -192,7 +214,7 @@ def _elements(q, x0, x1, nearest, segment, e, t, raw):
 
 # exp(-40) = 4e-18: a weight below this fraction of the nearest element's (exp(0) = 1) is set to
 # 0 without evaluating exp (most of a cell's K' elements are that far); below float64 round-off.
-_NEGLIGIBLE = 40.0
+NEGLIGIBLE = 40.0
 
 
 @jit
@@ -200,11 +222,11 @@ def _weights(e, temperature, truncated, w, g):
     """mask.softmin_weights of one cell into w [K]: w_k = (g_k - G) / Z with g_k = exp(-(e_k -
     min e) / T) (kept in g) and G = g of the farthest (truncated; else 0). Returns (Z, G)."""
     lo, hi = e.min(), e.max()
-    floor = math.exp(-(hi - lo) / temperature) if truncated and hi - lo < _NEGLIGIBLE * temperature else 0.0
+    floor = math.exp(-(hi - lo) / temperature) if truncated and hi - lo < NEGLIGIBLE * temperature else 0.0
     total = 0.0
     for k in range(e.shape[0]):
         s = (e[k] - lo) / temperature
-        g[k] = math.exp(-s) if s < _NEGLIGIBLE else 0.0
+        g[k] = math.exp(-s) if s < NEGLIGIBLE else 0.0
         w[k] = max(g[k] - floor, 0.0)
         total += w[k]
     total = max(total, np.finfo(np.float64).tiny)
@@ -255,6 +277,18 @@ def _velocity(qdot, nearest, t, w):
     return u0, u1
 
 
+# A cell outside the body whose nearest element lies beyond NEGLIGIBLE sigma (1.8 cells at the
+# default sigma = 5e-7 m^2) has b = sigmoid(-d / sigma) < sigmoid(-40) = 4e-18, since the soft
+# distance d (a weighted mean of e) is at least min e: it is set to b = 0 and v_d = 0 without the
+# soft-mins (every consumer reads v_d as b v_d, and 1 - 4e-18 rounds to 1 in float64).
+
+
+@jit
+def _far(e, inside, sigma):
+    """Whether a cell (its elements' squared distances e [K]) is negligibly far outside the body."""
+    return not inside and e.min() > NEGLIGIBLE * sigma
+
+
 @jit
 def _fish_forward(q, qdot, centres, nearest, inside, xi, sigma, tau, harmonic, segment, truncated, b, u):
     """b [P] and u [P, 2] of one fish's band cells (module docstring)."""
@@ -262,6 +296,9 @@ def _fish_forward(q, qdot, centres, nearest, inside, xi, sigma, tau, harmonic, s
     e, t, raw, w, g = np.empty(K), np.zeros(K), np.zeros(K), np.empty(K), np.empty(K)
     for p in range(centres.shape[0]):
         _elements(q, centres[p, 0], centres[p, 1], nearest[p], segment, e, t, raw)
+        if _far(e, inside[p], sigma):
+            b[p], u[p, 0], u[p, 1] = 0.0, 0.0, 0.0
+            continue
         _weights(e, xi, truncated, w, g)
         d = _soft_distance(e, w, xi, harmonic)
         b[p] = 1.0 / (1.0 + math.exp(-(d if inside[p] else -d) / sigma))
@@ -281,6 +318,8 @@ def _fish_backward(q, qdot, centres, nearest, inside, xi, sigma, tau, harmonic, 
     for p in range(centres.shape[0]):
         x0, x1 = centres[p, 0], centres[p, 1]
         _elements(q, x0, x1, nearest[p], segment, e, t, raw)
+        if _far(e, inside[p], sigma):
+            continue
         ge[:] = 0.0
         gt[:] = 0.0
         gw[:] = 0.0

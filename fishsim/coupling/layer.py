@@ -50,7 +50,7 @@ def solid_to_fluid(q: Tensor, qdot: Tensor, surface, grid: Grid, cfg: CouplingCo
     """
     idx = surface_index(surface, q.device)
     qs, qdots = q[:, idx], qdot[:, idx]
-    band = surface_band(qs, grid, band_margin(cfg.sigma, grid.dx), cfg.k_nearest, cfg.distance)
+    band = surface_band(qs, grid, band_margin(cfg.sigma, grid.dx), cfg.k_nearest, cfg.distance, cfg.sigma)
     mask, velocity = band_boundary(qs, qdots, band, grid, cfg.xi, cfg.sigma, cfg.tau, cfg.mean, dtype)
     return Boundary(mask=mask, velocity=velocity)
 
