@@ -43,7 +43,8 @@ class SurfaceBand:
         relative to the origin can run in float32 without losing sub-micrometre precision.
     inside: [B, P] bool, cell centre inside the closed polyline.
     nearest: [B, P, K'] long, indices of the K' = min(K + 1, S) nearest segments (segment
-        k = q^k -> q^{k+1}) or nodes, according to ``distance``.
+        k = q^k -> q^{k+1}) or nodes, according to ``distance`` (0..K'-1, unranked, for the cells
+        left out as negligibly far by ``surface_band(sigma=...)``).
     distance: "segment" or "node".
     truncated: the cells see fewer elements than the surface has (K' < S), so their soft-mins
         are tapered at the K'-th (``mask.softmin_weights``).
