@@ -167,7 +167,8 @@ def pd_solve(model: SolidModel, Y: np.ndarray, X0: np.ndarray, contraction: np.n
         X, g = _lbfgs(objective, _preconditioner(model, cache, X0, contraction, E), X, phi, g, need, iterations)
     stuck = max_nodal_norm(g) > opts.atol
     if stuck.any() and opts.preconditioner != "pd":          # a Newton H0 failed: DiffPD's A(E)
-        phi, g = objective(X)
+        phi, g_stuck = objective(X, stuck)                    # the converged samples keep their g
+        g = np.where(per_sample(stuck), g_stuck, g)
         X, g = _lbfgs(objective, Preconditioner(model, cache, E, None, "pd"), X, phi, g, stuck, iterations)
     if lagged and cache.lagged is not None:
         cache.lagged.refresh(model, iterations)
