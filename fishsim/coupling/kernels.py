@@ -99,10 +99,10 @@ def _fish_nearest(q, centres, width, segment, far, nearest, inside):
     elements instead of ranking them (BandBoundary gives it b = v_d = 0: ``_far``).
 
     The distance to the polyline is 1-Lipschitz, so the k-th nearest squared distance of a cell
-    is at most (sqrt(D) + |x - x'|)^2 with D that of the previous cell x' of its row (of the
-    previous row for a row's first cell): only elements
-    within it are ranked (~k + a few of S), and chunks of _CHUNK elements whose bounding box lies
-    beyond it are skipped."""
+    is at most (sqrt(D) + |x - x'|)^2 with D that of a ranked cell x': the row's previous ranked
+    cell, or for a row's first ranked cell the previous row's first. Only elements within it are
+    ranked (~k + a few of S), and chunks of _CHUNK elements whose bounding box lies beyond it are
+    skipped."""
     S, k = q.shape[0], nearest.shape[1]
     ax, ay, abx, aby, inv = np.empty(S), np.empty(S), np.empty(S), np.empty(S), np.empty(S)
     for l in range(S):
@@ -119,7 +119,7 @@ def _fish_nearest(q, centres, width, segment, far, nearest, inside):
                 box[c, 0], box[c, 1] = min(box[c, 0], x), max(box[c, 1], x)
                 box[c, 2], box[c, 3] = min(box[c, 2], y), max(box[c, 3], y)
     d, index, crossing = np.empty(S), np.empty(S, np.int64), np.empty(S)
-    first_kth, last_y = np.inf, 0.0                             # the previous row's first cell
+    first_kth, first_x, first_y = np.inf, 0.0, 0.0              # the previous row's first ranked cell
     for row in range(centres.shape[0] // width):
         y = centres[row * width, 1]
         n_cross = 0
@@ -127,7 +127,7 @@ def _fish_nearest(q, centres, width, segment, far, nearest, inside):
             if (ay[l] > y) != (ay[l] + aby[l] > y):
                 crossing[n_cross] = ax[l] + (y - ay[l]) * abx[l] / aby[l]
                 n_cross += 1
-        kth = (math.sqrt(first_kth) + abs(y - last_y)) ** 2
+        kth, last_x, ranked = first_kth, first_x, False            # this row's last ranked cell
         for col in range(width):
             p = row * width + col
             x0 = centres[p, 0]
@@ -138,11 +138,9 @@ def _fish_nearest(q, centres, width, segment, far, nearest, inside):
             if not inside[p] and _beyond(box, x0, y, far):
                 for j in range(k):
                     nearest[p, j] = j
-                kth = np.inf                                # the next cell ranks from scratch
-                if col == 0:
-                    first_kth, last_y = kth, y
                 continue
-            bound = kth if col == 0 else (math.sqrt(kth) + abs(x0 - centres[p - 1, 0])) ** 2
+            gap = abs(x0 - last_x) if ranked else math.hypot(x0 - first_x, y - first_y)
+            bound = (math.sqrt(kth) + gap) ** 2
             n = 0
             for c in range(chunks):
                 gx = max(box[c, 0] - x0, 0.0, x0 - box[c, 1])
@@ -168,8 +166,9 @@ def _fish_nearest(q, centres, width, segment, far, nearest, inside):
             for j in range(k):
                 nearest[p, j] = index[j]
                 kth = max(kth, d[j])
-            if col == 0:
-                first_kth, last_y = kth, y
+            if not ranked:
+                first_kth, first_x, first_y = kth, x0, y
+            last_x, ranked = x0, True
 
 
 @jit(parallel=True)
