@@ -31,7 +31,10 @@ transposes, so that every flux family runs along the rows of one array. Each sam
 serial and in a fixed order (its result does not depend on its batch); every kernel runs the samples
 of a batch in parallel over numba's threads and a single sample in the calling thread
 (``fishsim.compiled.each_sample``: a parallel region's start costs more than one sample's pass).
-Grids need at least 3 cells a side.
+Grids need at least 3 cells a side. Arithmetic runs in the data's dtype (``_constants``; nu, dt and
+1/dx cast on entry): numba's literals are float64, and float32 data mixed with them converted every
+operand (the float32 predictor ran 2x, its adjoint 2.1x slower than now: 0.42 / 1.15 against 0.17 /
+0.55 ms on 100 x 300, one thread).
 """
 
 from __future__ import annotations
@@ -46,26 +49,40 @@ from fishsim.linalg.dct import inverse_array
 
 
 @jit(inline="always")
+def _constants(q):
+    """(0, 1/2, 1, 2, 3, 4, 5, 6, 1/6, 5/6, 1/3) in q's dtype: literals are float64 in numba, and
+    mixing them with float32 data makes every loop convert both ways (float32 data then ran
+    slower than float64)."""
+    T = q.dtype.type
+    return (T(0.0), T(0.5), T(1.0), T(2.0), T(3.0), T(4.0), T(5.0), T(6.0), T(1.0 / 6.0), T(5.0 / 6.0),
+            T(1.0 / 3.0))
+
+
+@jit(inline="always")
 def _median(a, b, c):
     return max(min(a, b), min(max(a, b), c))
 
 
 @jit(inline="always")
-def _koren(u, c, d):
-    return _median(c, (5.0 * c + 2.0 * d - u) / 6.0, _median(c, d, 3.0 * c - 2.0 * u))
+def _koren(u, c, d, k):
+    """koren(u, c, d) with k = ``_constants`` of the data's dtype."""
+    two, three, five, six = k[3], k[4], k[6], k[7]
+    return _median(c, (five * c + two * d - u) / six, _median(c, d, three * c - two * u))
 
 
 @jit(inline="always")
-def _koren_grad(u, c, d):
+def _koren_grad(u, c, d, k):
     """(koren(u, c, d), d/du, d/dc, d/dd): the derivative of the candidate selected, c first on
-    ties, then t = (5c + 2d - u)/6, d, 3c - 2u (selects, no branches: the loop vectorises)."""
-    t = (5.0 * c + 2.0 * d - u) / 6.0
-    v = _median(c, t, _median(c, d, 3.0 * c - 2.0 * u))
-    fc = 1.0 if v == c else 0.0
-    ft = 1.0 - fc if v == t else 0.0
-    fd = 1.0 - fc - ft if v == d else 0.0
-    fe = 1.0 - fc - ft - fd
-    return v, -1.0 / 6.0 * ft - 2.0 * fe, fc + 5.0 / 6.0 * ft + 3.0 * fe, 1.0 / 3.0 * ft + fd
+    ties, then t = (5c + 2d - u)/6, d, 3c - 2u (selects, no branches: the loop vectorises); k =
+    ``_constants`` of the data's dtype."""
+    zero, one, two, three, five, six, sixth, five_sixths, third = k[0], k[2], k[3], k[4], k[6], k[7], k[8], k[9], k[10]
+    t = (five * c + two * d - u) / six
+    v = _median(c, t, _median(c, d, three * c - two * u))
+    fc = one if v == c else zero
+    ft = one - fc if v == t else zero
+    fd = one - fc - ft if v == d else zero
+    fe = one - fc - ft - fd
+    return v, -sixth * ft - two * fe, fc + five_sixths * ft + three * fe, third * ft + fd
 
 
 @jit(inline="always")
@@ -81,14 +98,15 @@ def _family_forward(q, T, tr0, tc0, tr1, tc1, F):
     """One flux family along rows: F[a, k] = U upwind(q[a+2, k .. k+3], U), U = (T[a+tr0, k+tc0]
     + T[a+tr1, k+tc1]) / 2, the face value between q[a+2, k+1] and q[a+2, k+2]. Rows as 1D views,
     the upwind side as selects: the loop vectorises."""
-    n = F.shape[1]
+    n, K = F.shape[1], _constants(q)
+    half, zero = K[1], K[0]
     for a in range(F.shape[0]):
         qr, out = q[a + 2], F[a]
         t0, t1 = T[a + tr0, tc0:tc0 + n], T[a + tr1, tc1:tc1 + n]
         for k in range(n):
-            U = 0.5 * (t0[k] + t1[k])
-            u, c, d = _upwind(qr, k, U >= 0)
-            out[k] = U * _koren(u, c, d)
+            U = half * (t0[k] + t1[k])
+            u, c, d = _upwind(qr, k, U >= zero)
+            out[k] = U * _koren(u, c, d, K)
 
 
 @jit(error_model="numpy")
@@ -97,6 +115,8 @@ def _family_backward(q, T, tr0, tc0, tr1, tc1, g, gq, gT):
     be one array). Per row: the weights dL/dq[k + s] of every flux (a vectorised loop), then their
     sum per q entry (a gather: no flux waits for its neighbour's store)."""
     n0, n1 = g.shape
+    K = _constants(q)
+    zero, half = K[0], K[1]
     w0, w1 = np.zeros(n1 + 6, dtype=q.dtype), np.zeros(n1 + 6, dtype=q.dtype)    # flux k's at k + 3
     w2, w3 = np.zeros(n1 + 6, dtype=q.dtype), np.zeros(n1 + 6, dtype=q.dtype)
     w4 = np.empty(n1, dtype=q.dtype)
@@ -104,16 +124,16 @@ def _family_backward(q, T, tr0, tc0, tr1, tc1, g, gq, gT):
         qr, ga = q[a + 2], g[a]
         t0, t1 = T[a + tr0, tc0:tc0 + n1], T[a + tr1, tc1:tc1 + n1]
         for k in range(n1):
-            U = 0.5 * (t0[k] + t1[k])
-            pos = U >= 0
+            U = half * (t0[k] + t1[k])
+            pos = U >= zero
             u, c, d = _upwind(qr, k, pos)
-            v, du, dc, dd = _koren_grad(u, c, d)
+            v, du, dc, dd = _koren_grad(u, c, d, K)
             gv = ga[k] * U
-            w0[k + 3] = gv * du if pos else 0.0
+            w0[k + 3] = gv * du if pos else zero
             w1[k + 3] = gv * (dc if pos else dd)
             w2[k + 3] = gv * (dd if pos else dc)
-            w3[k + 3] = 0.0 if pos else gv * du
-            w4[k] = 0.5 * ga[k] * v
+            w3[k + 3] = zero if pos else gv * du
+            w4[k] = half * ga[k] * v
         gr = gq[a + 2]
         for m in range(n1 + 3):
             gr[m] += w0[m + 3] + w1[m + 2] + w2[m + 1] + w3[m]
@@ -204,18 +224,20 @@ def _sample_forward(vx, vy, nu, dt, inv_dx, walls, wx, wy):
     P, QT, PT, Q = _padded(vx, vy, walls)
     Fx, GxT, FyT, Gy = _fluxes(P, QT, PT, Q)
     Gx, Fy = np.ascontiguousarray(GxT.T), np.ascontiguousarray(FyT.T)    # [H+1, W+1], [H+2, W]
+    T, four = vx.dtype.type, _constants(vx)[5]
+    nu, dt, inv_dx = T(nu), T(dt), T(inv_dx)
     inv_dx2 = inv_dx * inv_dx
     wx[:, :] = vx
     wy[:, :] = vy
     for i in range(H):
         up, mid, down, f, g0, g1, out = P[i + 1], P[i + 2], P[i + 3], Fx[i], Gx[i], Gx[i + 1], wx[i]
         for j in range(1, W):
-            lap = (mid[j + 1] + mid[j + 3] + up[j + 2] + down[j + 2] - 4 * mid[j + 2]) * inv_dx2
+            lap = (mid[j + 1] + mid[j + 3] + up[j + 2] + down[j + 2] - four * mid[j + 2]) * inv_dx2
             out[j] += dt * (nu * lap - (f[j + 1] - f[j] + g1[j] - g0[j]) * inv_dx)
     for i in range(1, H):
         up, mid, down, f0, f1, g, out = Q[i + 1], Q[i + 2], Q[i + 3], Fy[i], Fy[i + 1], Gy[i], wy[i]
         for j in range(W):
-            lap = (mid[j + 1] + mid[j + 3] + up[j + 2] + down[j + 2] - 4 * mid[j + 2]) * inv_dx2
+            lap = (mid[j + 1] + mid[j + 3] + up[j + 2] + down[j + 2] - four * mid[j + 2]) * inv_dx2
             out[j] += dt * (nu * lap - (f1[j] - f0[j] + g[j + 1] - g[j]) * inv_dx)
 
 
@@ -223,10 +245,11 @@ def _sample_forward(vx, vy, nu, dt, inv_dx, walls, wx, wy):
 def _stencil_adjoint(E, c, out):
     """out[R, C] = c lap(E)[R, C] (the 5-point sum, unscaled by dx) for 1 <= R, C < shape - 1: the
     stencil is symmetric, so this is its adjoint applied to E (E zero outside the faces it acts on)."""
+    four = _constants(E)[5]
     for R in range(1, E.shape[0] - 1):
         up, mid, down, o = E[R - 1], E[R], E[R + 1], out[R]
         for C in range(1, E.shape[1] - 1):
-            o[C] = c * (mid[C - 1] + mid[C + 1] + up[C] + down[C] - 4 * mid[C])
+            o[C] = c * (mid[C - 1] + mid[C + 1] + up[C] + down[C] - four * mid[C])
 
 
 @jit(error_model="numpy")
@@ -236,19 +259,21 @@ def _sample_backward(vx, vy, nu, dt, inv_dx, walls, gwx, gwy, gvx, gvy, need_dt)
     in P, Q (zero elsewhere), and every adjoint reads its neighbours there."""
     H, W = vx.shape[0], vy.shape[1]
     P, QT, PT, Q = _padded(vx, vy, walls)
-    inv_dx2 = inv_dx * inv_dx
+    T, four = vx.dtype.type, _constants(vx)[5]
+    nu_t, dt_t, inv_dx_t = T(nu), T(dt), T(inv_dx)
+    inv_dx2 = inv_dx_t * inv_dx_t
     Ex, Ey = np.zeros_like(P), np.zeros_like(Q)
     for i in range(H):
         Ex[i + 2, 3:W + 2] = gwx[i, 1:W]
     for i in range(1, H):
         Ey[i + 2, 2:W + 2] = gwy[i]
-    acc = np.zeros(W + 5)                # per column (a vectorised loop), then summed
+    acc = np.zeros(W + 5, vx.dtype)      # per column (a vectorised loop), then summed
     for E, V in ((Ex, P), (Ey, Q)):
         for R in range(2, E.shape[0] - 2):
             e, up, mid, down = E[R], V[R - 1], V[R], V[R + 1]
             for C in range(2, E.shape[1] - 2):
-                acc[C] += e[C] * (mid[C - 1] + mid[C + 1] + up[C] + down[C] - 4 * mid[C]) * inv_dx2
-    lap_sum, adv_sum = acc.sum(), 0.0    # sum of dL/dw (nu lap v) / nu and of dL/dw (v.grad v)
+                acc[C] += e[C] * (mid[C - 1] + mid[C + 1] + up[C] + down[C] - four * mid[C]) * inv_dx2
+    lap_sum, adv_sum = np.float64(acc.sum()), 0.0    # sum of dL/dw (nu lap v) / nu and of dL/dw (v.grad v)
     if need_dt:
         Fx, GxT, FyT, Gy = _fluxes(P, QT, PT, Q)
         for i in range(H):
@@ -258,9 +283,9 @@ def _sample_backward(vx, vy, nu, dt, inv_dx, walls, gwx, gwy, gvx, gvy, need_dt)
             for j in range(W):
                 adv_sum += Ey[i + 2, j + 2] * (FyT[j, i + 1] - FyT[j, i] + Gy[i, j + 1] - Gy[i, j]) * inv_dx
     gP, gQ = np.zeros_like(P), np.zeros_like(Q)
-    _stencil_adjoint(Ex, dt * nu * inv_dx2, gP)
-    _stencil_adjoint(Ey, dt * nu * inv_dx2, gQ)
-    s = -dt * inv_dx                     # w -= dt (flux differences) / dx
+    _stencil_adjoint(Ex, dt_t * nu_t * inv_dx2, gP)
+    _stencil_adjoint(Ey, dt_t * nu_t * inv_dx2, gQ)
+    s = -dt_t * inv_dx_t                 # w -= dt (flux differences) / dx
     gFx, gGx = np.empty((H, W + 2), vx.dtype), np.empty((H + 1, W + 1), vx.dtype)
     gFy, gGy = np.empty((H + 2, W), vx.dtype), np.empty((H + 1, W + 1), vx.dtype)
     for i in range(H):
@@ -382,6 +407,7 @@ def _penalize_divergence_sample(wx, wy, bx, by, dx_, dy_, inv_dx, ux, uy, div, p
     """One sample's u = w + b (v_d - w) on the interior faces, b v_d on the wall faces; div =
     div u; the penalisation's increment summed over the passes: (px, py) += u - w."""
     H, W = div.shape
+    inv_dx = div.dtype.type(inv_dx)
     for i in range(H):
         for j in range(W + 1):
             wall = j == 0 or j == W
@@ -416,6 +442,7 @@ def _subtract_gradient_sample(ux, uy, phi, inv_dx, vx, vy, phi_sum):
     """One sample's v = u - grad phi on the interior faces, u on the wall faces; phi summed over
     the passes (phi_sum += phi)."""
     H, W = phi.shape
+    inv_dx = phi.dtype.type(inv_dx)
     for i in range(H):
         for j in range(W):
             phi_sum[i, j] += phi[i, j]
@@ -447,9 +474,10 @@ def _gradient_adjoint_sample(gx, gy, inv_dx, out):
     """One sample's out += -grad^T g = div of g with its wall faces zeroed (the adjoint of
     - grad phi)."""
     H, W = out.shape
+    zero, inv_dx = out.dtype.type(0.0), out.dtype.type(inv_dx)
     for i in range(H):
         for j in range(W):
-            s = 0.0
+            s = zero
             if j >= 1:
                 s -= gx[i, j]
             if j + 1 <= W - 1:
@@ -474,11 +502,12 @@ def _gradient_adjoint_parallel(gx, gy, inv_dx, out):
 
 
 @jit(inline="always")
-def _blend_adjoint(g, wall, w, b, d):
-    """(dL/dw, dL/db, dL/dv_d) of u = b v_d (a wall face) or w + b (v_d - w) for dL/du = g."""
+def _blend_adjoint(g, wall, w, b, d, zero):
+    """(dL/dw, dL/db, dL/dv_d) of u = b v_d (a wall face) or w + b (v_d - w) for dL/du = g (zero:
+    0 in g's dtype)."""
     if wall:
-        return 0.0, g * d, g * b
-    return g * (1 - b), g * (d - w), g * b
+        return zero, g * d, g * b
+    return g - g * b, g * (d - w), g * b
 
 
 @jit
@@ -488,17 +517,18 @@ def _penalize_divergence_adjoint_sample(gvx, gvy, gpx, gpy, gdiv, wx, wy, bx, by
     gv + gp (through the projection and the increment) and dL/ddiv, writes dL/dw (gwx, gwy; the
     increment's -gp included), adds dL/db and dL/dv_d."""
     H, W = gdiv.shape
+    zero, inv_dx = gdiv.dtype.type(0.0), gdiv.dtype.type(inv_dx)
     for i in range(H):
         for j in range(W + 1):
-            g = (gvx[i, j] + gpx[i, j]) + ((gdiv[i, j - 1] if j >= 1 else 0.0) - (gdiv[i, j] if j < W else 0.0)) * inv_dx
-            gwx[i, j], gb, gd = _blend_adjoint(g, j == 0 or j == W, wx[i, j], bx[i, j], dx_[i, j])
+            g = (gvx[i, j] + gpx[i, j]) + ((gdiv[i, j - 1] if j >= 1 else zero) - (gdiv[i, j] if j < W else zero)) * inv_dx
+            gwx[i, j], gb, gd = _blend_adjoint(g, j == 0 or j == W, wx[i, j], bx[i, j], dx_[i, j], zero)
             gwx[i, j] -= gpx[i, j]
             gbx[i, j] += gb
             gdx[i, j] += gd
     for i in range(H + 1):
         for j in range(W):
-            g = (gvy[i, j] + gpy[i, j]) + ((gdiv[i - 1, j] if i >= 1 else 0.0) - (gdiv[i, j] if i < H else 0.0)) * inv_dx
-            gwy[i, j], gb, gd = _blend_adjoint(g, i == 0 or i == H, wy[i, j], by[i, j], dy_[i, j])
+            g = (gvy[i, j] + gpy[i, j]) + ((gdiv[i - 1, j] if i >= 1 else zero) - (gdiv[i, j] if i < H else zero)) * inv_dx
+            gwy[i, j], gb, gd = _blend_adjoint(g, i == 0 or i == H, wy[i, j], by[i, j], dy_[i, j], zero)
             gwy[i, j] -= gpy[i, j]
             gby[i, j] += gb
             gdy[i, j] += gd

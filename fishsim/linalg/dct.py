@@ -126,14 +126,15 @@ def _tridiagonal_sample(f, inv_pivot, dx):
         total += phi
         flux += dx2 * (f[i, 0] - mean)
         phi += flux
+    off_f = f.dtype.type(off)          # the sweeps in f's dtype (a float64 factor would convert every entry)
     for k in range(1, W):
         f[0, k] *= inv_pivot[0, k]
     for i in range(1, H):
         for k in range(1, W):
-            f[i, k] = (f[i, k] - off * f[i - 1, k]) * inv_pivot[i, k]
+            f[i, k] = (f[i, k] - off_f * f[i - 1, k]) * inv_pivot[i, k]
     for i in range(H - 2, -1, -1):
         for k in range(1, W):
-            f[i, k] -= off * inv_pivot[i, k] * f[i + 1, k]
+            f[i, k] -= off_f * inv_pivot[i, k] * f[i + 1, k]
     for i in range(H):
         f[i, 0] = col[i] - total / H
 
