@@ -119,6 +119,30 @@ def register(root: Path) -> None:
 register(PACKAGE)
 
 
+def _launch_threads_keeping_torch_count() -> None:
+    """Starts numba's thread pool now and gives torch its thread count back.
+
+    numba's OpenMP threading layer shares torch's OpenMP runtime and, when its pool starts (at the
+    first parallel kernel, or ``numba.get_num_threads``), sets that runtime's thread count to
+    numba's own (NUMBA_NUM_THREADS, every core by default), and torch, once it has run an op,
+    follows that count: a ``torch.set_num_threads(1)`` made before then was silently undone at
+    the first frame (``OMP_NUM_THREADS`` was not: fishsim/__init__.py passes it on to numba),
+    and torch split every tensor op of more than 32768 values (a 100 x 300 field's two
+    components) over two threads. On a machine busy with other work such an op waited for a
+    descheduled thread: 7-8 ms for a 60,000-value product in a coupled episode's backward,
+    against 0.02 ms. numba sets the count only when its pool
+    starts, and its kernels pass their own count to each parallel region, so starting it here and
+    restoring torch's count keeps both: a later ``torch.set_num_threads`` holds."""
+    import torch
+
+    count = torch.get_num_threads()
+    numba.get_num_threads()
+    torch.set_num_threads(count)
+
+
+_launch_threads_keeping_torch_count()
+
+
 def jit(*args, **options):
     """``numba.njit`` with ``cache=True`` (and any other njit option), stamped by this module."""
     return numba.njit(*args, cache=True, **options)

@@ -58,3 +58,31 @@ def test_importing_fishsim_after_numba_leaves_numba_working(numba_state, tmp_pat
     assert result == "2"
     if numba_state == "idle":
         assert threads == "1"
+
+
+SET_IN_PYTHON = """
+import numba, numpy as np, torch
+import fishsim.compiled
+torch.set_num_threads(1)
+torch.get_num_threads()                 # torch's pool in use, as after any op
+
+@numba.njit(parallel=True)
+def ids(n):
+    out = np.zeros(n, np.int64)
+    for i in numba.prange(n):
+        out[i] = numba.get_thread_id()
+    return out
+
+ids(1000)
+print(torch.get_num_threads(), numba.get_num_threads())
+"""
+
+
+def test_torch_set_num_threads_holds_after_numbas_threads_start():
+    """numba's OpenMP layer sets the shared OpenMP count when its pool starts; fishsim starts the
+    pool on import and gives torch its count back, so a torch.set_num_threads(1) made in Python
+    (no environment variable) still holds after a parallel kernel, and numba keeps its 2 threads."""
+    env = {k: v for k, v in os.environ.items() if k != "OMP_NUM_THREADS"}
+    env["NUMBA_NUM_THREADS"] = "2"
+    out = subprocess.run([sys.executable, "-c", SET_IN_PYTHON], env=env, capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["1", "2"]
