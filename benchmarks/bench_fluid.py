@@ -9,7 +9,9 @@ with wall bands; rho = 50, mu = 0.125 mPa s.  The flow is warmed up for ``warmup
 threads as torch is configured.  Backward: gradient of the final kinetic energy w.r.t. the wave
 amplitude (through mask velocity) after one step.
 
-``validation()`` (part of ``run()``, also callable alone) re-measures the validation figures of
+``kernel_parts()`` (part of ``run()``) times the compiled step's parts per call at B = 1 (the
+per-phase split of a numerical step: a frame at 8 sub-steps x 3 passes makes 16 predictor calls
+and 48 of each pass part). ``validation()`` (part of ``run()``, also callable alone) re-measures the validation figures of
 tests/fluid (fishsim.fluid.cases) at stated resolutions, with their wall times: the Taylor-Green
 decay-rate error, the lid-driven cavity vs Ghia et al. (64 x 64), and the Re = 100 cylinder
 (Strouhal number, mean C_D, C_L amplitude) at the CI-reduced size and at a larger one, and on the
@@ -228,9 +230,58 @@ def validation(large: bool = True) -> dict:
     return out
 
 
+def kernel_parts(warmup: int = 30, repeats: int = 200) -> dict:
+    """ms per call of the compiled numerical step's parts (fishsim/fluid/kernels.py) on the
+    warmed-up fish flow of ``bench_case``, B = 1, one thread, best of 5 blocks: the predictor and
+    its adjoint (16 calls a frame each at 8 sub-steps), one penalise + divergence pass, one
+    Poisson solve (DCT along x, Thomas sweeps along y, inverse DCT) and one gradient subtraction
+    (48 each a frame at 3 passes)."""
+    import numpy as np
+
+    from fishsim.fluid import kernels as K
+    from fishsim.linalg.dct import inverse_array, neumann_inverse
+
+    amp = torch.tensor(TAIL_SPEED / (2 * math.pi * FREQ))
+    model = NumericalFluid(GRID)
+    state = model.initial_state(1)
+    with torch.no_grad():
+        for n in range(warmup):
+            state = model.step(state, fish_boundary(GRID, n * 0.01, amp), _params(1))
+    vx, vy = (c.numpy().reshape(1, *c.shape[-2:]).copy() for c in G.curl(state.a, GRID.dx))
+    b = [c.expand(1, 1, *c.shape[-2:]).numpy().reshape(1, *c.shape[-2:]).copy()
+         for c in G.face_masks(fish_boundary(GRID, warmup * 0.01, amp).mask)]
+    nu, dt, inv_dx, walls = np.array([2.5e-6]), np.array([0.01 / 8]), 1 / GRID.dx, (False, 0.0, 0.0, 0.0, 0.0)
+    wx, wy, gx, gy = np.empty_like(vx), np.empty_like(vy), np.zeros_like(vx), np.zeros_like(vy)
+    ux, uy, px, py = np.empty_like(vx), np.empty_like(vy), np.zeros_like(vx), np.zeros_like(vy)
+    div, phi_sum = np.empty((1, GRID.H, GRID.W), vx.dtype), np.zeros((1, GRID.H, GRID.W), vx.dtype)
+    inverse = neumann_inverse(GRID.H, GRID.W, GRID.dx, None, torch.float32)
+    g_nu, g_dt = np.zeros(1), np.zeros(1)
+    parts = {
+        "predictor": lambda: K._forward_serial(vx, vy, nu, dt, inv_dx, walls, wx, wy),
+        "predictor_adjoint": lambda: K._backward_serial(vx, vy, nu, dt, inv_dx, walls, vx, vy, gx, gy, g_nu,
+                                                        g_dt, False),
+        "penalize_divergence": lambda: K._penalize_divergence_serial(vx, vy, *b, *b, inv_dx, ux, uy, div, px, py),
+        "poisson_solve": lambda: inverse_array(div, inverse),
+        "subtract_gradient": lambda: K._subtract_gradient_serial(ux, uy, div, inv_dx, wx, wy, phi_sum),
+    }
+    out = {}
+    with _threads(1):
+        for name, fn in parts.items():
+            fn()
+            best = math.inf
+            for _ in range(5):
+                t0 = time.perf_counter()
+                for _ in range(repeats):
+                    fn()
+                best = min(best, (time.perf_counter() - t0) / repeats)
+            out[f"{name}_ms"] = best * 1e3
+    return out
+
+
 def run() -> dict:
     """All cases (the r = 2, B = 16 forward + backward: 14 s per step on the 2-core CPU)."""
     out = {"grid": f"{GRID.H}x{GRID.W}", "threads": torch.get_num_threads()}
+    out["kernel_parts_B1"] = kernel_parts()
     for r in (1, 2):
         for batch in (1, 16):
             out[f"r{r}_B{batch}"] = bench_case(r, batch)
