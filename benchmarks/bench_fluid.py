@@ -259,7 +259,7 @@ def kernel_parts(warmup: int = 30, repeats: int = 200) -> dict:
     parts = {
         "predictor": lambda: K._forward_serial(vx, vy, nu, dt, inv_dx, walls, wx, wy),
         "predictor_adjoint": lambda: K._backward_serial(vx, vy, nu, dt, inv_dx, walls, vx, vy, gx, gy, g_nu,
-                                                        g_dt, False),
+                                                        g_dt, False, False),
         "penalize_divergence": lambda: K._penalize_divergence_serial(vx, vy, *b, *b, inv_dx, ux, uy, div, px, py),
         "poisson_solve": lambda: inverse_array(div, inverse),
         "subtract_gradient": lambda: K._subtract_gradient_serial(ux, uy, div, inv_dx, wx, wy, phi_sum),

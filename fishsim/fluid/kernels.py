@@ -253,9 +253,9 @@ def _stencil_adjoint(E, c, out):
 
 
 @jit(error_model="numpy")
-def _sample_backward(vx, vy, nu, dt, inv_dx, walls, gwx, gwy, gvx, gvy, need_dt):
-    """Adds dL/dv into gvx, gvy; returns (dL/dnu, dL/dt) (dL/dt 0 unless need_dt: it recomputes
-    the fluxes). Gather form: Ex, Ey hold dL/dw of the updated (interior) faces at their places
+def _sample_backward(vx, vy, nu, dt, inv_dx, walls, gwx, gwy, gvx, gvy, need_nu, need_dt):
+    """Adds dL/dv into gvx, gvy; returns (dL/dnu, dL/dt) (dL/dnu 0 unless need_nu or need_dt: a
+    pass over the Laplacian; dL/dt 0 unless need_dt: it recomputes the fluxes). Gather form: Ex, Ey hold dL/dw of the updated (interior) faces at their places
     in P, Q (zero elsewhere), and every adjoint reads its neighbours there."""
     H, W = vx.shape[0], vy.shape[1]
     P, QT, PT, Q = _padded(vx, vy, walls)
@@ -268,11 +268,12 @@ def _sample_backward(vx, vy, nu, dt, inv_dx, walls, gwx, gwy, gvx, gvy, need_dt)
     for i in range(1, H):
         Ey[i + 2, 2:W + 2] = gwy[i]
     acc = np.zeros(W + 5, vx.dtype)      # per column (a vectorised loop), then summed
-    for E, V in ((Ex, P), (Ey, Q)):
-        for R in range(2, E.shape[0] - 2):
-            e, up, mid, down = E[R], V[R - 1], V[R], V[R + 1]
-            for C in range(2, E.shape[1] - 2):
-                acc[C] += e[C] * (mid[C - 1] + mid[C + 1] + up[C] + down[C] - four * mid[C]) * inv_dx2
+    if need_nu or need_dt:
+        for E, V in ((Ex, P), (Ey, Q)):
+            for R in range(2, E.shape[0] - 2):
+                e, up, mid, down = E[R], V[R - 1], V[R], V[R + 1]
+                for C in range(2, E.shape[1] - 2):
+                    acc[C] += e[C] * (mid[C - 1] + mid[C + 1] + up[C] + down[C] - four * mid[C]) * inv_dx2
     lap_sum, adv_sum = np.float64(acc.sum()), 0.0    # sum of dL/dw (nu lap v) / nu and of dL/dw (v.grad v)
     if need_dt:
         Fx, GxT, FyT, Gy = _fluxes(P, QT, PT, Q)
@@ -331,17 +332,17 @@ def _forward_parallel(vx, vy, nu, dt, inv_dx, walls, wx, wy):
 
 
 @jit
-def _backward_serial(vx, vy, nu, dt, inv_dx, walls, gwx, gwy, gvx, gvy, g_nu, g_dt, need_dt):
+def _backward_serial(vx, vy, nu, dt, inv_dx, walls, gwx, gwy, gvx, gvy, g_nu, g_dt, need_nu, need_dt):
     for n in range(vx.shape[0]):
         g_nu[n], g_dt[n] = _sample_backward(vx[n], vy[n], nu[n], dt[n], inv_dx, walls, gwx[n], gwy[n],
-                                            gvx[n], gvy[n], need_dt)
+                                            gvx[n], gvy[n], need_nu, need_dt)
 
 
 @jit(parallel=True)
-def _backward_parallel(vx, vy, nu, dt, inv_dx, walls, gwx, gwy, gvx, gvy, g_nu, g_dt, need_dt):
+def _backward_parallel(vx, vy, nu, dt, inv_dx, walls, gwx, gwy, gvx, gvy, g_nu, g_dt, need_nu, need_dt):
     for n in prange(vx.shape[0]):
         g_nu[n], g_dt[n] = _sample_backward(vx[n], vy[n], nu[n], dt[n], inv_dx, walls, gwx[n], gwy[n],
-                                            gvx[n], gvy[n], need_dt)
+                                            gvx[n], gvy[n], need_nu, need_dt)
 
 
 def _flat(t: Tensor) -> np.ndarray:
@@ -385,7 +386,8 @@ class Predict(torch.autograd.Function):
         gvx, gvy = torch.zeros(vx.shape, dtype=vx.dtype), torch.zeros(vy.shape, dtype=vy.dtype)
         g = np.zeros((2, nu_n.shape[0]))
         each_sample(_backward_serial, _backward_parallel, _flat(vx), _flat(vy), nu_n, dt_n, inv_dx, wall_args,
-                    _flat(gwx), _flat(gwy), _flat(gvx), _flat(gvy), g[0], g[1], bool(ctx.needs_input_grad[3]))
+                    _flat(gwx), _flat(gwy), _flat(gvx), _flat(gvy), g[0], g[1], bool(ctx.needs_input_grad[2]),
+                    bool(ctx.needs_input_grad[3]))
         g_params = []
         for (shape, is_tensor), gs, need in zip(ctx.shapes, g, ctx.needs_input_grad[2:4]):
             if not (is_tensor and need):
@@ -650,6 +652,7 @@ class SplitStep(torch.autograd.Function):
         gv = [np.array(_flat(g)) for g in (gvx, gvy)]
         gphi_all, gpen_all = _flat(gphi), (_flat(gpx), _flat(gpy))
         counts = ctx.counts
+        need_nu = bool(ctx.needs_input_grad[6])
         for i in reversed(range(len(ctx.tape))):
             v, v1, in1, in2 = ctx.tape[i]
             g_phi, g_pen, g_old = gphi_all, gpen_all, None
@@ -660,13 +663,13 @@ class SplitStep(torch.autograd.Function):
             g_w2 = _constrain_adjoint(gv, g_phi, g_pen, in2, masks, inverse, inv_dx, gmasks)
             g_v1 = [np.zeros_like(c) for c in v1]
             each_sample(_backward_serial, _backward_parallel, *v1, nu_n, dt_n, inv_dx, walls,
-                        *(0.5 * g for g in g_w2), *g_v1, g_stage, g_dt, False)
+                        *(0.5 * g for g in g_w2), *g_v1, g_stage, g_dt, need_nu, False)
             g_nu += g_stage
             g_w1 = _constrain_adjoint(g_v1, 0.5 * g_phi, tuple(0.5 * q for q in g_pen), in1, masks, inverse,
                                       inv_dx, gmasks)
             gv = [0.5 * g for g in g_w2] if g_old is None else [0.5 * g + o for g, o in zip(g_w2, g_old)]
             each_sample(_backward_serial, _backward_parallel, *v, nu_n, dt_n, inv_dx, walls, *g_w1, *gv, g_stage,
-                        g_dt, False)
+                        g_dt, need_nu, False)
             g_nu += g_stage
         shapes = (vx.shape, vy.shape, vx.shape, vy.shape)
         grads = [torch.from_numpy(g).reshape(like).sum_to_size(t.shape) if t.requires_grad else None
