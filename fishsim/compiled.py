@@ -130,9 +130,9 @@ def _launch_threads_keeping_torch_count() -> None:
     and torch split every tensor op of more than 32768 values (a 100 x 300 field's two
     components) over two threads. On a machine busy with other work such an op waited for a
     descheduled thread: 7-8 ms for a 60,000-value product in a coupled episode's backward,
-    against 0.02 ms. numba sets the count only when its pool
-    starts, and its kernels pass their own count to each parallel region, so starting it here and
-    restoring torch's count keeps both: a later ``torch.set_num_threads`` holds."""
+    against 0.02 ms. numba sets the count only when its pool starts, and its kernels pass their
+    own count to each parallel region, so starting it here and restoring torch's count keeps
+    both: a later ``torch.set_num_threads`` holds."""
     import torch
 
     count = torch.get_num_threads()
