@@ -39,6 +39,8 @@ operand (the float32 predictor ran 2x, its adjoint 2.1x slower than now: 0.42 / 
 
 from __future__ import annotations
 
+from collections import namedtuple
+
 import numpy as np
 import torch
 from numba import prange
@@ -47,15 +49,17 @@ from torch import Tensor
 from fishsim.compiled import each_sample, jit
 from fishsim.linalg.dct import inverse_array
 
+Constants = namedtuple("Constants", "zero half one two three four five six sixth five_sixths third")
+
 
 @jit(inline="always")
 def _constants(q):
-    """(0, 1/2, 1, 2, 3, 4, 5, 6, 1/6, 5/6, 1/3) in q's dtype: literals are float64 in numba, and
+    """The loops' constants (``Constants``) in q's dtype: literals are float64 in numba, and
     mixing them with float32 data makes every loop convert both ways (float32 data then ran
     slower than float64)."""
     T = q.dtype.type
-    return (T(0.0), T(0.5), T(1.0), T(2.0), T(3.0), T(4.0), T(5.0), T(6.0), T(1.0 / 6.0), T(5.0 / 6.0),
-            T(1.0 / 3.0))
+    return Constants(T(0.0), T(0.5), T(1.0), T(2.0), T(3.0), T(4.0), T(5.0), T(6.0), T(1.0 / 6.0),
+                     T(5.0 / 6.0), T(1.0 / 3.0))
 
 
 @jit(inline="always")
@@ -66,8 +70,7 @@ def _median(a, b, c):
 @jit(inline="always")
 def _koren(u, c, d, k):
     """koren(u, c, d) with k = ``_constants`` of the data's dtype."""
-    two, three, five, six = k[3], k[4], k[6], k[7]
-    return _median(c, (five * c + two * d - u) / six, _median(c, d, three * c - two * u))
+    return _median(c, (k.five * c + k.two * d - u) / k.six, _median(c, d, k.three * c - k.two * u))
 
 
 @jit(inline="always")
@@ -75,14 +78,13 @@ def _koren_grad(u, c, d, k):
     """(koren(u, c, d), d/du, d/dc, d/dd): the derivative of the candidate selected, c first on
     ties, then t = (5c + 2d - u)/6, d, 3c - 2u (selects, no branches: the loop vectorises); k =
     ``_constants`` of the data's dtype."""
-    zero, one, two, three, five, six, sixth, five_sixths, third = k[0], k[2], k[3], k[4], k[6], k[7], k[8], k[9], k[10]
-    t = (five * c + two * d - u) / six
-    v = _median(c, t, _median(c, d, three * c - two * u))
-    fc = one if v == c else zero
-    ft = one - fc if v == t else zero
-    fd = one - fc - ft if v == d else zero
-    fe = one - fc - ft - fd
-    return v, -sixth * ft - two * fe, fc + five_sixths * ft + three * fe, third * ft + fd
+    t = (k.five * c + k.two * d - u) / k.six
+    v = _median(c, t, _median(c, d, k.three * c - k.two * u))
+    fc = k.one if v == c else k.zero
+    ft = k.one - fc if v == t else k.zero
+    fd = k.one - fc - ft if v == d else k.zero
+    fe = k.one - fc - ft - fd
+    return v, -k.sixth * ft - k.two * fe, fc + k.five_sixths * ft + k.three * fe, k.third * ft + fd
 
 
 @jit(inline="always")
@@ -99,13 +101,12 @@ def _family_forward(q, T, tr0, tc0, tr1, tc1, F):
     + T[a+tr1, k+tc1]) / 2, the face value between q[a+2, k+1] and q[a+2, k+2]. Rows as 1D views,
     the upwind side as selects: the loop vectorises."""
     n, K = F.shape[1], _constants(q)
-    half, zero = K[1], K[0]
     for a in range(F.shape[0]):
         qr, out = q[a + 2], F[a]
         t0, t1 = T[a + tr0, tc0:tc0 + n], T[a + tr1, tc1:tc1 + n]
         for k in range(n):
-            U = half * (t0[k] + t1[k])
-            u, c, d = _upwind(qr, k, U >= zero)
+            U = K.half * (t0[k] + t1[k])
+            u, c, d = _upwind(qr, k, U >= K.zero)
             out[k] = U * _koren(u, c, d, K)
 
 
@@ -116,7 +117,7 @@ def _family_backward(q, T, tr0, tc0, tr1, tc1, g, gq, gT):
     sum per q entry (a gather: no flux waits for its neighbour's store)."""
     n0, n1 = g.shape
     K = _constants(q)
-    zero, half = K[0], K[1]
+    zero, half = K.zero, K.half
     w0, w1 = np.zeros(n1 + 6, dtype=q.dtype), np.zeros(n1 + 6, dtype=q.dtype)    # flux k's at k + 3
     w2, w3 = np.zeros(n1 + 6, dtype=q.dtype), np.zeros(n1 + 6, dtype=q.dtype)
     w4 = np.empty(n1, dtype=q.dtype)
@@ -224,7 +225,7 @@ def _sample_forward(vx, vy, nu, dt, inv_dx, walls, wx, wy):
     P, QT, PT, Q = _padded(vx, vy, walls)
     Fx, GxT, FyT, Gy = _fluxes(P, QT, PT, Q)
     Gx, Fy = np.ascontiguousarray(GxT.T), np.ascontiguousarray(FyT.T)    # [H+1, W+1], [H+2, W]
-    T, four = vx.dtype.type, _constants(vx)[5]
+    T, four = vx.dtype.type, _constants(vx).four
     nu, dt, inv_dx = T(nu), T(dt), T(inv_dx)
     inv_dx2 = inv_dx * inv_dx
     wx[:, :] = vx
@@ -245,7 +246,7 @@ def _sample_forward(vx, vy, nu, dt, inv_dx, walls, wx, wy):
 def _stencil_adjoint(E, c, out):
     """out[R, C] = c lap(E)[R, C] (the 5-point sum, unscaled by dx) for 1 <= R, C < shape - 1: the
     stencil is symmetric, so this is its adjoint applied to E (E zero outside the faces it acts on)."""
-    four = _constants(E)[5]
+    four = _constants(E).four
     for R in range(1, E.shape[0] - 1):
         up, mid, down, o = E[R - 1], E[R], E[R + 1], out[R]
         for C in range(1, E.shape[1] - 1):
@@ -255,11 +256,12 @@ def _stencil_adjoint(E, c, out):
 @jit(error_model="numpy")
 def _sample_backward(vx, vy, nu, dt, inv_dx, walls, gwx, gwy, gvx, gvy, need_nu, need_dt):
     """Adds dL/dv into gvx, gvy; returns (dL/dnu, dL/dt) (dL/dnu 0 unless need_nu or need_dt: a
-    pass over the Laplacian; dL/dt 0 unless need_dt: it recomputes the fluxes). Gather form: Ex, Ey hold dL/dw of the updated (interior) faces at their places
-    in P, Q (zero elsewhere), and every adjoint reads its neighbours there."""
+    pass over the Laplacian; dL/dt 0 unless need_dt: it recomputes the fluxes). Gather form: Ex,
+    Ey hold dL/dw of the updated (interior) faces at their places in P, Q (zero elsewhere), and
+    every adjoint reads its neighbours there."""
     H, W = vx.shape[0], vy.shape[1]
     P, QT, PT, Q = _padded(vx, vy, walls)
-    T, four = vx.dtype.type, _constants(vx)[5]
+    T, four = vx.dtype.type, _constants(vx).four
     nu_t, dt_t, inv_dx_t = T(nu), T(dt), T(inv_dx)
     inv_dx2 = inv_dx_t * inv_dx_t
     Ex, Ey = np.zeros_like(P), np.zeros_like(Q)
