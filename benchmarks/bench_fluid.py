@@ -69,13 +69,20 @@ def _time(fn, repeats: int) -> float:
     return (time.perf_counter() - t0) / repeats * 1e3
 
 
-def bench_case(refinement: int, batch: int, warmup: int = 30, repeats: int = 3) -> dict:
+def _developed(model: NumericalFluid, warmup: int) -> tuple[FluidState, torch.Tensor]:
+    """(the flow after ``warmup`` steps from rest around the undulating fish, B = 1; the wave
+    amplitude [m])."""
     amp0 = torch.tensor(TAIL_SPEED / (2 * math.pi * FREQ))
-    model = NumericalFluid(GRID, refinement=refinement)
     state = model.initial_state(1)
     with torch.no_grad():
         for n in range(warmup):
             state = model.step(state, fish_boundary(GRID, n * 0.01, amp0), _params(1))
+    return state, amp0
+
+
+def bench_case(refinement: int, batch: int, warmup: int = 30, repeats: int = 3) -> dict:
+    model = NumericalFluid(GRID, refinement=refinement)
+    state, amp0 = _developed(model, warmup)
     state = type(state)(**{k: (v.expand(batch, *v.shape[1:]).contiguous() if torch.is_tensor(v) else v)
                           for k, v in vars(state).items()})
     t = warmup * 0.01
@@ -232,7 +239,7 @@ def validation(large: bool = True) -> dict:
 
 def kernel_parts(warmup: int = 30, repeats: int = 200) -> dict:
     """ms per call of the compiled numerical step's parts (fishsim/fluid/kernels.py) on the
-    warmed-up fish flow of ``bench_case``, B = 1, one thread, best of 5 blocks: the predictor and
+    warmed-up fish flow of ``bench_case``, B = 1, one thread, best of 5 means: the predictor and
     its adjoint (16 calls a frame each at 8 sub-steps), one penalise + divergence pass, one
     Poisson solve (DCT along x, Thomas sweeps along y, inverse DCT) and one gradient subtraction
     (48 each a frame at 3 passes)."""
@@ -241,12 +248,7 @@ def kernel_parts(warmup: int = 30, repeats: int = 200) -> dict:
     from fishsim.fluid import kernels as K
     from fishsim.linalg.dct import inverse_array, neumann_inverse
 
-    amp = torch.tensor(TAIL_SPEED / (2 * math.pi * FREQ))
-    model = NumericalFluid(GRID)
-    state = model.initial_state(1)
-    with torch.no_grad():
-        for n in range(warmup):
-            state = model.step(state, fish_boundary(GRID, n * 0.01, amp), _params(1))
+    state, amp = _developed(NumericalFluid(GRID), warmup)
     vx, vy = (c.numpy().reshape(1, *c.shape[-2:]).copy() for c in G.curl(state.a, GRID.dx))
     b = [c.expand(1, 1, *c.shape[-2:]).numpy().reshape(1, *c.shape[-2:]).copy()
          for c in G.face_masks(fish_boundary(GRID, warmup * 0.01, amp).mask)]
@@ -264,18 +266,8 @@ def kernel_parts(warmup: int = 30, repeats: int = 200) -> dict:
         "poisson_solve": lambda: inverse_array(div, inverse),
         "subtract_gradient": lambda: K._subtract_gradient_serial(ux, uy, div, inv_dx, wx, wy, phi_sum),
     }
-    out = {}
     with _threads(1):
-        for name, fn in parts.items():
-            fn()
-            best = math.inf
-            for _ in range(5):
-                t0 = time.perf_counter()
-                for _ in range(repeats):
-                    fn()
-                best = min(best, (time.perf_counter() - t0) / repeats)
-            out[f"{name}_ms"] = best * 1e3
-    return out
+        return {f"{name}_ms": min(_time(fn, repeats) for _ in range(5)) for name, fn in parts.items()}
 
 
 def run() -> dict:
