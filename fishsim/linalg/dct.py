@@ -22,6 +22,13 @@ from torch import Tensor
 
 from fishsim.compiled import each_sample, jit
 
+try:  # pocketfft's transforms without scipy.fft's array-API dispatch, which costs ~50 us a call (as
+    # much as a 100 x 300 transform itself; 96 calls a frame of the numerical fluid), same results
+    from scipy.fft._pocketfft import dct as _dct
+    from scipy.fft._pocketfft import idct as _idct
+except ImportError:  # a scipy that moved them
+    _dct, _idct = sfft.dct, sfft.idct
+
 
 def _phase(N: int, sign: float, like: Tensor) -> Tensor:
     k = torch.arange(N, device=like.device, dtype=like.dtype)
@@ -192,7 +199,7 @@ def inverse_array(x: np.ndarray, inverse: NeumannInverse) -> np.ndarray:
     rows split over threads cost more than they save (100 x 300, B = 1, a numerical step with 2
     workers took 53 against 25 ms forward)."""
     workers = min(torch.get_num_threads(), x.shape[0])
-    F = sfft.dct(x, type=2, axis=-1, workers=workers)
+    F = _dct(x, type=2, axis=-1, workers=workers)
     each_sample(_tridiagonal_serial, _tridiagonal_parallel, F, inverse.pivots, inverse.dx)
-    y = sfft.idct(F, type=2, axis=-1, workers=workers, overwrite_x=True)
+    y = _idct(F, type=2, axis=-1, workers=workers, overwrite_x=True)
     return np.ascontiguousarray(y, dtype=x.dtype)
