@@ -19,9 +19,13 @@ from __future__ import annotations
 import ast
 import functools
 import hashlib
+import itertools
+import threading
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numba
+import numpy as np
 from numba.core import caching
 
 PACKAGE = Path(__file__).resolve().parent
@@ -144,15 +148,80 @@ _launch_threads_keeping_torch_count()
 
 
 def jit(*args, **options):
-    """``numba.njit`` with ``cache=True`` (and any other njit option), stamped by this module."""
-    return numba.njit(*args, cache=True, **options)
+    """``numba.njit`` with ``cache=True`` and ``nogil=True`` (and any other njit option), stamped
+    by this module. Compiled code releases the GIL, so Python threads can run it side by side
+    (``in_sample_chunks``)."""
+    return numba.njit(*args, cache=True, nogil=True, **options)
+
+
+_thread = threading.local()
 
 
 def each_sample(serial, parallel, *args) -> None:
     """Runs a compiled kernel over the samples of a batch, the first argument a batched array
     [N, ...]: ``serial`` (a loop over the samples) for one sample, which runs in the calling thread
     (a parallel region's start costs more than one sample's pass, and its spinning threads slow a
-    busy machine), else ``parallel``, the same loop with ``numba.prange``. Both call one
-    per-sample kernel whose loops are serial and in a fixed order, so a sample's result does not
-    depend on its batch."""
-    (serial if args[0].shape[0] == 1 else parallel)(*args)
+    busy machine), or in a thread of ``in_sample_chunks``, else ``parallel``, the same loop with
+    ``numba.prange``. Both call one per-sample kernel whose loops are serial and in a fixed order,
+    so a sample's result does not depend on its batch."""
+    (serial if args[0].shape[0] == 1 or serial_here() else parallel)(*args)
+
+
+def serial_here() -> bool:
+    """Whether this thread is one of ``in_sample_chunks``' (its kernels and transforms then run
+    serially: the chunks are the parallelism)."""
+    return getattr(_thread, "serial", False)
+
+
+def _serial_call(fn, args):
+    _thread.serial = True
+    try:
+        return fn(*args)
+    finally:
+        _thread.serial = False
+
+
+@functools.cache
+def _pool(threads: int) -> ThreadPoolExecutor:
+    return ThreadPoolExecutor(threads, thread_name_prefix="fishsim-samples")
+
+
+def sample_chunks(N: int) -> list[slice]:
+    """The contiguous chunks of N samples ``in_sample_chunks`` runs: one per torch thread (at most
+    N), sizes differing by at most one."""
+    threads = max(1, min(torch_threads(), N))
+    bounds = [N * k // threads for k in range(threads + 1)]
+    return [slice(a, b) for a, b in itertools.pairwise(bounds)]
+
+
+def torch_threads() -> int:
+    import torch
+
+    return torch.get_num_threads()
+
+
+def in_sample_chunks(fn, chunks: list[slice], *args, each: list | None = None) -> list:
+    """[fn(*args sliced to chunk) for chunk in chunks], the chunks run in parallel Python threads
+    whose compiled kernels (``each_sample``) and DCTs are serial; a single chunk runs in the
+    calling thread as it is. args: numpy arrays [N, ...] (sliced along their first axis), lists
+    and tuples of them (sliced element-wise), anything else passed whole; each: one more first
+    argument per chunk (e.g. what the chunk's forward kept for its backward).
+
+    Why: a batch's passes each run over all its samples (16 fish: 23 MB of fields, past the L2
+    caches), and numba's parallel regions leave their OpenMP threads spinning after each one, so
+    the DCTs' own worker threads that follow had to wait for a core (an in-episode DCT took 2.4x
+    its time alone). One thread per chunk runs the chunk's passes back to back, neither."""
+    calls = [((each[k],) if each is not None else ()) + tuple(_slice(a, c) for a in args)
+             for k, c in enumerate(chunks)]
+    if len(chunks) == 1:
+        return [fn(*calls[0])]
+    jobs = [_pool(len(chunks)).submit(_serial_call, fn, call) for call in calls]
+    return [job.result() for job in jobs]
+
+
+def _slice(a, chunk: slice):
+    if isinstance(a, np.ndarray):
+        return a[chunk]
+    if isinstance(a, (list, tuple)):
+        return type(a)(_slice(x, chunk) for x in a)
+    return a

@@ -30,7 +30,11 @@ P, Q are vx, vy with their ghost layers ([H+4, W+5], [H+5, W+4] per sample) and 
 transposes, so that every flux family runs along the rows of one array. Each sample's loops are
 serial and in a fixed order (its result does not depend on its batch); every kernel runs the samples
 of a batch in parallel over numba's threads and a single sample in the calling thread
-(``fishsim.compiled.each_sample``: a parallel region's start costs more than one sample's pass).
+(``fishsim.compiled.each_sample``: a parallel region's start costs more than one sample's pass),
+except in ``SplitStep``, which cuts a batch into one chunk per torch thread and runs each chunk's
+whole step, forward or adjoint, in a Python thread of its own (``compiled.in_sample_chunks``; 16
+fish on 100 x 300, two threads: a step 257-296 -> 180-233 ms forward, 568-801 -> 351-458 ms
+forward + backward).
 Grids need at least 3 cells a side. Arithmetic runs in the data's dtype (``_constants``; nu, dt and
 1/dx cast on entry): numba's literals are float64, and float32 data mixed with them converted every
 operand (the float32 predictor ran 2x, its adjoint 2.1x slower than now: 0.42 / 1.15 against 0.17 /
@@ -46,7 +50,7 @@ import torch
 from numba import prange
 from torch import Tensor
 
-from fishsim.compiled import each_sample, jit
+from fishsim.compiled import each_sample, in_sample_chunks, jit, sample_chunks
 from fishsim.linalg.dct import inverse_array
 
 Constants = namedtuple("Constants", "zero half one two three four five six sixth five_sixths third")
@@ -599,6 +603,62 @@ def _substep(v, masks, nu, dt, inv_dx, walls, inverse, passes):
     return v2, 0.5 * phi1 + phi2, tuple(0.5 * a + b for a, b in zip(pen1, pen2)), (v1, in1, in2)
 
 
+def _steps(v, masks, nu_n, dt_n, counts, inv_dx, walls, inverse, passes, keep):
+    """``SplitStep``'s sub-step loop on numpy samples (v, masks as there, flattened; counts [N] the
+    samples' sub-step counts): returns (v', sum of phi, sum of pen (x, y), the tape: each
+    sub-step's input and ``_substep``'s inner states if keep, else empty)."""
+    tape, phi_sum, pen_sum = [], 0.0, (0.0, 0.0)
+    for i in range(int(counts.max())):
+        new, phi, pen, inner = _substep(v, masks, nu_n, dt_n, inv_dx, walls, inverse, passes)
+        if keep:
+            tape.append((v, *inner))
+        if i >= counts.min():                    # samples past their own count keep their state
+            on = (i < counts).reshape(-1, 1, 1)
+            new = tuple(np.where(on, c, o) for c, o in zip(new, v))
+            phi, pen = phi * on, tuple(q * on for q in pen)
+        v, phi_sum = new, phi_sum + phi
+        pen_sum = tuple(s + q for s, q in zip(pen_sum, pen))
+    return v, phi_sum, pen_sum, tape
+
+
+def _steps_adjoint(tape, gv, gphi_all, gpen_all, masks, counts, nu_n, dt_n, inv_dx, walls, inverse, need_nu):
+    """The adjoint of ``_steps`` from its tape, for dL/d(v', phi sum, pen sum) = (gv, gphi_all,
+    gpen_all): returns (dL/dv, dL/d(b_x, b_y, v_d,x, v_d,y), dL/dnu per sample [N] (zeros unless
+    need_nu))."""
+    gmasks = tuple(np.zeros_like(m) for m in masks)
+    g_nu, g_stage, g_dt = np.zeros(len(nu_n)), np.zeros(len(nu_n)), np.zeros(len(nu_n))
+    gv = [np.array(g) for g in gv]
+    for i in reversed(range(len(tape))):
+        v, v1, in1, in2 = tape[i]
+        g_phi, g_pen, g_old = gphi_all, gpen_all, None
+        if i >= counts.min():
+            on = (i < counts).reshape(-1, 1, 1)
+            g_old = [g * ~on for g in gv]
+            gv, g_phi, g_pen = [g * on for g in gv], g_phi * on, tuple(q * on for q in g_pen)
+        g_w2 = _constrain_adjoint(gv, g_phi, g_pen, in2, masks, inverse, inv_dx, gmasks)
+        g_v1 = [np.zeros_like(c) for c in v1]
+        each_sample(_backward_serial, _backward_parallel, *v1, nu_n, dt_n, inv_dx, walls,
+                    *(0.5 * g for g in g_w2), *g_v1, g_stage, g_dt, need_nu, False)
+        g_nu += g_stage
+        g_w1 = _constrain_adjoint(g_v1, 0.5 * g_phi, tuple(0.5 * q for q in g_pen), in1, masks, inverse,
+                                  inv_dx, gmasks)
+        gv = [0.5 * g for g in g_w2] if g_old is None else [0.5 * g + o for g, o in zip(g_w2, g_old)]
+        each_sample(_backward_serial, _backward_parallel, *v, nu_n, dt_n, inv_dx, walls, *g_w1, *gv, g_stage,
+                    g_dt, need_nu, False)
+        g_nu += g_stage
+    return gv, gmasks, g_nu
+
+
+def _joined(parts: list):
+    """The chunks' results put back together along the samples: arrays concatenated, lists and
+    tuples element-wise; one chunk's as it is."""
+    if len(parts) == 1:
+        return parts[0]
+    if isinstance(parts[0], (list, tuple)):
+        return type(parts[0])(_joined(list(p)) for p in zip(*parts))
+    return np.concatenate(parts)
+
+
 class SplitStep(torch.autograd.Function):
     """The sub-steps of one split-scheme step (``NumericalFluid``'s loop over ``_substep`` with
     ``_constrain``'s K passes), compiled loops with hand-written adjoints, in one call: per
@@ -622,21 +682,14 @@ class SplitStep(torch.autograd.Function):
         masks = tuple(_flat(t.expand_as(w)) for t, w in ((bx, vx), (by, vy), (dx_, vx), (dy_, vy)))
         nu_n, dt_n = _per_sample(nu, vx), _per_sample(dt, vx)
         counts = np.repeat(n.numpy(), vx.shape[1])                       # per flattened sample
-        v, tape = (_flat(vx), _flat(vy)), []
-        phi_sum, pen_sum = 0.0, (0.0, 0.0)
-        keep = any(ctx.needs_input_grad)
-        for i in range(int(counts.max())):
-            new, phi, pen, inner = _substep(v, masks, nu_n, dt_n, 1.0 / dx, wall_args, inverse, passes)
-            if keep:
-                tape.append((v, *inner))
-            if i >= counts.min():                    # samples past their own count keep their state
-                on = (i < counts).reshape(-1, 1, 1)
-                new = tuple(np.where(on, c, o) for c, o in zip(new, v))
-                phi, pen = phi * on, tuple(q * on for q in pen)
-            v, phi_sum = new, phi_sum + phi
-            pen_sum = tuple(s + q for s, q in zip(pen_sum, pen))
+        args = (1.0 / dx, wall_args, inverse, passes)
+        chunks = sample_chunks(len(counts))
+        out = in_sample_chunks(_steps, chunks, (_flat(vx), _flat(vy)), masks, nu_n, dt_n, counts, *args,
+                               any(ctx.needs_input_grad))
+        v, phi_sum, pen_sum = (_joined([o[k] for o in out]) for k in range(3))
         ctx.save_for_backward(vx, vy, bx, by, dx_, dy_)
-        ctx.tape, ctx.counts, ctx.args = tape, counts, (nu_n, dt_n, 1.0 / dx, wall_args, inverse)
+        ctx.tapes, ctx.chunks, ctx.counts = [o[3] for o in out], chunks, counts
+        ctx.args = (nu_n, dt_n, *args[:3])
         ctx.nu_shape = (torch.as_tensor(nu).shape, isinstance(nu, torch.Tensor))
         phi_shape = (*vx.shape[:-1], vx.shape[-1] - 1)
         return (*(torch.from_numpy(a).reshape(shape) for a, shape in zip(v, shapes)),
@@ -647,32 +700,11 @@ class SplitStep(torch.autograd.Function):
     @torch.autograd.function.once_differentiable
     def backward(ctx, gvx, gvy, gphi, gpx, gpy):
         vx, vy, *inputs = ctx.saved_tensors
-        nu_n, dt_n, inv_dx, walls, inverse = ctx.args
         masks = tuple(_flat(t.expand_as(w)) for t, w in zip(inputs, (vx, vy, vx, vy)))
-        gmasks = tuple(np.zeros_like(m) for m in masks)
-        g_nu, g_stage, g_dt = np.zeros(len(nu_n)), np.zeros(len(nu_n)), np.zeros(len(nu_n))
-        gv = [np.array(_flat(g)) for g in (gvx, gvy)]
-        gphi_all, gpen_all = _flat(gphi), (_flat(gpx), _flat(gpy))
-        counts = ctx.counts
-        need_nu = bool(ctx.needs_input_grad[6])
-        for i in reversed(range(len(ctx.tape))):
-            v, v1, in1, in2 = ctx.tape[i]
-            g_phi, g_pen, g_old = gphi_all, gpen_all, None
-            if i >= counts.min():
-                on = (i < counts).reshape(-1, 1, 1)
-                g_old = [g * ~on for g in gv]
-                gv, g_phi, g_pen = [g * on for g in gv], g_phi * on, tuple(q * on for q in g_pen)
-            g_w2 = _constrain_adjoint(gv, g_phi, g_pen, in2, masks, inverse, inv_dx, gmasks)
-            g_v1 = [np.zeros_like(c) for c in v1]
-            each_sample(_backward_serial, _backward_parallel, *v1, nu_n, dt_n, inv_dx, walls,
-                        *(0.5 * g for g in g_w2), *g_v1, g_stage, g_dt, need_nu, False)
-            g_nu += g_stage
-            g_w1 = _constrain_adjoint(g_v1, 0.5 * g_phi, tuple(0.5 * q for q in g_pen), in1, masks, inverse,
-                                      inv_dx, gmasks)
-            gv = [0.5 * g for g in g_w2] if g_old is None else [0.5 * g + o for g, o in zip(g_w2, g_old)]
-            each_sample(_backward_serial, _backward_parallel, *v, nu_n, dt_n, inv_dx, walls, *g_w1, *gv, g_stage,
-                        g_dt, need_nu, False)
-            g_nu += g_stage
+        out = in_sample_chunks(_steps_adjoint, ctx.chunks, [_flat(g) for g in (gvx, gvy)], _flat(gphi),
+                               (_flat(gpx), _flat(gpy)), masks, ctx.counts, *ctx.args,
+                               bool(ctx.needs_input_grad[6]), each=ctx.tapes)
+        gv, gmasks, g_nu = (_joined([o[k] for o in out]) for k in range(3))
         shapes = (vx.shape, vy.shape, vx.shape, vy.shape)
         grads = [torch.from_numpy(g).reshape(like).sum_to_size(t.shape) if t.requires_grad else None
                  for g, like, t in zip(gmasks, shapes, inputs)]

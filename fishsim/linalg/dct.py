@@ -20,7 +20,7 @@ import torch
 from numba import prange
 from torch import Tensor
 
-from fishsim.compiled import each_sample, jit
+from fishsim.compiled import each_sample, jit, serial_here
 
 try:  # pocketfft's transforms without scipy.fft's array-API dispatch, which costs ~50 us a call (as
     # much as a 100 x 300 transform itself; 96 calls a frame of the numerical fluid), same results
@@ -197,8 +197,8 @@ def inverse_array(x: np.ndarray, inverse: NeumannInverse) -> np.ndarray:
     """``apply_inverse`` on numpy arrays (CPU): L^+ x for x [N, H, W], a new C-contiguous array of
     x's dtype (x is not changed). The transforms use up to one thread per sample: one sample's
     rows split over threads cost more than they save (100 x 300, B = 1, a numerical step with 2
-    workers took 53 against 25 ms forward)."""
-    workers = min(torch.get_num_threads(), x.shape[0])
+    workers took 53 against 25 ms forward), and one in a thread of ``compiled.in_sample_chunks``."""
+    workers = 1 if serial_here() else min(torch.get_num_threads(), x.shape[0])
     F = _dct(x, type=2, axis=-1, workers=workers)
     each_sample(_tridiagonal_serial, _tridiagonal_parallel, F, inverse.pivots, inverse.dx)
     y = _idct(F, type=2, axis=-1, workers=workers, overwrite_x=True)

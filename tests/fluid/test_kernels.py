@@ -5,8 +5,9 @@ batch independence."""
 import pytest
 import torch
 
+from fishsim import compiled
 from fishsim.fields import Boundary, FluidParams, FluidState, Grid
-from fishsim.fluid import numerical
+from fishsim.fluid import kernels, numerical
 from fishsim.fluid.grid import FREE_SLIP, NO_SLIP, WallBC, advection, laplacian_faces, zero_walls
 from fishsim.fluid.kernels import Predict
 from fishsim.fluid.numerical import NumericalFluid
@@ -96,3 +97,17 @@ def test_split_step_matches_the_torch_loop_and_its_adjoint(passes, dtype, tol, m
     names = ["a", "p", "pen_x", "pen_y", "da", "dmask", "dvelocity", "dmu"]
     for name, x, y in zip(names, got, want):
         assert x.shape == y.shape and (x - y).abs().max() <= tol * y.abs().max(), name
+
+
+def test_split_step_in_sample_chunks_equals_one_thread(monkeypatch):
+    """With two torch threads SplitStep runs its two samples (of different sub-step counts) as two
+    chunks in two Python threads (compiled.in_sample_chunks), forward and adjoint: the outputs
+    and the vector-Jacobian product equal one thread's, bit for bit."""
+    one = _step_outputs(3, torch.float32, True, monkeypatch)
+    chunks = []
+    monkeypatch.setattr(kernels, "sample_chunks", lambda N: chunks.append(compiled.sample_chunks(N)) or chunks[-1])
+    torch.set_num_threads(2)
+    two = _step_outputs(3, torch.float32, True, monkeypatch)
+    assert chunks == [[slice(0, 1), slice(1, 2)]]
+    for name, x, y in zip(["a", "p", "pen_x", "pen_y", "da", "dmask", "dvelocity", "dmu"], one, two):
+        assert torch.equal(x, y), name
