@@ -16,15 +16,15 @@ Measured for scale: the default HydroNet episode peaks at 0.88 GB (estimate 0.62
 gradients); a 500-frame HydroNet gradient episode at 0.98 GB (estimate 1.5 GB).
 
 The time of an episode (seconds), calibrated on this project's 2-core CPU with nothing else
-running (default fish, 60 frames: numerical fluid 84 ms a frame, of which the fluid 66 ms, the
-solid and the coupling 14 ms; HydroNet 44 ms a frame, the network 30 ms; gradient factors from
-``make bench``, 300 frames forward / backward: 19 / 89 s numerical, 18 / 25 s HydroNet):
-
-    per fish and frame  t = 14 ms (N / 1803)^1.5 + c_fluid C r^3    c_numerical = 2.2 us, c_hydronet = 1.0 us
-    episode             T frames B fish t, times g for a gradient run (g = 5.6 numerical, 2.4 HydroNet, 1.5 vacuum)
-
-(r^3: r^2 the cells of the refined grid, r the sub-steps.)  The estimate is printed before a run on
-the CPU; inside a SLURM job (``SLURM_JOB_END_TIME``) a run estimated to outlast the job is refused.
+running (default fish, 2026-11-28: numerical fluid 28-33 ms a frame at B = 1, of which the fluid
+19 ms, the solid and the coupling 9.5 ms, and 16-18 ms per fish and frame at B = 16, the solid
+and the coupling 3 ms; HydroNet ~37 ms a frame at B = 1; gradient factors from ``make bench``,
+300 frames forward / backward: 10 / 19.5 s numerical, 11 / 21 s HydroNet):
+    per fish and frame  t = 7 ms (N / 1803)^1.5 + c_fluid C r^3    c_numerical = 0.55 us, c_hydronet = 0.9 us
+    episode             T frames B fish t, times g for a gradient run (g = 3 numerical, 2.9 HydroNet, 1.5 vacuum)
+(the solid's share lies between B = 1's and a batch's, where it runs eight fish at once: within
+~35 % of both; r^3: r^2 the cells of the refined grid, r the sub-steps.)  The estimate is printed
+before a run on the CPU; inside a SLURM job (``SLURM_JOB_END_TIME``) a run estimated to outlast the job is refused.
 """
 
 from __future__ import annotations
@@ -37,9 +37,9 @@ from pathlib import Path
 from fishsim.errors import ConfigError
 
 NODES_DEFAULT, EDGE_DEFAULT, LENGTH_DEFAULT = 1803, 2.0e-3, 0.2
-SOLID_FRAME_S = 14e-3                                   # solid + coupling, default fish, one frame [s]
-FLUID_CELL_FRAME_S = {"numerical": 2.2e-6, "hydronet": 1.0e-6, "none": 0.0}
-GRADIENT_FACTOR = {"numerical": 5.6, "hydronet": 2.4, "none": 1.5}  # (forward + backward) / forward
+SOLID_FRAME_S = 7e-3                                    # solid + coupling, default fish, one frame [s]
+FLUID_CELL_FRAME_S = {"numerical": 0.55e-6, "hydronet": 0.9e-6, "none": 0.0}
+GRADIENT_FACTOR = {"numerical": 3.0, "hydronet": 2.9, "none": 1.5}  # (forward + backward) / forward
 
 
 def estimated_nodes(length: float, edge_length: float) -> int:
