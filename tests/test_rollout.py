@@ -3,6 +3,7 @@ checkpointing equals plain backprop, and the physics of a fish in the numerical 
 
 import dataclasses
 import math
+import threading
 import warnings
 
 import numpy as np
@@ -15,7 +16,7 @@ from fishsim.coupling.config import CouplingConfig
 from fishsim.episode import batch_params, build_episode
 from fishsim.errors import ConfigError, SimulationBlowUp
 from fishsim.fluid.numerical import NumericalFluid, RefinedState
-from fishsim.rollout import Swimmer, SwimState, rollout
+from fishsim.rollout import Segments, Swimmer, SwimState, rollout
 from fishsim.solid import SolverCache
 
 SMALL = ["fish.edge_length=4e-3", "tank.H=32", "tank.W=96", "tank.dx=6e-3", "origin=[0.2,0.096]",
@@ -433,6 +434,31 @@ def test_gradient_is_deterministic_across_runs_and_thread_counts(fluid):
         torch.set_num_threads(threads)
     assert one == again
     assert abs(two - one) <= (1e-8 if fluid == "hydronet" else 1e-10) * abs(one)
+
+
+def test_recomputing_the_previous_segment_in_the_background_gives_the_same_gradient(monkeypatch):
+    """The checkpointed backward recomputes segment k - 1 in a background thread while segment k
+    is differentiated (rollout.Segments; a batch of one on two torch threads): the gradient
+    equals that of recomputing each segment in turn, bit for bit, and the earlier segments were
+    recomputed in the other thread."""
+    cfg, sw, ep = small_swimmer(["fluid=numerical"])
+    torch.set_num_threads(2)                            # the fixture restores one
+    threads = []
+    recompute = Segments.recompute
+    monkeypatch.setattr(Segments, "recompute",
+                        lambda self, k: threads.append(threading.current_thread().name) or recompute(self, k))
+
+    def grad():
+        omega = torch.tensor([2 * math.pi * 5.0], dtype=torch.float64, requires_grad=True)
+        d = head_distance(sw, cfg, ep, omega, torch.tensor([6.0], dtype=torch.float64),
+                          torch.tensor([6e5], dtype=torch.float64), 6)           # 3 segments of 2 frames
+        return torch.autograd.grad(d, omega)[0]
+
+    background = grad()
+    assert threads[0] == threading.current_thread().name and all("recompute" in n for n in threads[1:])
+    assert len(threads) == 3
+    monkeypatch.setattr(Segments, "prefetch", lambda self, k: None)
+    assert torch.equal(background, grad())
 
 
 def test_a_refined_fluid_keeps_its_fine_flow_across_checkpoint_segments():

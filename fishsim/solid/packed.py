@@ -28,6 +28,8 @@ NaN) is flagged alone. The two widths agree up to round-off (the dot products' o
 
 from __future__ import annotations
 
+import threading
+
 import numba
 import numpy as np
 from numba.extending import overload
@@ -404,7 +406,7 @@ class PackBand:
         self.arrays = (np.ascontiguousarray(newton_band.slot), diagonal,
                        np.concatenate([mass_diag, np.ones(layout.rows - n)]), layout.width, layout.perm,
                        layout.inverse)
-        self._room = None
+        self._room = threading.local()
 
     def shape(self, packs: int, lanes: int = LANES) -> tuple:
         """The factors' array shape for `packs` packs of `lanes` lanes: [packs, rows, cols, lanes]."""
@@ -412,13 +414,16 @@ class PackBand:
 
     def empty(self, packs: int, lanes: int = LANES) -> np.ndarray:
         """Room for the factors of `packs` packs of `lanes` lanes (shape), 64-byte aligned (one
-        vector per cache line). The room is kept and reused by the next call (so a step does not
-        fault in ~6 MB of fresh pages per pack): a caller's factors live until then."""
+        vector per cache line). The room is kept and reused by the thread's next call (so a step
+        does not fault in ~6 MB of fresh pages per pack): a caller's factors live until then.
+        One room per thread: a backward's adjoint and the recomputation beside it
+        (rollout.Segments) each have their own."""
         shape = self.shape(packs, lanes)
         size = int(np.prod(shape))
-        if self._room is None or len(self._room) < size:
-            self._room = aligned_empty((size,))
-        return self._room[:size].reshape(shape)
+        room = getattr(self._room, "array", None)
+        if room is None or len(room) < size:
+            room = self._room.array = aligned_empty((size,))
+        return room[:size].reshape(shape)
 
 
 def aligned_empty(shape: tuple) -> np.ndarray:
