@@ -127,12 +127,14 @@ class FluidModel(Protocol):
 
     Implemented by ``fishsim.fluid.numerical.NumericalFluid``,
     ``fishsim.fluid.hydronet.HydroNetFluid`` and ``fishsim.fluid.vacuum.Vacuum`` (no fluid);
-    callers never branch on which they hold, only on ``exerts_force``.
+    callers never branch on which they hold, only on ``exerts_force`` (and, for speed,
+    ``threads_per_sample``).
     ``step`` is differentiable with torch autograd and never mutates its inputs.
     """
 
     grid: Grid
     exerts_force: bool  # False only for the vacuum (fishsim.fluid.vacuum): no coupling needed
+    threads_per_sample: bool  # its step spreads one sample over torch's threads (HydroNet's convolutions)
 
     def initial_state(self, batch: int, device=None, dtype=torch.float32) -> FluidState:
         """Fluid at rest: a = 0, p = 0."""

@@ -456,8 +456,10 @@ class Segments:
     with a graph) is about half of its backward and depends only on the segment's inputs, so on
     two cores it runs beside the adjoints instead of before them. Same operations, same order:
     the gradients are those of a recomputation in turn, bit for bit. ``background``: whether to
-    (the rollout's choice: only when its batch leaves a torch thread idle, B < threads; a batch
-    that fills them gained nothing and lost cache: 16 fish, 12 frames, 6.3 -> 9.6 s backward)."""
+    (the rollout's choice: only when its batch leaves a torch thread idle, B < threads, with a
+    fluid that runs a sample on one thread; a batch that fills them, or HydroNet, whose
+    convolutions use every thread, gained nothing and lost cache: 16 fish, 12 frames, 6.3 -> 9.6 s
+    backward; HydroNet, B = 1, 300 frames: 22.5-24.0 -> 20.2-25.5 s)."""
 
     def __init__(self, background: bool):
         self.background = background
@@ -562,7 +564,8 @@ def rollout(swimmer: Swimmer, state: SwimState, params: SwimParams, n_frames: in
     solutions: dict[int, SwimState] = {}      # frame -> forward solution, replayed in recomputation
     cache = SolverCache() if cache is None else cache
 
-    tensors, chunks, segments = state.tensors(), [], Segments(background=state.q.shape[0] < torch.get_num_threads())
+    idle = state.q.shape[0] < torch.get_num_threads() and not getattr(swimmer.fluid, "threads_per_sample", True)
+    tensors, chunks, segments = state.tensors(), [], Segments(background=idle)
     n_state = len(tensors)
 
     def run_frames(t0: int, count: int, anchor: float, *tensors: Tensor):

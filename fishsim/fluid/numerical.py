@@ -337,6 +337,7 @@ class NumericalFluid:
     """
 
     exerts_force = True
+    threads_per_sample = False   # one thread a sample (kernels.SplitStep)
 
     def __init__(
         self,

@@ -16,6 +16,7 @@ class Vacuum:
     that describe the tank; nothing is computed on it."""
 
     exerts_force = False
+    threads_per_sample = False
 
     def __init__(self, grid: Grid):
         self.grid = grid

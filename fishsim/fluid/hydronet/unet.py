@@ -217,6 +217,7 @@ class HydroNetFluid:
     """
 
     exerts_force = True
+    threads_per_sample = True
 
     def __init__(self, model: HydroNet, grid: Grid, bf16: bool = False, pressure: str = NETWORK,
                  recovery: RecoveryConfig | None = None):
