@@ -6,8 +6,10 @@ frame, over ``FISHSIM_BENCH_FRAMES_B16`` = 30 frames), for each fluid model; plu
 travelled in 1.2 s at 3-7 Hz (the paper's Fig. 4 in preview, free swimming), and the peak memory of
 a ``FISHSIM_BENCH_FRAMES_LONG`` = 500-frame HydroNet episode (checkpointed every 10 frames), the
 HydroNet B = 1 episode with its bfloat16 trunk (``fluid.bf16=true``), and with the recovered
-pressure instead of the network's own (``fluid.pressure=recovered``: timing and distances).
-``FISHSIM_BENCH_FRAMES`` shortens the episode for a quick look.
+pressure instead of the network's own (``fluid.pressure=recovered``: timing and distances); and
+for each fluid the optimisers' unit of work as ``fishsim optimize`` runs it (issue 21): an Adam
+iteration of the paper's 500 frames (B = 1, forward + backward) and a CMA-ES generation of 16 fish
+over 500 frames. ``FISHSIM_BENCH_FRAMES`` shortens the episode for a quick look.
 
 Each measurement runs in a fresh process: memory freed by an earlier one stays resident in the
 allocator, so a shared process would report the largest earlier peak instead of its own."""
@@ -15,12 +17,17 @@ allocator, so a shared process would report the largest earlier peak instead of 
 from __future__ import annotations
 
 import dataclasses
+import json
 import multiprocessing
 import os
+import subprocess
+import sys
+import tempfile
 import time
 import warnings
 from concurrent.futures import ProcessPoolExecutor
 from contextlib import contextmanager
+from pathlib import Path
 
 import torch
 
@@ -169,6 +176,19 @@ def distance_sweep(fluid: str, frequencies=(3.0, 4.0, 5.0, 6.0, 7.0), frames: in
     return {f"{f:g} Hz": dist for f, dist in zip(frequencies, d)}
 
 
+def optimizer_timing(fluid: str, method: str, frames: int = FRAMES_LONG, popsize: int = 16) -> dict:
+    """One iteration of ``fishsim optimize`` (``method`` adam: the paper's forward + backward of
+    ``frames`` frames, B = 1; cma: a generation of ``popsize`` fish, one batched forward), in the
+    swim tunnel, as a user runs it (a fresh process): its wall time as the optimiser reports it,
+    and J."""
+    with tempfile.TemporaryDirectory() as out:
+        subprocess.run([sys.executable, "-m", "fishsim", "optimize", f"fluid={fluid}", f"optimizer.methods=[{method}]",
+                        "optimizer.iterations=1", f"optimizer.popsize={popsize}", f"frames={frames}", "tunnel=true",
+                        f"out_dir={out}"], check=True, capture_output=True)
+        summary = json.loads((Path(out) / "summary.json").read_text())[method]
+    return {"wall_s": summary["wall_s"], "fish_frames": summary["fish_frames"], "J": summary["best_J"]}
+
+
 def _attempt(fn, *args):
     warnings.simplefilter("ignore", RuntimeWarning)
     try:
@@ -190,6 +210,9 @@ def run() -> dict:
         out[fluid] = {"B=1": _recorded(episode_timing, fluid, 1, FRAMES),
                       "B=16": _recorded(episode_timing, fluid, 16, FRAMES_B16),
                       "distance_1.2s_m": _recorded(distance_sweep, fluid)}
+    for fluid in FLUIDS:
+        out[fluid][f"Adam iteration, {FRAMES_LONG} frames"] = optimizer_timing(fluid, "adam")
+        out[fluid][f"CMA-ES generation, 16 x {FRAMES_LONG} frames"] = optimizer_timing(fluid, "cma")
     out["hydronet"][f"B=1, {FRAMES_LONG} frames"] = _recorded(episode_timing, "hydronet", 1, FRAMES_LONG)
     out["hydronet-bf16"] = {"B=1": _recorded(episode_timing, "hydronet-bf16", 1, FRAMES)}
     out["hydronet-recovered-pressure"] = {"B=1": _recorded(episode_timing, "hydronet-recovered-pressure", 1, FRAMES),
@@ -198,6 +221,4 @@ def run() -> dict:
 
 
 if __name__ == "__main__":
-    import json
-
     print(json.dumps(run(), indent=1))

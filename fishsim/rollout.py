@@ -455,11 +455,11 @@ class Segments:
     background thread while segment k is differentiated. A segment's recomputation (a forward
     with a graph) is about half of its backward and depends only on the segment's inputs, so on
     two cores it runs beside the adjoints instead of before them. Same operations, same order:
-    the gradients are those of a recomputation in turn, bit for bit. ``background``: whether to
-    (the rollout's choice: only when its batch leaves a torch thread idle, B < threads, with a
-    fluid that runs a sample on one thread; a batch that fills them, or HydroNet, whose
-    convolutions use every thread, gained nothing and lost cache: 16 fish, 12 frames, 6.3 -> 9.6 s
-    backward; HydroNet, B = 1, 300 frames: 22.5-24.0 -> 20.2-25.5 s)."""
+    the gradients are those of a recomputation in turn, bit for bit. ``background``: recompute
+    in the background at all. The rollout turns it on only when its batch leaves a torch thread
+    idle (B < threads) and its fluid runs a sample on one thread: a batch that fills the threads,
+    or HydroNet, whose convolutions use them all, gained nothing and lost cache (16 fish, 12
+    frames: backward 6.3 -> 9.6 s; HydroNet, B = 1, 300 frames: 22.5-24.0 -> 20.2-25.5 s)."""
 
     def __init__(self, background: bool):
         self.background = background
@@ -483,7 +483,7 @@ class Segments:
 
     def recompute(self, k: int) -> tuple[list[Tensor], tuple[Tensor, ...]]:
         run, saved, wanted = self.runs[k]
-        inputs = [x.requires_grad_(w) for x, w in zip((x.detach() for x in saved), wanted)]
+        inputs = [x.detach().requires_grad_(w) for x, w in zip(saved, wanted)]
         with torch.enable_grad():
             return inputs, run(*inputs)
 
