@@ -197,7 +197,7 @@ def inverse_array(x: np.ndarray, inverse: NeumannInverse) -> np.ndarray:
     """``apply_inverse`` on numpy arrays (CPU): L^+ x for x [N, H, W], a new C-contiguous array of
     x's dtype (x is not changed). The transforms use up to one thread per sample: one sample's
     rows split over threads cost more than they save (100 x 300, B = 1, a numerical step with 2
-    workers took 53 against 25 ms forward), and one in a thread of ``compiled.in_sample_chunks``."""
+    workers took 53 against 25 ms forward); in a thread of ``compiled.in_sample_chunks``, one."""
     workers = 1 if serial_here() else min(torch.get_num_threads(), x.shape[0])
     F = _dct(x, type=2, axis=-1, workers=workers)
     each_sample(_tridiagonal_serial, _tridiagonal_parallel, F, inverse.pivots, inverse.dx)
