@@ -10,10 +10,13 @@ The estimate of an episode (bytes), with B fish, C = (H r) (W r) fluid cells on 
     + B C 400 B          fluid state and the solver's / U-Net's work arrays per fish
     + B N 16 sqrt(N) B   the solid's banded Newton factors (half-bandwidth ~ sqrt(N) nodes)
     + B T (4 C + 16 N)   gradient runs: the forward solutions replayed by the checkpointed backward
-    + B S C 1 kB         gradient runs: one checkpoint segment's autograd graph (S frames)
+    + G B S C 1 kB       gradient runs: G checkpoint segments' autograd graphs (S frames; G = 2 for one
+                         fish in a fluid other than HydroNet, whose backward recomputes the previous
+                         segment beside the current one: rollout.Segments; else 1)
 
 Measured for scale: the default HydroNet episode peaks at 0.88 GB (estimate 0.62 GB without
-gradients); a 500-frame HydroNet gradient episode at 0.98 GB (estimate 1.5 GB).
+gradients); a 500-frame HydroNet gradient episode at 0.98 GB (estimate 1.5 GB); the numerical
+Table 1 episode (300 frames, 10-frame segments, B = 1) at 1.04 GB (estimate 1.26 GB).
 
 The time of an episode (seconds), calibrated on this project's 2-core CPU with nothing else
 running (default fish, 2026-11-28: numerical fluid 28-33 ms a frame at B = 1, of which the fluid
@@ -53,7 +56,8 @@ def episode_bytes(cfg, batch: int, gradient_frames: int = 0, segment: int = 25) 
     nodes = estimated_nodes(cfg.fish.length, cfg.fish.edge_length)
     total = 0.6e9 + batch * cells * 400 + batch * nodes * 16 * math.sqrt(nodes)
     if gradient_frames:
-        total += batch * gradient_frames * (4 * cells + 16 * nodes) + batch * min(segment, gradient_frames) * cells * 1e3
+        graphs = 2 if batch == 1 and cfg.fluid.model != "hydronet" else 1
+        total += batch * gradient_frames * (4 * cells + 16 * nodes) + graphs * batch * min(segment, gradient_frames) * cells * 1e3
     return total
 
 
