@@ -20,6 +20,7 @@ import ast
 import functools
 import hashlib
 import itertools
+import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -182,7 +183,9 @@ def _serial_call(fn, args):
 
 
 @functools.cache
-def _pool(threads: int) -> ThreadPoolExecutor:
+def _pool(threads: int, pid: int) -> ThreadPoolExecutor:
+    """The chunks' threads, per process (``pid``): a forked child has none of its parent's
+    threads, and its copy of the parent's pool would queue work that never runs."""
     return ThreadPoolExecutor(threads, thread_name_prefix="fishsim-samples")
 
 
@@ -215,7 +218,7 @@ def in_sample_chunks(fn, chunks: list[slice], *args, each: list | None = None) -
              for k, c in enumerate(chunks)]
     if len(chunks) == 1:
         return [fn(*calls[0])]
-    jobs = [_pool(len(chunks)).submit(_serial_call, fn, call) for call in calls]
+    jobs = [_pool(len(chunks), os.getpid()).submit(_serial_call, fn, call) for call in calls]
     return [job.result() for job in jobs]
 
 

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import os
 import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -474,7 +475,7 @@ class Segments:
     def prefetch(self, k: int) -> None:
         """Start recomputing segment k in the background (nothing for k < 0 or if started)."""
         if self.background and k >= 0 and k not in self.pending:
-            self.pending[k] = _recompute_pool().submit(self.recompute, k)
+            self.pending[k] = _recompute_pool(os.getpid()).submit(self.recompute, k)
 
     def take(self, k: int) -> tuple[list[Tensor], tuple[Tensor, ...]]:
         """(inputs, outputs) of segment k recomputed with a graph: the prefetched ones, else now."""
@@ -489,7 +490,8 @@ class Segments:
 
 
 @functools.cache
-def _recompute_pool() -> ThreadPoolExecutor:
+def _recompute_pool(pid: int) -> ThreadPoolExecutor:
+    """The background recomputation's thread, per process (``pid``; see compiled._pool)."""
     return ThreadPoolExecutor(1, thread_name_prefix="fishsim-recompute")
 
 

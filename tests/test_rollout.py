@@ -3,6 +3,7 @@ checkpointing equals plain backprop, and the physics of a fish in the numerical 
 
 import dataclasses
 import math
+import multiprocessing
 import threading
 import warnings
 
@@ -534,3 +535,18 @@ def test_the_vacuum_is_a_fluid_model_whose_episodes_checkpoint_like_any():
     assert torch.equal(back.fluid.fine_a, 2 * refined.fine_a) and torch.equal(back.tunnel, 2 * state.tunnel)
     with pytest.raises(ValueError, match="RefinedState swim state has 7 tensors, got 6"):
         state.with_tensors(tensors[:6])
+
+
+def _recomputed_in_the_background():
+    segments = Segments(background=True)
+    segments.add(lambda x: (2 * x,), (torch.ones(1),), (False,))
+    segments.prefetch(0)
+    return float(segments.take(0)[1][0])
+
+
+def test_the_background_recomputation_runs_in_a_forked_child():
+    """A forked child has none of its parent's threads: a thread pool copied from the parent
+    queued the recomputation forever. The pools are kept per process."""
+    assert _recomputed_in_the_background() == 2.0
+    with multiprocessing.get_context("fork").Pool(1) as pool:
+        assert pool.apply_async(_recomputed_in_the_background).get(timeout=30) == 2.0
