@@ -203,8 +203,9 @@ def solve(L, w, perm, inverse, r, z, x, proto):
 @numba.njit(inline="always")
 def _band_dot(band, oj, x, j, m, proto):
     """sum_{i = 1..m} L[j, i] x[j + i] per lane, in four independent partial sums: one running
-    sum would chain every multiply-add on the one before (4 cycles each), and the back
-    substitution is that chain, 2 n w long."""
+    sum chains each multiply-add on the one before (~4 cycles each), and the back substitution,
+    whose rows wait on each other, was then one chain n w long (0.20 against 0.11 ms now,
+    default fish, one sample)."""
     W = width(proto)
     s0, s1, s2, s3 = fill(proto, 0.0), fill(proto, 0.0), fill(proto, 0.0), fill(proto, 0.0)
     i = 1
