@@ -209,10 +209,9 @@ def run() -> dict:
     for fluid in FLUIDS:
         out[fluid] = {"B=1": _recorded(episode_timing, fluid, 1, FRAMES),
                       "B=16": _recorded(episode_timing, fluid, 16, FRAMES_B16),
-                      "distance_1.2s_m": _recorded(distance_sweep, fluid)}
-    for fluid in FLUIDS:
-        out[fluid][f"Adam iteration, {FRAMES_LONG} frames"] = optimizer_timing(fluid, "adam")
-        out[fluid][f"CMA-ES generation, 16 x {FRAMES_LONG} frames"] = optimizer_timing(fluid, "cma")
+                      "distance_1.2s_m": _recorded(distance_sweep, fluid),
+                      f"Adam iteration, {FRAMES_LONG} frames": optimizer_timing(fluid, "adam"),
+                      f"CMA-ES generation, 16 x {FRAMES_LONG} frames": optimizer_timing(fluid, "cma")}
     out["hydronet"][f"B=1, {FRAMES_LONG} frames"] = _recorded(episode_timing, "hydronet", 1, FRAMES_LONG)
     out["hydronet-bf16"] = {"B=1": _recorded(episode_timing, "hydronet-bf16", 1, FRAMES)}
     out["hydronet-recovered-pressure"] = {"B=1": _recorded(episode_timing, "hydronet-recovered-pressure", 1, FRAMES),

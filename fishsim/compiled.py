@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numba
 import numpy as np
+import torch
 from numba.core import caching
 
 PACKAGE = Path(__file__).resolve().parent
@@ -138,8 +139,6 @@ def _launch_threads_keeping_torch_count() -> None:
     against 0.02 ms. numba sets the count only when its pool starts, and its kernels pass their
     own count to each parallel region, so starting it here and restoring torch's count keeps
     both: a later ``torch.set_num_threads`` holds."""
-    import torch
-
     count = torch.get_num_threads()
     numba.get_num_threads()
     torch.set_num_threads(count)
@@ -182,25 +181,25 @@ def _serial_call(fn, args):
         _thread.serial = False
 
 
+def thread_pool(threads: int, name: str) -> ThreadPoolExecutor:
+    """The process's pool of ``threads`` threads named ``name`` (``in_sample_chunks``' chunks,
+    the rollout's background recomputation), made on first use. One per process: a forked child
+    has none of its parent's threads, and its copy of the parent's pool would queue work that
+    never runs."""
+    return _pool(threads, name, os.getpid())
+
+
 @functools.cache
-def _pool(threads: int, pid: int) -> ThreadPoolExecutor:
-    """The chunks' threads, per process (``pid``): a forked child has none of its parent's
-    threads, and its copy of the parent's pool would queue work that never runs."""
-    return ThreadPoolExecutor(threads, thread_name_prefix="fishsim-samples")
+def _pool(threads: int, name: str, pid: int) -> ThreadPoolExecutor:
+    return ThreadPoolExecutor(threads, thread_name_prefix=name)
 
 
 def sample_chunks(N: int) -> list[slice]:
     """The contiguous chunks of N samples ``in_sample_chunks`` runs: one per torch thread (at most
     N), sizes differing by at most one."""
-    threads = max(1, min(torch_threads(), N))
+    threads = max(1, min(torch.get_num_threads(), N))
     bounds = [N * k // threads for k in range(threads + 1)]
     return [slice(a, b) for a, b in itertools.pairwise(bounds)]
-
-
-def torch_threads() -> int:
-    import torch
-
-    return torch.get_num_threads()
 
 
 def in_sample_chunks(fn, chunks: list[slice], *args, each: list | None = None) -> list:
@@ -218,7 +217,7 @@ def in_sample_chunks(fn, chunks: list[slice], *args, each: list | None = None) -
              for k, c in enumerate(chunks)]
     if len(chunks) == 1:
         return [fn(*calls[0])]
-    jobs = [_pool(len(chunks), os.getpid()).submit(_serial_call, fn, call) for call in calls]
+    jobs = [thread_pool(len(chunks), "fishsim-samples").submit(_serial_call, fn, call) for call in calls]
     return [job.result() for job in jobs]
 
 

@@ -22,11 +22,9 @@ so on two cores the recomputation runs beside the adjoints.
 from __future__ import annotations
 
 import dataclasses
-import functools
-import os
 import time
 from collections.abc import Callable
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -34,6 +32,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from fishsim.compiled import thread_pool
 from fishsim.coupling import CouplingConfig, exchange_to_solid, fluid_to_solid, solid_to_fluid
 from fishsim.coupling.added_mass import mass_centroid, stabilise_translation, stabilising_force
 from fishsim.coupling.config import AVERAGE
@@ -475,7 +474,7 @@ class Segments:
     def prefetch(self, k: int) -> None:
         """Start recomputing segment k in the background (nothing for k < 0 or if started)."""
         if self.background and k >= 0 and k not in self.pending:
-            self.pending[k] = _recompute_pool(os.getpid()).submit(self.recompute, k)
+            self.pending[k] = thread_pool(1, "fishsim-recompute").submit(self.recompute, k)
 
     def take(self, k: int) -> tuple[list[Tensor], tuple[Tensor, ...]]:
         """(inputs, outputs) of segment k recomputed with a graph: the prefetched ones, else now."""
@@ -487,12 +486,6 @@ class Segments:
         inputs = [x.detach().requires_grad_(w) for x, w in zip(saved, wanted)]
         with torch.enable_grad():
             return inputs, run(*inputs)
-
-
-@functools.cache
-def _recompute_pool(pid: int) -> ThreadPoolExecutor:
-    """The background recomputation's thread, per process (``pid``; see compiled._pool)."""
-    return ThreadPoolExecutor(1, thread_name_prefix="fishsim-recompute")
 
 
 class CheckpointedFrames(torch.autograd.Function):
