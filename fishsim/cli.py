@@ -74,15 +74,37 @@ def _on_sigterm(signum, frame) -> None:
     raise Terminated("terminated (SIGTERM)")
 
 
+_unraisablehook_before = sys.unraisablehook
+
+
+def _resend_a_dropped_stop(unraisable) -> None:
+    """``sys.unraisablehook``: Python drops an exception raised inside a ``__del__`` or a weakref
+    callback ("Exception ignored in ..."). A stop signal landing there would be lost and the run go
+    on to its end: the signal is sent again, from a thread a moment later so that it lands in the
+    running code, not in this hook."""
+    import os
+    import signal
+    import threading
+
+    if isinstance(unraisable.exc_value, KeyboardInterrupt):
+        sig = signal.SIGTERM if isinstance(unraisable.exc_value, Terminated) else signal.SIGINT
+        threading.Timer(0.01, os.kill, (os.getpid(), sig)).start()
+    else:
+        _unraisablehook_before(unraisable)
+
+
 def _handle_stop_signals() -> None:
     """SIGTERM stops a run like SIGINT; SIGINT is handled even when the shell started the command
-    in the background with SIGINT ignored."""
+    in the background with SIGINT ignored, and a stop that Python dropped is sent again."""
     import signal
     import threading
 
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, _on_sigterm)
         signal.signal(signal.SIGINT, signal.default_int_handler)
+        if sys.unraisablehook is not _resend_a_dropped_stop:
+            global _unraisablehook_before
+            _unraisablehook_before, sys.unraisablehook = sys.unraisablehook, _resend_a_dropped_stop
 
 
 def _execute(command: str, overrides: list[str] | None, show: bool, run: Callable, config: str | None = None,

@@ -402,6 +402,25 @@ def test_stop_signals_keep_a_marked_partial_file(tmp_path, sig, code, ignored):
     assert ("SIGTERM" in tr.attrs["message"]) == (sig == signal.SIGTERM)
 
 
+@pytest.mark.parametrize("sig, code", [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+def test_a_stop_signal_landing_in_a_finalizer_still_stops_the_run(sig, code):
+    """Python drops an exception raised in a ``__del__`` or weakref callback; a stop signal that
+    lands there is sent again instead of being lost (a CI run once went on to frame 179)."""
+    start = ("import signal, sys, time, typer; from fishsim.cli import _execute\n"
+             "class Finalized:\n"
+             f"    def __del__(self): signal.raise_signal({int(sig)}); time.sleep(0.01)\n"
+             "def run(cfg):\n"
+             "    Finalized()\n"
+             "    time.sleep(30)\n"
+             "try:\n"
+             "    _execute('mesh', [], False, run)\n"
+             "except typer.Exit as stop:\n"
+             "    sys.exit(stop.exit_code)\n")
+    proc = subprocess.run([sys.executable, "-c", start], check=False, capture_output=True, text=True, timeout=25)
+    assert proc.returncode == code, proc.stderr
+    assert "Exception ignored" not in proc.stderr and "partial results were kept" in proc.stderr
+
+
 def test_debug_preset_is_a_tiny_episode(tmp_path):
     """experiment=debug: the coarse fish in a 40 x 120 tank for 20 frames (seconds)."""
     from fishsim.config import load_config
