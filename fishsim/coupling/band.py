@@ -48,6 +48,8 @@ class SurfaceBand:
     distance: "segment" or "node".
     truncated: the cells see fewer elements than the surface has (K' < S), so their soft-mins
         are tapered at the K'-th (``mask.softmin_weights``).
+    unranked: [B, P] bool, the cells left out as negligibly far (their mask is 0), or None where
+        every cell was ranked.
     """
 
     flat: Tensor
@@ -57,6 +59,7 @@ class SurfaceBand:
     nearest: Tensor
     distance: str
     truncated: bool
+    unranked: Tensor | None = None
 
 
 def band_margin(sigma: float, dx: float, decades: float = 40.0) -> int:
@@ -141,19 +144,23 @@ def surface_band(qs: Tensor, grid: Grid, margin: int, k_nearest: int = 24,
     """
     if distance not in (SEGMENT, NODE):
         raise ValueError(f"distance must be 'segment' or 'node', got {distance!r}")
-    flat, centres, (h, w) = _band_cells(qs, grid, margin)
-    origin = 0.5 * (qs.amin(1, keepdim=True) + qs.amax(1, keepdim=True))
-    centres = centres - origin
     S, k = qs.shape[1], min(k_nearest + 1, qs.shape[1])
     truncated = k_nearest + 1 < S
     if qs.device.type == "cpu":                      # compiled, in float64 (fishsim.coupling.kernels)
-        from fishsim.coupling.kernels import NEGLIGIBLE, nearest_and_inside
+        from fishsim.coupling.kernels import NEGLIGIBLE, band_cells, nearest_and_inside
 
+        flat, centres, origin, (h, w) = band_cells(qs.detach(), grid.dx, grid.H, grid.W, margin)
+        centres, origin = centres.to(qs.dtype), origin.to(qs.dtype)
         far = math.inf if sigma is None else NEGLIGIBLE * sigma
-        nearest, inside = nearest_and_inside(qs - origin, centres, k, distance == SEGMENT, w, far)
+        nearest, inside, unranked = nearest_and_inside(qs - origin, centres, k, distance == SEGMENT, w, far)
+        if sigma is None:
+            unranked = None
     else:
-        nearest, inside = torch_nearest_and_inside(qs - origin, centres, k, distance, (h, w))
-    return SurfaceBand(flat, origin, centres, inside, nearest, distance, truncated)
+        flat, centres, (h, w) = _band_cells(qs, grid, margin)
+        origin = 0.5 * (qs.amin(1, keepdim=True) + qs.amax(1, keepdim=True))
+        centres = centres - origin
+        (nearest, inside), unranked = torch_nearest_and_inside(qs - origin, centres, k, distance, (h, w)), None
+    return SurfaceBand(flat, origin, centres, inside, nearest, distance, truncated, unranked)
 
 
 def torch_nearest_and_inside(qs: Tensor, centres: Tensor, k: int, distance: str,

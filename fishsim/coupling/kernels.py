@@ -47,7 +47,56 @@ def _each_fish(one, parallel, *args) -> None:
 
 
 # ---------------------------------------------------------------------------------------------
-# The band's nearest elements and inside flags
+# The band's cells, nearest elements and inside flags
+
+
+@jit
+def _window(lo, hi, n, margin, first):
+    """band._window on the fish's extents lo, hi [B] (cell units): writes the origins into
+    first [B]; returns the common size."""
+    size = 0
+    for f in range(lo.shape[0]):
+        first[f] = math.floor(lo[f]) - margin
+        size = max(size, math.floor(hi[f]) + margin - first[f] + 1)
+    size = min(size, n)
+    for f in range(lo.shape[0]):
+        first[f] = min(max(first[f], 0), n - size)
+    return size
+
+
+@jit
+def _band_cells(q, dx, H, W, margin):
+    """band._band_cells and the band's origin for the polylines q [B, S, 2] (m): (flat [B, P],
+    centres [B, P, 2] relative to the origin, origin [B, 2] the bounding boxes' centres, h, w),
+    with the same float operations."""
+    B, S = q.shape[0], q.shape[1]
+    lo, hi = np.empty((2, B)), np.empty((2, B))
+    origin = np.empty((B, 2))
+    for f in range(B):
+        for c in range(2):
+            a, z = q[f, 0, c], q[f, 0, c]
+            for s in range(1, S):
+                a, z = min(a, q[f, s, c]), max(z, q[f, s, c])
+            lo[c, f], hi[c, f], origin[f, c] = a / dx, z / dx, 0.5 * (a + z)
+    i0, j0 = np.empty(B, np.int64), np.empty(B, np.int64)
+    h, w = _window(lo[1], hi[1], H, margin, i0), _window(lo[0], hi[0], W, margin, j0)
+    flat, centres = np.empty((B, h * w), np.int64), np.empty((B, h * w, 2))
+    for f in range(B):
+        for a in range(h):
+            for c in range(w):
+                i, j, p = i0[f] + a, j0[f] + c, a * w + c
+                flat[f, p] = i * W + j
+                centres[f, p, 0] = (j + 0.5) * dx - origin[f, 0]
+                centres[f, p, 1] = (i + 0.5) * dx - origin[f, 1]
+    return flat, centres, origin, h, w
+
+
+def band_cells(qs: Tensor, dx: float, H: int, W: int, margin: int) -> tuple[Tensor, Tensor, Tensor, tuple[int, int]]:
+    """The band's cells of the polylines qs [B, S, 2] (m, CPU): (flat indices [B, P], centres
+    [B, P, 2] relative to the origin, origin [B, 1, 2], both float64, (h, w)), band.py's window
+    and origin in one compiled pass (~10 us against ~0.2 ms of small torch operations)."""
+    flat, centres, origin, h, w = _band_cells(_f64(qs), float(dx), H, W, margin)
+    return torch.from_numpy(flat), torch.from_numpy(centres), torch.from_numpy(origin).unsqueeze(1), (h, w)
 
 
 @jit
@@ -91,12 +140,13 @@ def _beyond(box, x0, y, far):
 
 
 @jit
-def _fish_nearest(q, centres, width, segment, far, nearest, inside):
+def _fish_nearest(q, centres, width, segment, far, nearest, inside, unranked):
     """For each cell p of one fish's window (rows of ``width`` cells, row-major): its
     nearest.shape[1] nearest elements and whether its centre is inside the polyline (even-odd
     rule: crossings of the horizontal ray to +x, found once per row).  A cell outside the body
     whose squared distance to every element's bounding box exceeds ``far`` (m^2) gets the first
-    elements instead of ranking them (BandBoundary gives it b = v_d = 0: ``_far``).
+    elements instead of ranking them, flagged in ``unranked`` (BandBoundary gives it b = v_d = 0
+    without looking at its elements: ``_far`` would find them all beyond ``far``).
 
     The distance to the polyline is 1-Lipschitz, so the k-th nearest squared distance of a cell
     is at most (sqrt(D) + |x - x'|)^2 with D that of a ranked cell x': the row's previous ranked
@@ -135,7 +185,8 @@ def _fish_nearest(q, centres, width, segment, far, nearest, inside):
             for j in range(n_cross):
                 right += crossing[j] > x0
             inside[p] = right % 2 == 1
-            if not inside[p] and _beyond(box, x0, y, far):
+            unranked[p] = not inside[p] and _beyond(box, x0, y, far)
+            if unranked[p]:
                 for j in range(k):
                     nearest[p, j] = j
                 continue
@@ -172,22 +223,23 @@ def _fish_nearest(q, centres, width, segment, far, nearest, inside):
 
 
 @jit(parallel=True)
-def _nearest_parallel(q, centres, width, segment, far, nearest, inside):
+def _nearest_parallel(q, centres, width, segment, far, nearest, inside, unranked):
     for b in prange(q.shape[0]):
-        _fish_nearest(q[b], centres[b], width, segment, far, nearest[b], inside[b])
+        _fish_nearest(q[b], centres[b], width, segment, far, nearest[b], inside[b], unranked[b])
 
 
 def nearest_and_inside(qs: Tensor, centres: Tensor, k: int, segment: bool, width: int,
-                       far: float = math.inf) -> tuple[Tensor, Tensor]:
-    """The k nearest elements [B, P, k] (long, in no particular order) and inside flags [B, P] of
-    the band cells ``centres`` [B, P, 2] (a row-major window ``width`` cells wide) for the
-    polylines ``qs`` [B, S, 2] (both relative to the band's origin, m; CPU).  Cells outside the
-    body farther than sqrt(far) [m] from it get elements 0..k-1, unranked (``_fish_nearest``)."""
+                       far: float = math.inf) -> tuple[Tensor, Tensor, Tensor]:
+    """The k nearest elements [B, P, k] (long, in no particular order), inside flags [B, P] and
+    unranked flags [B, P] of the band cells ``centres`` [B, P, 2] (a row-major window ``width``
+    cells wide) for the polylines ``qs`` [B, S, 2] (both relative to the band's origin, m; CPU).
+    Cells outside the body farther than sqrt(far) [m] from it get elements 0..k-1, unranked
+    (``_fish_nearest``)."""
     q, x = _f64(qs), _f64(centres)
     B, P = x.shape[:2]
-    nearest, inside = np.empty((B, P, k), np.int64), np.empty((B, P), np.bool_)
-    _each_fish(_fish_nearest, _nearest_parallel, q, x, width, segment, float(far), nearest, inside)
-    return torch.from_numpy(nearest), torch.from_numpy(inside)
+    nearest, inside, unranked = np.empty((B, P, k), np.int64), np.empty((B, P), np.bool_), np.empty((B, P), np.bool_)
+    _each_fish(_fish_nearest, _nearest_parallel, q, x, width, segment, float(far), nearest, inside, unranked)
+    return torch.from_numpy(nearest), torch.from_numpy(inside), torch.from_numpy(unranked)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -289,11 +341,16 @@ def _far(e, inside, sigma):
 
 
 @jit
-def _fish_forward(q, qdot, centres, nearest, inside, xi, sigma, tau, harmonic, segment, truncated, b, u):
-    """b [P] and u [P, 2] of one fish's band cells (module docstring)."""
+def _fish_forward(q, qdot, centres, nearest, inside, unranked, xi, sigma, tau, harmonic, segment, truncated, b,
+                  u):
+    """b [P] and u [P, 2] of one fish's band cells (module docstring); the unranked cells (far
+    outside) b = u = 0 at once."""
     K = nearest.shape[1]
     e, t, raw, w, g = np.empty(K), np.zeros(K), np.zeros(K), np.empty(K), np.empty(K)
     for p in range(centres.shape[0]):
+        if unranked[p]:
+            b[p], u[p, 0], u[p, 1] = 0.0, 0.0, 0.0
+            continue
         _elements(q, centres[p, 0], centres[p, 1], nearest[p], segment, e, t, raw)
         if _far(e, inside[p], sigma):
             b[p], u[p, 0], u[p, 1] = 0.0, 0.0, 0.0
@@ -307,14 +364,16 @@ def _fish_forward(q, qdot, centres, nearest, inside, xi, sigma, tau, harmonic, s
 
 
 @jit
-def _fish_backward(q, qdot, centres, nearest, inside, xi, sigma, tau, harmonic, segment, truncated, b, gb, gu,
-                   gq, gqdot):
+def _fish_backward(q, qdot, centres, nearest, inside, unranked, xi, sigma, tau, harmonic, segment, truncated, b, gb,
+                   gu, gq, gqdot):
     """gq, gqdot [S, 2] += the adjoint of _fish_forward for the cotangents gb [P], gu [P, 2]."""
     S, K = q.shape[0], nearest.shape[1]
     e, t, raw, w, g = np.empty(K), np.zeros(K), np.zeros(K), np.empty(K), np.empty(K)
     gw, ge, gt = np.empty(K), np.empty(K), np.empty(K)
     floor = 1e-8 * xi
     for p in range(centres.shape[0]):
+        if unranked[p]:
+            continue
         x0, x1 = centres[p, 0], centres[p, 1]
         _elements(q, x0, x1, nearest[p], segment, e, t, raw)
         if _far(e, inside[p], sigma):
@@ -382,31 +441,35 @@ def _fish_backward(q, qdot, centres, nearest, inside, xi, sigma, tau, harmonic, 
 
 
 @jit(parallel=True)
-def _forward_parallel(q, qdot, centres, nearest, inside, xi, sigma, tau, harmonic, segment, truncated, b, u):
+def _forward_parallel(q, qdot, centres, nearest, inside, unranked, xi, sigma, tau, harmonic, segment, truncated, b,
+                      u):
     for n in prange(q.shape[0]):
-        _fish_forward(q[n], qdot[n], centres[n], nearest[n], inside[n], xi, sigma, tau, harmonic, segment,
-                      truncated, b[n], u[n])
+        _fish_forward(q[n], qdot[n], centres[n], nearest[n], inside[n], unranked[n], xi, sigma, tau, harmonic,
+                      segment, truncated, b[n], u[n])
 
 
 @jit(parallel=True)
-def _backward_parallel(q, qdot, centres, nearest, inside, xi, sigma, tau, harmonic, segment, truncated, b, gb, gu,
-                       gq, gqdot):
+def _backward_parallel(q, qdot, centres, nearest, inside, unranked, xi, sigma, tau, harmonic, segment, truncated, b,
+                       gb, gu, gq, gqdot):
     for n in prange(q.shape[0]):
-        _fish_backward(q[n], qdot[n], centres[n], nearest[n], inside[n], xi, sigma, tau, harmonic, segment,
+        _fish_backward(q[n], qdot[n], centres[n], nearest[n], inside[n], unranked[n], xi, sigma, tau, harmonic, segment,
                        truncated, b[n], gb[n], gu[n], gq[n], gqdot[n])
 
 
 class BandBoundary(torch.autograd.Function):
     """(b [B, P], u [B, P, 2]) of the band cells (module docstring) in ``dtype``, from the surface
     positions qs and velocities qdots [B, S, 2] (m, m/s; relative to the band's origin), the cell
-    centres [B, P, 2] (same origin), the elements nearest [B, P, K'] and inside [B, P] of
-    band.py's SurfaceBand; xi, sigma, tau in m^2; CPU tensors. Differentiable in qs and qdots."""
+    centres [B, P, 2] (same origin), the elements nearest [B, P, K'], inside [B, P] and unranked
+    [B, P] (or None: every cell ranked) of band.py's SurfaceBand; xi, sigma, tau in m^2; CPU
+    tensors. Differentiable in qs and qdots."""
 
     @staticmethod
-    def forward(ctx, qs: Tensor, qdots: Tensor, centres: Tensor, nearest: Tensor, inside: Tensor, xi: float,
-                sigma: float, tau: float, harmonic: bool, segment: bool, truncated: bool, dtype: torch.dtype):
+    def forward(ctx, qs: Tensor, qdots: Tensor, centres: Tensor, nearest: Tensor, inside: Tensor,
+                unranked: Tensor | None, xi: float, sigma: float, tau: float, harmonic: bool, segment: bool,
+                truncated: bool, dtype: torch.dtype):
+        flags = np.zeros(inside.shape, np.bool_) if unranked is None else np.ascontiguousarray(unranked.numpy())
         args = (_f64(qs), _f64(qdots), _f64(centres), np.ascontiguousarray(nearest.numpy()),
-                np.ascontiguousarray(inside.numpy()), float(xi), float(sigma), float(tau), bool(harmonic),
+                np.ascontiguousarray(inside.numpy()), flags, float(xi), float(sigma), float(tau), bool(harmonic),
                 bool(segment), bool(truncated))
         B, P = nearest.shape[:2]
         b, u = np.empty((B, P)), np.empty((B, P, 2))
@@ -423,7 +486,7 @@ class BandBoundary(torch.autograd.Function):
         _each_fish(_fish_backward, _backward_parallel, *args, b, gb, gu, gq, gqdot)
         q_dtype, qdot_dtype = ctx.dtypes
         return (torch.from_numpy(gq).to(q_dtype), torch.from_numpy(gqdot).to(qdot_dtype),
-                *([None] * 10))
+                *([None] * 11))
 
 
 # ---------------------------------------------------------------------------------------------

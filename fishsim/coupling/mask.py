@@ -145,8 +145,9 @@ def band_boundary(qs: Tensor, qdots: Tensor, band: SurfaceBand, grid: Grid, xi: 
 
     if mean not in (HARMONIC, ARITHMETIC):
         raise ValueError(f"mean must be 'harmonic' or 'arithmetic', got {mean!r}")
-    b, u = BandBoundary.apply(qs - band.origin, qdots, band.centres, band.nearest, band.inside, xi, sigma, tau,
-                              mean == HARMONIC, band.distance == SEGMENT, band.truncated, dtype or qs.dtype)
+    b, u = BandBoundary.apply(qs - band.origin, qdots, band.centres, band.nearest, band.inside, band.unranked, xi,
+                              sigma, tau, mean == HARMONIC, band.distance == SEGMENT, band.truncated,
+                              dtype or qs.dtype)
     return scatter_band(b.unsqueeze(1), band, grid), scatter_band(u.transpose(1, 2), band, grid)
 
 

@@ -55,7 +55,7 @@ def test_band_selection_matches_the_torch_one(distance, k_nearest):
     e_compiled, _ = element_distances(qs, band, torch.float64)
     e_torch, _ = element_distances(qs, dataclasses.replace(band, nearest=nearest), torch.float64)
     assert torch.allclose(e_compiled.sort(-1).values, e_torch.sort(-1).values, rtol=1e-5, atol=1e-12)
-    again, _ = nearest_and_inside(qs - band.origin, band.centres, k, distance == "segment", band.flat.shape[1] // h)
+    again, _, _ = nearest_and_inside(qs - band.origin, band.centres, k, distance == "segment", band.flat.shape[1] // h)
     assert torch.equal(again, band.nearest)
 
 
@@ -72,7 +72,7 @@ def test_mask_velocity_and_their_adjoint_equal_the_torch_formulas(distance, mean
     qs, qdots = bent_fish()
     band = surface_band(qs, GRID, band_margin(SIGMA, GRID.dx), k_nearest, distance)
     unranked = surface_band(qs, GRID, band_margin(SIGMA, GRID.dx), k_nearest, distance, SIGMA)
-    assert not band.truncated or (unranked.nearest != band.nearest).any()   # some cells were left unranked
+    assert band.unranked is None and bool(unranked.unranked.any())      # some cells were left unranked
     g = torch.Generator().manual_seed(5)
     cot_b = torch.randn(2, 1, GRID.H, GRID.W, generator=g, dtype=torch.float64)
     cot_v = torch.randn(2, 2, GRID.H, GRID.W, generator=g, dtype=torch.float64)
@@ -99,7 +99,7 @@ def test_mask_velocity_and_their_adjoint_equal_the_torch_formulas(distance, mean
 def test_band_boundary_gradient_against_central_differences():
     qs, qdots = bent_fish(B=1, n=30)
     band = surface_band(qs, GRID, band_margin(SIGMA, GRID.dx), 8)
-    args = (band.centres, band.nearest, band.inside, 5e-7, 5e-7, 5e-7, True, True, band.truncated, torch.float64)
+    args = (band.centres, band.nearest, band.inside, band.unranked, 5e-7, 5e-7, 5e-7, True, True, band.truncated, torch.float64)
     fn = lambda q, qd: BandBoundary.apply(q - band.origin, qd, *args)
     assert gradcheck(fn, (qs.requires_grad_(True), qdots.requires_grad_(True)), eps=1e-8, atol=1e-6, rtol=1e-4,
                      fast_mode=True)
@@ -152,3 +152,21 @@ def test_compiled_ibm_force_gradient_against_central_differences():
     fn = lambda q, pr, b: OutsidePressureForce.apply(q, pr, b, 0.05, GRID.dx, 6.25e-6, 4, True)
     assert gradcheck(fn, (qs.requires_grad_(True), p.requires_grad_(True), mask.requires_grad_(True)), eps=1e-8,
                      atol=1e-6, rtol=1e-4, fast_mode=True)
+
+
+@pytest.mark.parametrize("B", [1, 3])
+def test_band_cells_equal_the_torch_window(B):
+    """The compiled window, cell indices, centres and origin are band.py's torch ones, bit for bit
+    (float64), also for a fish whose window is clipped by the grid's edge."""
+    from fishsim.coupling.band import _band_cells
+    from fishsim.coupling.kernels import band_cells
+
+    qs, _ = bent_fish(B=B)
+    qs = qs.clone()
+    qs[-1, :, 0] -= qs[-1, :, 0].min() - 0.2 * GRID.dx              # the last one at the left edge
+    for margin in (0, 3):
+        flat, centres, (h, w) = _band_cells(qs, GRID, margin)
+        origin = 0.5 * (qs.amin(1, keepdim=True) + qs.amax(1, keepdim=True))
+        got = band_cells(qs, GRID.dx, GRID.H, GRID.W, margin)
+        assert got[3] == (h, w) and torch.equal(got[0], flat)
+        assert torch.equal(got[2], origin) and torch.equal(got[1], centres - origin)
