@@ -37,6 +37,12 @@ def _f64(t: Tensor) -> np.ndarray:
     return np.ascontiguousarray(t.detach().to(torch.float64).numpy())
 
 
+def _flat_grid(t: Tensor, B: int, cells: int) -> np.ndarray:
+    """A [B, 1, H, W] field as a C-contiguous numpy array [B, H W] of its own dtype (a view when
+    it is contiguous)."""
+    return np.ascontiguousarray(t.detach().numpy()).reshape(B, cells)
+
+
 def _each_fish(one, parallel, *args) -> None:
     """``parallel(*args)`` over a batch's fish (the arrays' leading dimension), or for a single
     fish ``one`` on its slices in the calling thread (a parallel region costs more than it saves)."""
@@ -720,9 +726,11 @@ class OutsidePressureForce(torch.autograd.Function):
 
     @staticmethod
     def arrays(qs: Tensor, p: Tensor, b: Tensor, settings: tuple) -> tuple:
-        """The kernels' arguments: float64 copies of qs, p and b ([B, H W]), then the settings."""
+        """The kernels' arguments: a float64 copy of qs, p and b as flat arrays [B, H W] in their
+        own dtype (a float32 value reads exactly into the float64 arithmetic: no copies of two
+        whole grids), then the settings."""
         B, H, W = p.shape[0], p.shape[-2], p.shape[-1]
-        return _f64(qs), _f64(p).reshape(B, H * W), _f64(b).reshape(B, H * W), *settings
+        return _f64(qs), _flat_grid(p, B, H * W), _flat_grid(b, B, H * W), *settings
 
     @staticmethod
     def forward(ctx, qs: Tensor, p: Tensor, b: Tensor, outside: float, dx: float, sigma_prime: float, radius: int,
