@@ -179,11 +179,12 @@ def torch_nearest_and_inside(qs: Tensor, centres: Tensor, k: int, distance: str,
 
 
 def scatter_band(values: Tensor, band: SurfaceBand, grid: Grid) -> Tensor:
-    """Put band values [B, C, P] into a zero grid field [B, C, H, W] (differentiable)."""
+    """Put band values [B, C, P] into a zero grid field [B, C, H, W] (differentiable; in place
+    into the fresh zeros, not into a copy of them)."""
     B, C, _ = values.shape
     out = values.new_zeros(B, C, grid.H * grid.W)
     index = band.flat.unsqueeze(1).expand(B, C, -1)
-    return out.scatter(2, index, values).view(B, C, grid.H, grid.W)
+    return out.scatter_(2, index, values).view(B, C, grid.H, grid.W)
 
 
 def gather_nodes(field: Tensor, index: Tensor) -> Tensor:
