@@ -371,27 +371,48 @@ MAX_SPEED = 20.0  # m/s: a swimming fish of this size moves < 1 m/s; beyond this
 def require_physical(q: Tensor, qdot: Tensor, grid) -> None:
     """Raise SimulationBlowUp when a fish has left the tank or a node moves faster than
     MAX_SPEED (cheap per-frame checks: a run that went unphysical must not pass as complete)."""
-    x, y = q[..., 0].detach(), q[..., 1].detach()
+    x_lo, x_hi, y_lo, y_hi, speed, _, _ = _frame_checks(q, qdot)
     W, H = grid.W * grid.dx, grid.H * grid.dx
-    if bool(((x < 0) | (x > W) | (y < 0) | (y > H)).any()):
-        raise SimulationBlowUp(f"a fish left the {W:.3g} x {H:.3g} m tank (node at x in [{float(x.min()):.3g}, "
-                               f"{float(x.max()):.3g}], y in [{float(y.min()):.3g}, {float(y.max()):.3g}] m): it "
+    if x_lo < 0 or x_hi > W or y_lo < 0 or y_hi > H:
+        raise SimulationBlowUp(f"a fish left the {W:.3g} x {H:.3g} m tank (node at x in [{x_lo:.3g}, "
+                               f"{x_hi:.3g}], y in [{y_lo:.3g}, {y_hi:.3g}] m): it "
                                "swam through a wall (the solid does not collide with the walls: start it farther "
                                "away with origin=..., or run fewer frames) or the coupling ran away (check "
                                "coupling.added_mass_ratio, e.g. the default 5)")
-    speed = float(qdot.detach().norm(dim=-1).max())
     if speed > MAX_SPEED:
         raise SimulationBlowUp(f"a node moves at {speed:.3g} m/s (> {MAX_SPEED:g} m/s): the coupling ran away "
                                "(check coupling.added_mass_ratio, e.g. the default 5)")
+
+
+def _frame_checks(q: Tensor, qdot: Tensor, triangles: Tensor | None = None) -> tuple:
+    """(x min, x max, y min, y max of the nodes q [B, N, 2], the largest |qdot|, the smallest
+    signed element area of ``triangles`` [T, 3] (inf without) and its flat index b T + k), as
+    floats: compiled on the CPU (solid.kernels.frame_checks, one pass), torch elsewhere."""
+    q, qdot = q.detach(), qdot.detach()
+    tri = torch.zeros(0, 3, dtype=torch.long) if triangles is None else triangles
+    if q.device.type == "cpu":
+        from fishsim.solid.kernels import frame_checks
+
+        as_f64 = lambda t: np.ascontiguousarray(t.numpy(), dtype=np.float64)
+        return frame_checks(as_f64(q), as_f64(qdot), np.ascontiguousarray(tri.numpy(), dtype=np.int64))
+    return _torch_frame_checks(q, qdot, tri)
+
+
+def _torch_frame_checks(q: Tensor, qdot: Tensor, tri: Tensor) -> tuple:
+    """``_frame_checks`` in torch operations (any device)."""
+    x, y = q[..., 0], q[..., 1]
+    area = element_areas(q, tri.to(q.device)).reshape(-1)
+    low = (float(area.min()), int(area.argmin())) if area.numel() else (np.inf, -1)
+    return (float(x.min()), float(x.max()), float(y.min()), float(y.max()), float(qdot.norm(dim=-1).max()), *low)
 
 
 def require_no_inversion(q: Tensor, triangles: Tensor) -> None:
     """Raise SimulationBlowUp when an element of the deformed fish q [B, N, 2] is inverted (its
     signed area <= 0; triangles [T, 3] ccw in the rest shape): the solid has folded over itself,
     which no elastic swimmer does."""
-    area = element_areas(q.detach(), triangles.to(q.device))              # [B, T]
-    if bool((area <= 0).any()):
-        b, k = divmod(int(torch.argmin(area.reshape(-1))), area.shape[1])
+    *_, area, where = _frame_checks(q, q, triangles)
+    if area <= 0:
+        b, k = divmod(where, len(triangles))
         raise SimulationBlowUp(f"element {k} of fish {b} is inverted (the body folded over itself): the "
                                "muscles or forces are too strong for the material (lower controller.amplitude, "
                                "raise solid.youngs_modulus) or the coupling ran away")

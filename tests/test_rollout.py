@@ -411,6 +411,21 @@ def test_an_inverted_element_or_a_runaway_force_stops_the_run():
         require_bounded_force(f, torch.tensor([50.0, 50.0]), 0.2)
 
 
+def test_the_compiled_frame_checks_equal_the_torch_ones():
+    """The per-frame checks' extents, top speed and smallest element area (with its flat index,
+    here an inverted element of the second fish) are the torch formulas' (to round-off: torch's
+    norm may sum in another order)."""
+    from fishsim.rollout import _frame_checks, _torch_frame_checks
+
+    g = torch.Generator().manual_seed(3)
+    q = 0.1 * torch.rand(2, 30, 2, generator=g, dtype=torch.float64)
+    qdot = torch.randn(2, 30, 2, generator=g, dtype=torch.float64)
+    tri = torch.stack([torch.randperm(30, generator=g)[:3] for _ in range(40)])
+    got, want = _frame_checks(q, qdot, tri), _torch_frame_checks(q, qdot, tri)
+    assert got == pytest.approx(want, rel=1e-14) and got[6] == want[6] and got[5] < 0 and got[6] >= 40
+    assert _frame_checks(q, qdot)[5:] == (float("inf"), -1) == _torch_frame_checks(q, qdot, tri[:0])[5:]
+
+
 @pytest.mark.parametrize("fluid", ["numerical", "hydronet", "none"])
 def test_gradient_is_deterministic_across_runs_and_thread_counts(fluid):
     """Same inputs, same gradient: bit for bit on repeated runs, and within 1e-10 relative in

@@ -90,3 +90,27 @@ def parameter_gradients(X: np.ndarray, lam: np.ndarray, triangles: np.ndarray, g
                 length = element.fiber_length(F00, F10)
                 grad_u[b, m] = -w_muscle[m] * (D00 * F00 + D10 * F10) / length
         grad_E[b] = -total
+
+
+@jit
+def frame_checks(q: np.ndarray, qdot: np.ndarray, triangles: np.ndarray) -> tuple:
+    """What the rollout's per-frame checks read, in one pass (~0.4 ms of small torch reductions
+    before): (x min, x max, y min, y max of the nodes q [B, N, 2] in m, the largest nodal speed
+    |qdot| in m/s, the smallest signed element area (triangles [T, 3], A = ((x1 - x0) x (x2 -
+    x0)) / 2 as mesh.triangulate.element_areas) in m^2 and its flat index b T + k)."""
+    x_lo, x_hi, y_lo, y_hi, speed = np.inf, -np.inf, np.inf, -np.inf, 0.0
+    for b in range(q.shape[0]):
+        for n in range(q.shape[1]):
+            x, y = q[b, n, 0], q[b, n, 1]
+            x_lo, x_hi, y_lo, y_hi = min(x_lo, x), max(x_hi, x), min(y_lo, y), max(y_hi, y)
+            speed = max(speed, np.sqrt(qdot[b, n, 0] ** 2 + qdot[b, n, 1] ** 2))
+    area, where, T = np.inf, -1, triangles.shape[0]
+    for b in range(q.shape[0]):
+        for k in range(T):
+            i, j, m = triangles[k, 0], triangles[k, 1], triangles[k, 2]
+            e1x, e1y = q[b, j, 0] - q[b, i, 0], q[b, j, 1] - q[b, i, 1]
+            e2x, e2y = q[b, m, 0] - q[b, i, 0], q[b, m, 1] - q[b, i, 1]
+            a = 0.5 * (e1x * e2y - e1y * e2x)
+            if a < area:
+                area, where = a, b * T + k
+    return x_lo, x_hi, y_lo, y_hi, speed, area, where
