@@ -75,15 +75,20 @@ def test_float64_gradient_matches_central_differences(reference):
 
 def test_float32_gradient_is_within_its_rounding_of_float64(reference):
     """float32, the default: the fluid's rounding moves the 60-frame gradient by 6e-6 (numerical)
-    and 4e-5 (HydroNet; 7e-4 with the former IBM weight) relative (measured), so the float32
-    gradient also agrees with the float64 central differences within 1e-3 (the float32 map's
-    own differences need steps >= 1e-3, where the map's curvature shows)."""
+    and 1.9e-3 (HydroNet) relative (measured), so the float32 gradient also agrees with the
+    float64 central differences within 1e-3 (numerical) and 3e-3 (HydroNet; the float32 map's own
+    differences need steps >= 1e-3, where the map's curvature shows). HydroNet's rounding moves
+    which of the ReLU network's kinks the 60 frames cross, so its size depends on the summation
+    order: 4e-5 with NCHW convolutions, 1.9e-3 with the NHWC ones run since 2026-11-28 (7e-4 with
+    the former IBM weight), within the spread of the map's own central differences over steps
+    1e-5 to 1e-9 (0.6 %, test above)."""
     fluid, _, _, fd, grad64 = reference
     pr, space = problem(fluid, "float32")
     grad32 = autograd(pr, space)
-    assert abs(grad32 - grad64) <= 1e-3 * abs(grad64), grad64
+    tolerance = 1e-3 if fluid == "numerical" else 3e-3
+    assert abs(grad32 - grad64) <= tolerance * abs(grad64), (grad32, grad64)
     for value in fd:
-        assert abs(grad32 - value) <= 1e-3 * abs(value), (fluid, fd, grad32)
+        assert abs(grad32 - value) <= tolerance * abs(value), (fluid, fd, grad32)
 
 
 def test_gradient_is_bitwise_repeatable_and_thread_count_independent(reference):
