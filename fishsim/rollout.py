@@ -313,9 +313,8 @@ class Swimmer:
             q, qdot = hold_centroid(q, qdot, state.q, mass, self.hold)
         tunnel = self.tunnel_speed(state, f_ext, params.fluid.rho, mass) if self.tunnel else None
         require_finite(solid_positions_q=q, solid_velocities_qdot=qdot)
-        require_no_inversion(q, self.triangles)
+        require_sound(q, qdot, self.triangles, self.fluid.grid if self.fluid.exerts_force else None)
         if self.fluid.exerts_force:
-            require_physical(q, qdot, self.fluid.grid)
             require_bounded_force(f_ext, params.fluid.rho, self.solid.mesh.length)
         clock.add("solid", t0, dev)
         return SwimState(q, qdot, fluid, state.qdot, tunnel), FrameOutput(f_ext, contraction, boundary)
@@ -368,10 +367,20 @@ def frame_metrics(swimmer: Swimmer, state: SwimState, out: FrameOutput) -> dict[
 MAX_SPEED = 20.0  # m/s: a swimming fish of this size moves < 1 m/s; beyond this the coupling has run away
 
 
-def require_physical(q: Tensor, qdot: Tensor, grid) -> None:
-    """Raise SimulationBlowUp when a fish has left the tank or a node moves faster than
-    MAX_SPEED (cheap per-frame checks: a run that went unphysical must not pass as complete)."""
-    x_lo, x_hi, y_lo, y_hi, speed, _, _ = _frame_checks(q, qdot)
+def require_sound(q: Tensor, qdot: Tensor, triangles: Tensor | None = None, grid: Grid | None = None) -> None:
+    """Raise SimulationBlowUp when an element of the deformed fish q [B, N, 2] is inverted (its
+    signed area <= 0; ``triangles`` [T, 3] ccw in the rest shape: the solid has folded over
+    itself, which no elastic swimmer does), or, given the fluid's ``grid``, when a fish has left
+    the tank or a node moves faster than MAX_SPEED (cheap per-frame checks, read in one pass: a
+    run that went unphysical must not pass as complete)."""
+    x_lo, x_hi, y_lo, y_hi, speed, area, where = _frame_checks(q, qdot, triangles)
+    if area <= 0:
+        b, k = divmod(where, len(triangles))
+        raise SimulationBlowUp(f"element {k} of fish {b} is inverted (the body folded over itself): the "
+                               "muscles or forces are too strong for the material (lower controller.amplitude, "
+                               "raise solid.youngs_modulus) or the coupling ran away")
+    if grid is None:
+        return
     W, H = grid.W * grid.dx, grid.H * grid.dx
     if x_lo < 0 or x_hi > W or y_lo < 0 or y_hi > H:
         raise SimulationBlowUp(f"a fish left the {W:.3g} x {H:.3g} m tank (node at x in [{x_lo:.3g}, "
@@ -404,18 +413,6 @@ def _torch_frame_checks(q: Tensor, qdot: Tensor, tri: Tensor) -> tuple:
     area = element_areas(q, tri.to(q.device)).reshape(-1)
     low = (float(area.min()), int(area.argmin())) if area.numel() else (np.inf, -1)
     return (float(x.min()), float(x.max()), float(y.min()), float(y.max()), float(qdot.norm(dim=-1).max()), *low)
-
-
-def require_no_inversion(q: Tensor, triangles: Tensor) -> None:
-    """Raise SimulationBlowUp when an element of the deformed fish q [B, N, 2] is inverted (its
-    signed area <= 0; triangles [T, 3] ccw in the rest shape): the solid has folded over itself,
-    which no elastic swimmer does."""
-    *_, area, where = _frame_checks(q, q, triangles)
-    if area <= 0:
-        b, k = divmod(where, len(triangles))
-        raise SimulationBlowUp(f"element {k} of fish {b} is inverted (the body folded over itself): the "
-                               "muscles or forces are too strong for the material (lower controller.amplitude, "
-                               "raise solid.youngs_modulus) or the coupling ran away")
 
 
 def require_bounded_force(f_ext: Tensor, rho, length: float) -> None:
@@ -580,7 +577,7 @@ def rollout(swimmer: Swimmer, state: SwimState, params: SwimParams, n_frames: in
     solutions: dict[int, SwimState] = {}      # frame -> forward solution, replayed in recomputation
     cache = SolverCache() if cache is None else cache
 
-    idle = state.q.shape[0] < torch.get_num_threads() and not getattr(swimmer.fluid, "threads_per_sample", True)
+    idle = state.q.shape[0] < torch.get_num_threads() and not swimmer.fluid.threads_per_sample
     tensors, chunks, segments = state.tensors(), [], Segments(background=idle)
     n_state = len(tensors)
 

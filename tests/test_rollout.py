@@ -385,25 +385,25 @@ def test_exchange_force_needs_the_numerical_fluid(tiny_model):
 def test_a_fish_leaving_the_tank_stops_the_run():
     """An unphysical state (a node outside the tank) stops the episode with a named reason."""
     from fishsim.fields import Grid
-    from fishsim.rollout import require_physical
+    from fishsim.rollout import require_sound
 
     grid = Grid(40, 120, 5e-3)
     q = torch.tensor([[[0.3, 0.1], [0.35, 0.1]]], dtype=torch.float64)
-    require_physical(q, torch.zeros_like(q), grid)
+    require_sound(q, torch.zeros_like(q), grid=grid)
     with pytest.raises(SimulationBlowUp, match="left the 0.6 x 0.2 m tank"):
-        require_physical(q + torch.tensor([0.0, 0.15], dtype=torch.float64), torch.zeros_like(q), grid)
+        require_sound(q + torch.tensor([0.0, 0.15], dtype=torch.float64), torch.zeros_like(q), grid=grid)
     with pytest.raises(SimulationBlowUp, match="moves at 30 m/s"):
-        require_physical(q, torch.full_like(q, 30.0 / 2 ** 0.5), grid)
+        require_sound(q, torch.full_like(q, 30.0 / 2 ** 0.5), grid=grid)
 
 
 def test_an_inverted_element_or_a_runaway_force_stops_the_run():
-    from fishsim.rollout import require_bounded_force, require_no_inversion
+    from fishsim.rollout import require_bounded_force, require_sound
 
     tri = torch.tensor([[0, 1, 2]])
     q = torch.tensor([[[0.0, 0.0], [1e-3, 0.0], [0.0, 1e-3]]], dtype=torch.float64)
-    require_no_inversion(q, tri)
+    require_sound(q, torch.zeros_like(q), tri)
     with pytest.raises(SimulationBlowUp, match="element 0 of fish 0 is inverted"):
-        require_no_inversion(q * torch.tensor([1.0, -1.0], dtype=torch.float64), tri)
+        require_sound(q * torch.tensor([1.0, -1.0], dtype=torch.float64), torch.zeros_like(q), tri)
     f = torch.zeros(2, 3, 2, dtype=torch.float64)
     require_bounded_force(f, torch.tensor([50.0, 50.0]), 0.2)        # bound 50 * 400 * 0.2 = 4000 N/m
     f[1, 0, 0] = 4001.0
