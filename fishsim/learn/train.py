@@ -31,7 +31,7 @@ import os
 import signal
 import threading
 import time
-from dataclasses import asdict, dataclass, fields, is_dataclass
+from dataclasses import asdict, dataclass, fields, is_dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -41,7 +41,7 @@ from torch import nn
 
 from fishsim.errors import ConfigError, Terminated
 from fishsim.fields import Boundary, FluidParams, FluidState, rest_state
-from fishsim.fluid.hydronet.config import RESUME_NEEDS_OUT_DIR, TrainConfig
+from fishsim.fluid.hydronet.config import RESUME_NEEDS_OUT_DIR, TrainConfig, resolve_bf16
 from fishsim.fluid.hydronet.loss import EPS, LossConfig, LossTerms, hydronet_loss, teacher_loss
 from fishsim.fluid.hydronet.model_file import load_file, load_weights
 from fishsim.fluid.hydronet.trained_range import stored_range, training_range
@@ -500,6 +500,7 @@ def run(cfg: TrainConfig | dict) -> dict:
     if cfg.threads > 0:
         torch.set_num_threads(cfg.threads)
     rank, world, device = _setup_distributed(cfg)
+    cfg = replace(cfg, bf16=resolve_bf16(cfg.bf16, device.type))
     out = _run_folder(cfg, rank, world)
     run_, net = build(cfg, rank, world, device)
     _restore(run_, cfg, out, rank, device)

@@ -321,3 +321,18 @@ def test_swim_check_keeps_the_weights_that_swim_closest_to_the_numerical_fluid(c
     assert best["val"] == min(errors) and best["iteration"] == [3, 6][errors.index(min(errors))]
     assert torch.load(out / "ckpt.pt", weights_only=False)["best_swim"] == min(errors)
     load_hydronet(out / "best_swim.pt")                       # a model file like best.pt
+
+
+def test_bf16_auto_is_on_only_where_it_is_fast(tmp_path):
+    """bf16=auto: on a CPU with AMX (its ``amx_bf16`` flag) bfloat16, elsewhere float32 (without
+    AMX the U-Net runs ~10x slower in bf16); true and false are kept as given."""
+    from fishsim.fluid.hydronet.config import cpu_has_amx_bf16, resolve_bf16
+
+    amx, avx2 = tmp_path / "amx", tmp_path / "avx2"
+    amx.write_text("processor\t: 0\nflags\t\t: fpu sse avx2 avx512f amx_bf16 amx_tile\n")
+    avx2.write_text("processor\t: 0\nflags\t\t: fpu sse avx2 fma\n")
+    assert cpu_has_amx_bf16(str(amx)) and not cpu_has_amx_bf16(str(avx2))
+    assert not cpu_has_amx_bf16(str(tmp_path / "missing"))
+    assert resolve_bf16("auto", "cpu") == cpu_has_amx_bf16()
+    assert resolve_bf16(True, "cpu") is True and resolve_bf16(False, "cuda") is False
+    assert TrainConfig().bf16 == "auto"
