@@ -34,7 +34,13 @@ of a batch in parallel over numba's threads and a single sample in the calling t
 except in ``SplitStep``, which cuts a batch into one chunk per torch thread and runs each chunk's
 whole step, forward or adjoint, in a Python thread of its own (``compiled.in_sample_chunks``; 16
 fish on 100 x 300, two threads: a step 257-296 -> 180-233 ms forward, 568-801 -> 351-458 ms
-forward + backward).
+forward + backward). Within a chunk each sample's whole step, its Poisson solves included
+(``dct.inverse_sample``: the DCTs through rocket-fft inside compiled code), is one compiled call
+(``_sample_steps``, ``_sample_steps_adjoint``) that holds no GIL: before, the loop over sub-steps
+and passes ran in Python, ~340 calls a step, and took ~40 % of a step at B = 1 (2026-11-28, one
+thread, old and new alternating, results bit for bit equal: forward 17-29 -> 13.3-14.5 ms, forward
++ backward 46-75 -> 36.5-39 ms; 16 fish, two threads: 229-288 -> 112-148 ms forward, 540-676 ->
+416-482 ms forward + backward).
 Grids need at least 3 cells a side. Arithmetic runs in the data's dtype (``_constants``; nu, dt and
 1/dx cast on entry): numba's literals are float64, and float32 data mixed with them converted every
 operand (the float32 predictor ran 2x, its adjoint 2.1x slower than now: 0.42 / 1.15 against 0.17 /
@@ -51,7 +57,7 @@ from numba import prange
 from torch import Tensor
 
 from fishsim.compiled import each_sample, in_sample_chunks, jit, sample_chunks
-from fishsim.linalg.dct import inverse_array
+from fishsim.linalg.dct import inverse_sample
 
 Constants = namedtuple("Constants", "zero half one two three four five six sixth five_sixths third")
 
@@ -558,95 +564,131 @@ def _penalize_divergence_adjoint_parallel(gvx, gvy, gpx, gpy, gdiv, wx, wy, bx, 
                                             dx_[n], dy_[n], inv_dx, gwx[n], gwy[n], gbx[n], gby[n], gdx[n], gdy[n])
 
 
-def _constrain(w, masks, inverse, inv_dx, passes):
-    """K passes u = penalize(w), (w, phi) = project(u) on numpy faces w = (w_x [N, H, W+1], w_y
-    [N, H+1, W]) with masks = (b_x, b_y, v_d,x, v_d,y) of w's shapes; returns (v, sum of phi,
-    sum of u - w (x, y), the passes' inputs: what ``_constrain_adjoint`` needs)."""
-    div = np.empty((*w[0].shape[:-1], w[0].shape[-1] - 1), w[0].dtype)
-    phi_sum, pen = np.zeros_like(div), (np.zeros_like(w[0]), np.zeros_like(w[1]))
-    inputs = []
-    for _ in range(passes):
-        inputs.append(w)
-        ux, uy = np.empty_like(w[0]), np.empty_like(w[1])
-        each_sample(_penalize_divergence_serial, _penalize_divergence_parallel, *w, *masks, inv_dx, ux, uy, div,
-                     *pen)
-        phi = inverse_array(div, inverse)
-        w = (np.empty_like(ux), np.empty_like(uy))
-        each_sample(_subtract_gradient_serial, _subtract_gradient_parallel, ux, uy, phi, inv_dx, *w, phi_sum)
-    return w, phi_sum, pen, inputs
+@jit
+def _constrain_sample(wx, wy, bx, by, dx_, dy_, inv_dx, pivots, pdx, passes, keep, tx, ty, slot, phi_sum, px, py):
+    """One sample's K passes u = penalize(w), (w, phi) = project(u) from w = (wx, wy); returns v;
+    phi_sum and the increments (px, py) accumulate over the passes; with ``keep`` each pass's
+    input w goes to the tape (tx, ty)[slot + k] (what ``_constrain_adjoint_sample`` reads). The
+    Poisson solves run compiled (``dct.inverse_sample``), so the passes never return to Python."""
+    div = np.empty(phi_sum.shape, wx.dtype)
+    for k in range(passes):
+        if keep:
+            tx[slot + k] = wx
+            ty[slot + k] = wy
+        ux, uy = np.empty_like(wx), np.empty_like(wy)
+        _penalize_divergence_sample(wx, wy, bx, by, dx_, dy_, inv_dx, ux, uy, div, px, py)
+        phi = inverse_sample(div, pivots, pdx)
+        wx, wy = np.empty_like(ux), np.empty_like(uy)
+        _subtract_gradient_sample(ux, uy, phi, inv_dx, wx, wy, phi_sum)
+    return wx, wy
 
 
-def _constrain_adjoint(gv, gphi, gpen, inputs, masks, inverse, inv_dx, gmasks):
-    """dL/dw of ``_constrain`` (its passes' ``inputs``) for dL/d(v, phi sum, pen) = (gv, gphi, gpen);
-    adds dL/d(b_x, b_y, v_d,x, v_d,y) into gmasks."""
-    for w in reversed(inputs):
+@jit
+def _constrain_adjoint_sample(gvx, gvy, gphi, gpx, gpy, tx, ty, slot, passes, bx, by, dx_, dy_, inv_dx, pivots,
+                              pdx, gbx, gby, gdx, gdy):
+    """dL/dw of ``_constrain_sample`` (its pass inputs on the tape at slot..slot+K-1) for dL/d(v,
+    phi sum, increments) = (gv, gphi, gp); adds dL/d(b_x, b_y, v_d,x, v_d,y) into the g*."""
+    for k in range(passes - 1, -1, -1):
         g_phi = gphi.copy()
-        each_sample(_gradient_adjoint_serial, _gradient_adjoint_parallel, *gv, inv_dx, g_phi)
-        g_div = inverse_array(g_phi, inverse)
-        new = (np.empty_like(gv[0]), np.empty_like(gv[1]))
-        each_sample(_penalize_divergence_adjoint_serial, _penalize_divergence_adjoint_parallel, *gv, *gpen, g_div,
-                     *w, *masks, inv_dx, *new, *gmasks)
-        gv = new
-    return gv
+        _gradient_adjoint_sample(gvx, gvy, inv_dx, g_phi)
+        g_div = inverse_sample(g_phi, pivots, pdx)
+        nx, ny = np.empty_like(gvx), np.empty_like(gvy)
+        _penalize_divergence_adjoint_sample(gvx, gvy, gpx, gpy, g_div, tx[slot + k], ty[slot + k], bx, by, dx_, dy_,
+                                            inv_dx, nx, ny, gbx, gby, gdx, gdy)
+        gvx, gvy = nx, ny
+    return gvx, gvy
 
 
-def _substep(v, masks, nu, dt, inv_dx, walls, inverse, passes):
-    """One Heun sub-step on numpy faces (``NumericalFluid._substep``): v1 = C(P(v)), v' =
-    C((v + P(v1)) / 2); returns (v', phi1/2 + phi2, pen1/2 + pen2, what the adjoint needs)."""
-    w1 = (np.empty_like(v[0]), np.empty_like(v[1]))
-    each_sample(_forward_serial, _forward_parallel, *v, nu, dt, inv_dx, walls, *w1)
-    v1, phi1, pen1, in1 = _constrain(w1, masks, inverse, inv_dx, passes)
-    w2 = (np.empty_like(v[0]), np.empty_like(v[1]))
-    each_sample(_forward_serial, _forward_parallel, *v1, nu, dt, inv_dx, walls, *w2)
-    w2 = tuple(0.5 * (c + q) for c, q in zip(v, w2))
-    v2, phi2, pen2, in2 = _constrain(w2, masks, inverse, inv_dx, passes)
-    return v2, 0.5 * phi1 + phi2, tuple(0.5 * a + b for a, b in zip(pen1, pen2)), (v1, in1, in2)
+@jit
+def _sample_steps(vx, vy, bx, by, dx_, dy_, nu, dt, count, inv_dx, walls, pivots, pdx, passes, keep, tx, ty,
+                  phi_sum, pen_x, pen_y):
+    """One sample's ``count`` Heun sub-steps (``NumericalFluid._substep``): v1 = C(P(v)), v' =
+    C((v + P(v1)) / 2), C ``_constrain_sample``, in one compiled call; returns v'. phi_sum and
+    (pen_x, pen_y) (zeros on entry) receive the sums over the sub-steps of phi1/2 + phi2 and of
+    pen1/2 + pen2. With ``keep``, sub-step s fills the tape (tx, ty)[s (2 + 2K) + ...]: v, v1, the
+    first stage's K pass inputs, the second's."""
+    half = _constants(vx).half
+    stride = 2 + 2 * passes
+    for s in range(count):
+        base = s * stride
+        if keep:
+            tx[base] = vx
+            ty[base] = vy
+        w1x, w1y = np.empty_like(vx), np.empty_like(vy)
+        _sample_forward(vx, vy, nu, dt, inv_dx, walls, w1x, w1y)
+        phi1, p1x, p1y = np.zeros_like(phi_sum), np.zeros_like(vx), np.zeros_like(vy)
+        v1x, v1y = _constrain_sample(w1x, w1y, bx, by, dx_, dy_, inv_dx, pivots, pdx, passes, keep, tx, ty, base + 2,
+                                     phi1, p1x, p1y)
+        if keep:
+            tx[base + 1] = v1x
+            ty[base + 1] = v1y
+        w2x, w2y = np.empty_like(vx), np.empty_like(vy)
+        _sample_forward(v1x, v1y, nu, dt, inv_dx, walls, w2x, w2y)
+        w2x, w2y = half * (vx + w2x), half * (vy + w2y)
+        phi2, p2x, p2y = np.zeros_like(phi_sum), np.zeros_like(vx), np.zeros_like(vy)
+        vx, vy = _constrain_sample(w2x, w2y, bx, by, dx_, dy_, inv_dx, pivots, pdx, passes, keep, tx, ty,
+                                   base + 2 + passes, phi2, p2x, p2y)
+        phi_sum += half * phi1 + phi2
+        pen_x += half * p1x + p2x
+        pen_y += half * p1y + p2y
+    return vx, vy
+
+
+@jit
+def _sample_steps_adjoint(tx, ty, gvx, gvy, gphi, gpx, gpy, bx, by, dx_, dy_, nu, dt, count, inv_dx, walls, pivots,
+                          pdx, passes, need_nu, gbx, gby, gdx, gdy):
+    """The adjoint of ``_sample_steps`` from its tape for dL/d(v', phi sum, pen sum) = (gv, gphi,
+    gp): returns (dL/dv_x, dL/dv_y, dL/dnu) and adds dL/d(b_x, b_y, v_d,x, v_d,y) into the g*."""
+    half = _constants(gvx).half
+    stride = 2 + 2 * passes
+    g_nu = 0.0
+    gvx, gvy = gvx.copy(), gvy.copy()
+    for s in range(count - 1, -1, -1):
+        base = s * stride
+        g2x, g2y = _constrain_adjoint_sample(gvx, gvy, gphi, gpx, gpy, tx, ty, base + 2 + passes, passes, bx, by,
+                                             dx_, dy_, inv_dx, pivots, pdx, gbx, gby, gdx, gdy)
+        g1x, g1y = np.zeros_like(g2x), np.zeros_like(g2y)
+        g_nu += _sample_backward(tx[base + 1], ty[base + 1], nu, dt, inv_dx, walls, half * g2x, half * g2y, g1x,
+                                 g1y, need_nu, False)[0]
+        g1x, g1y = _constrain_adjoint_sample(g1x, g1y, half * gphi, half * gpx, half * gpy, tx, ty, base + 2, passes,
+                                             bx, by, dx_, dy_, inv_dx, pivots, pdx, gbx, gby, gdx, gdy)
+        gvx, gvy = half * g2x, half * g2y
+        g_nu += _sample_backward(tx[base], ty[base], nu, dt, inv_dx, walls, g1x, g1y, gvx, gvy, need_nu, False)[0]
+    return gvx, gvy, g_nu
 
 
 def _steps(v, masks, nu_n, dt_n, counts, inv_dx, walls, inverse, passes, keep):
-    """``SplitStep``'s sub-step loop on numpy samples (v, masks as there, flattened; counts [N] the
-    samples' sub-step counts): returns (v', sum of phi, sum of pen (x, y), the tape: each
-    sub-step's input and ``_substep``'s inner states if keep, else empty)."""
-    tape, phi_sum, pen_sum = [], 0.0, (0.0, 0.0)
-    for i in range(int(counts.max())):
-        new, phi, pen, inner = _substep(v, masks, nu_n, dt_n, inv_dx, walls, inverse, passes)
-        if keep:
-            tape.append((v, *inner))
-        if i >= counts.min():                    # samples past their own count keep their state
-            on = (i < counts).reshape(-1, 1, 1)
-            new = tuple(np.where(on, c, o) for c, o in zip(new, v))
-            phi, pen = phi * on, tuple(q * on for q in pen)
-        v, phi_sum = new, phi_sum + phi
-        pen_sum = tuple(s + q for s, q in zip(pen_sum, pen))
-    return v, phi_sum, pen_sum, tape
+    """``SplitStep``'s sub-steps on numpy samples (v = (v_x [N, H, W+1], v_y [N, H+1, W]), masks
+    (b_x, b_y, v_d,x, v_d,y) alike; counts [N] the samples' sub-step counts), one compiled call a
+    sample: returns (v', sum of phi, sum of pen (x, y), the samples' tapes if keep, else empty)."""
+    N, H, W = v[1].shape[0], v[0].shape[1], v[1].shape[2]
+    out = (np.empty_like(v[0]), np.empty_like(v[1]))
+    phi_sum, pen = np.zeros((N, H, W), v[0].dtype), (np.zeros_like(v[0]), np.zeros_like(v[1]))
+    tapes, slots = [], 2 + 2 * passes
+    for n in range(N):
+        size = int(counts[n]) * slots if keep else 0
+        tape = (np.empty((size, H, W + 1), v[0].dtype), np.empty((size, H + 1, W), v[0].dtype))
+        out[0][n], out[1][n] = _sample_steps(v[0][n], v[1][n], *(m[n] for m in masks), nu_n[n], dt_n[n], int(counts[n]),
+                                             inv_dx, walls, inverse.pivots, inverse.dx, passes, keep, *tape,
+                                             phi_sum[n], pen[0][n], pen[1][n])
+        tapes.append(tape)
+    return out, phi_sum, pen, tapes if keep else []
 
 
-def _steps_adjoint(tape, gv, gphi_all, gpen_all, masks, counts, nu_n, dt_n, inv_dx, walls, inverse, need_nu):
-    """The adjoint of ``_steps`` from its tape, for dL/d(v', phi sum, pen sum) = (gv, gphi_all,
+def _steps_adjoint(tapes, gv, gphi_all, gpen_all, masks, counts, nu_n, dt_n, inv_dx, walls, inverse, passes, need_nu):
+    """The adjoint of ``_steps`` from its tapes, for dL/d(v', phi sum, pen sum) = (gv, gphi_all,
     gpen_all): returns (dL/dv, dL/d(b_x, b_y, v_d,x, v_d,y), dL/dnu per sample [N] (zeros unless
     need_nu))."""
     gmasks = tuple(np.zeros_like(m) for m in masks)
-    g_nu, g_stage, g_dt = np.zeros(len(nu_n)), np.zeros(len(nu_n)), np.zeros(len(nu_n))
-    gv = [np.array(g) for g in gv]
-    for i in reversed(range(len(tape))):
-        v, v1, in1, in2 = tape[i]
-        g_phi, g_pen, g_old = gphi_all, gpen_all, None
-        if i >= counts.min():
-            on = (i < counts).reshape(-1, 1, 1)
-            g_old = [g * ~on for g in gv]
-            gv, g_phi, g_pen = [g * on for g in gv], g_phi * on, tuple(q * on for q in g_pen)
-        g_w2 = _constrain_adjoint(gv, g_phi, g_pen, in2, masks, inverse, inv_dx, gmasks)
-        g_v1 = [np.zeros_like(c) for c in v1]
-        each_sample(_backward_serial, _backward_parallel, *v1, nu_n, dt_n, inv_dx, walls,
-                    *(0.5 * g for g in g_w2), *g_v1, g_stage, g_dt, need_nu, False)
-        g_nu += g_stage
-        g_w1 = _constrain_adjoint(g_v1, 0.5 * g_phi, tuple(0.5 * q for q in g_pen), in1, masks, inverse,
-                                  inv_dx, gmasks)
-        gv = [0.5 * g for g in g_w2] if g_old is None else [0.5 * g + o for g, o in zip(g_w2, g_old)]
-        each_sample(_backward_serial, _backward_parallel, *v, nu_n, dt_n, inv_dx, walls, *g_w1, *gv, g_stage,
-                    g_dt, need_nu, False)
-        g_nu += g_stage
-    return gv, gmasks, g_nu
+    g_nu = np.zeros(len(nu_n))
+    out = (np.empty_like(gv[0]), np.empty_like(gv[1]))
+    for n, tape in enumerate(tapes):
+        out[0][n], out[1][n], g = _sample_steps_adjoint(*tape, gv[0][n], gv[1][n], gphi_all[n], gpen_all[0][n],
+                                                        gpen_all[1][n], *(m[n] for m in masks), nu_n[n], dt_n[n],
+                                                        int(counts[n]), inv_dx, walls, inverse.pivots, inverse.dx,
+                                                        passes, need_nu, *(m[n] for m in gmasks))
+        g_nu[n] = g if need_nu else 0.0
+    return out, gmasks, g_nu
 
 
 def _joined(parts: list):
@@ -689,7 +731,7 @@ class SplitStep(torch.autograd.Function):
         v, phi_sum, pen_sum = (_joined([o[k] for o in out]) for k in range(3))
         ctx.save_for_backward(vx, vy, bx, by, dx_, dy_)
         ctx.tapes, ctx.chunks, ctx.counts = [o[3] for o in out], chunks, counts
-        ctx.args = (nu_n, dt_n, *args[:3])
+        ctx.args = (nu_n, dt_n, *args)
         ctx.nu_shape = (torch.as_tensor(nu).shape, isinstance(nu, torch.Tensor))
         phi_shape = (*vx.shape[:-1], vx.shape[-1] - 1)
         return (*(torch.from_numpy(a).reshape(shape) for a, shape in zip(v, shapes)),

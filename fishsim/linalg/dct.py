@@ -15,6 +15,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+import rocket_fft  # noqa: F401  (scipy.fft inside compiled code: ``inverse_sample``)
 import scipy.fft as sfft
 import torch
 from numba import prange
@@ -144,6 +145,17 @@ def _tridiagonal_sample(f, inv_pivot, dx):
             f[i, k] -= off_f * inv_pivot[i, k] * f[i + 1, k]
     for i in range(H):
         f[i, 0] = col[i] - total / H
+
+
+@jit
+def inverse_sample(f, inv_pivot, dx):
+    """L^+ f of one sample [H, W] in compiled code (``inverse_array``'s DCT-II along x, sweeps
+    along y and inverse DCT, bit for bit; the transforms through rocket-fft's scipy.fft): a new
+    array of f's dtype. Lets a compiled loop solve its Poisson equations without returning to
+    Python (``fluid.kernels.SplitStep``)."""
+    F = sfft.dct(f, 2, None, -1)
+    _tridiagonal_sample(F, inv_pivot, dx)
+    return sfft.idct(F, 2, None, -1)
 
 
 @jit
