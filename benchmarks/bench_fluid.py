@@ -241,12 +241,12 @@ def kernel_parts(warmup: int = 30, repeats: int = 200) -> dict:
     """ms per call of the compiled numerical step's parts (fishsim/fluid/kernels.py) on the
     warmed-up fish flow of ``bench_case``, B = 1, one thread, best of 5 means: the predictor and
     its adjoint (16 calls a frame each at 8 sub-steps), one penalise + divergence pass, one
-    Poisson solve (DCT along x, Thomas sweeps along y, inverse DCT) and one gradient subtraction
-    (48 each a frame at 3 passes)."""
+    Poisson solve (DCT along x, Thomas sweeps along y, inverse DCT; from Python and, as the step
+    runs it, from compiled code) and one gradient subtraction (48 each a frame at 3 passes)."""
     import numpy as np
 
     from fishsim.fluid import kernels as K
-    from fishsim.linalg.dct import inverse_array, neumann_inverse
+    from fishsim.linalg.dct import inverse_array, inverse_sample, neumann_inverse
 
     state, amp = _developed(NumericalFluid(GRID), warmup)
     vx, vy = (c.numpy().reshape(1, *c.shape[-2:]).copy() for c in G.curl(state.a, GRID.dx))
@@ -264,6 +264,7 @@ def kernel_parts(warmup: int = 30, repeats: int = 200) -> dict:
                                                         g_dt, False, False),
         "penalize_divergence": lambda: K._penalize_divergence_serial(vx, vy, *b, *b, inv_dx, ux, uy, div, px, py),
         "poisson_solve": lambda: inverse_array(div, inverse),
+        "poisson_solve_compiled": lambda: inverse_sample(div[0], inverse.pivots, inverse.dx),
         "subtract_gradient": lambda: K._subtract_gradient_serial(ux, uy, div, inv_dx, wx, wy, phi_sum),
     }
     with _threads(1):

