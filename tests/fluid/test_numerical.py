@@ -3,6 +3,7 @@ decay, the momentum-residual oracle, gradients vs finite differences, refinement
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -66,6 +67,20 @@ def test_poisson_solve_and_projection_at_round_off():
     torch.testing.assert_close(wx, vx, rtol=0, atol=1e-12)
     (fx, fy), _ = project(tuple(c.float() for c in u), 0.1)
     assert G.divergence((fx, fy), 0.1).abs().max() < 1e-5 * G.divergence(u, 0.1).abs().max()
+
+
+@pytest.mark.parametrize("dtype", [D, torch.float32])
+def test_the_compiled_poisson_solve_is_the_python_one_bit_for_bit(dtype):
+    """dct.inverse_sample (the step's solve inside compiled code, rocket-fft's transforms) equals
+    inverse_array (scipy's) exactly, so the compiled step changes no result."""
+    from fishsim.linalg.dct import inverse_array, inverse_sample
+
+    f = (torch.randn(2, 17, 29, dtype=dtype) + 0.7).numpy()
+    inverse = neumann_inverse(17, 29, 0.02, dtype=dtype)
+    ref = inverse_array(f, inverse)
+    for n in range(2):
+        out = inverse_sample(f[n], inverse.pivots, inverse.dx)
+        assert out.dtype == f.dtype and np.array_equal(out, ref[n])
 
 
 @pytest.mark.parametrize("dtype, tol", [(D, 1e-12), (torch.float32, 3e-6)])
