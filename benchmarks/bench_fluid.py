@@ -241,8 +241,9 @@ def kernel_parts(warmup: int = 30, repeats: int = 200) -> dict:
     """ms per call of the compiled numerical step's parts (fishsim/fluid/kernels.py) on the
     warmed-up fish flow of ``bench_case``, B = 1, one thread, best of 5 means: the predictor and
     its adjoint (16 calls a frame each at 8 sub-steps), one penalise + divergence pass, one
-    Poisson solve (DCT along x, Thomas sweeps along y, inverse DCT; from Python and, as the step
-    runs it, from compiled code) and one gradient subtraction (48 each a frame at 3 passes)."""
+    Poisson solve (DCT along x, Thomas sweeps along y, inverse DCT; through ``inverse_array`` and,
+    as the step runs it, ``inverse_sample`` alone) and one gradient subtraction (48 each a frame at
+    3 passes)."""
     import numpy as np
 
     from fishsim.fluid import kernels as K
@@ -262,10 +263,11 @@ def kernel_parts(warmup: int = 30, repeats: int = 200) -> dict:
         "predictor": lambda: K._forward_serial(vx, vy, nu, dt, inv_dx, walls, wx, wy),
         "predictor_adjoint": lambda: K._backward_serial(vx, vy, nu, dt, inv_dx, walls, vx, vy, gx, gy, g_nu,
                                                         g_dt, False, False),
-        "penalize_divergence": lambda: K._penalize_divergence_serial(vx, vy, *b, *b, inv_dx, ux, uy, div, px, py),
+        "penalize_divergence": lambda: K._penalize_divergence_sample(vx[0], vy[0], *(c[0] for c in b), *(c[0] for c in b),
+                                                                     inv_dx, ux[0], uy[0], div[0], px[0], py[0]),
         "poisson_solve": lambda: inverse_array(div, inverse),
         "poisson_solve_compiled": lambda: inverse_sample(div[0], inverse.pivots, inverse.dx),
-        "subtract_gradient": lambda: K._subtract_gradient_serial(ux, uy, div, inv_dx, wx, wy, phi_sum),
+        "subtract_gradient": lambda: K._subtract_gradient_sample(ux[0], uy[0], div[0], inv_dx, wx[0], wy[0], phi_sum[0]),
     }
     with _threads(1):
         return {f"{name}_ms": min(_time(fn, repeats) for _ in range(5)) for name, fn in parts.items()}

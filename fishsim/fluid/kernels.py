@@ -28,10 +28,10 @@ can differ where the limiter's branches meet exactly; in water at rest U = 0 mak
 
 P, Q are vx, vy with their ghost layers ([H+4, W+5], [H+5, W+4] per sample) and PT, QT their
 transposes, so that every flux family runs along the rows of one array. Each sample's loops are
-serial and in a fixed order (its result does not depend on its batch); every kernel runs the samples
+serial and in a fixed order (its result does not depend on its batch); ``Predict`` runs the samples
 of a batch in parallel over numba's threads and a single sample in the calling thread
-(``fishsim.compiled.each_sample``: a parallel region's start costs more than one sample's pass),
-except in ``SplitStep``, which cuts a batch into one chunk per torch thread and runs each chunk's
+(``fishsim.compiled.each_sample``: a parallel region's start costs more than one sample's pass);
+``SplitStep`` cuts a batch into one chunk per torch thread and runs each chunk's
 whole step, forward or adjoint, in a Python thread of its own (``compiled.in_sample_chunks``; 16
 fish on 100 x 300, two threads: a step 257-296 -> 180-233 ms forward, 568-801 -> 351-458 ms
 forward + backward). Within a chunk each sample's whole step, its Poisson solves included
@@ -457,20 +457,6 @@ def _penalize_divergence_sample(wx, wy, bx, by, dx_, dy_, inv_dx, ux, uy, div, p
 
 
 @jit
-def _penalize_divergence_serial(wx, wy, bx, by, dx_, dy_, inv_dx, ux, uy, div, px, py):
-    for n in range(div.shape[0]):
-        _penalize_divergence_sample(wx[n], wy[n], bx[n], by[n], dx_[n], dy_[n], inv_dx, ux[n], uy[n], div[n],
-                                    px[n], py[n])
-
-
-@jit(parallel=True)
-def _penalize_divergence_parallel(wx, wy, bx, by, dx_, dy_, inv_dx, ux, uy, div, px, py):
-    for n in prange(div.shape[0]):
-        _penalize_divergence_sample(wx[n], wy[n], bx[n], by[n], dx_[n], dy_[n], inv_dx, ux[n], uy[n], div[n],
-                                    px[n], py[n])
-
-
-@jit
 def _subtract_gradient_sample(ux, uy, phi, inv_dx, vx, vy, phi_sum):
     """One sample's v = u - grad phi on the interior faces, u on the wall faces; phi summed over
     the passes (phi_sum += phi)."""
@@ -491,18 +477,6 @@ def _subtract_gradient_sample(ux, uy, phi, inv_dx, vx, vy, phi_sum):
 
 
 @jit
-def _subtract_gradient_serial(ux, uy, phi, inv_dx, vx, vy, phi_sum):
-    for n in range(phi.shape[0]):
-        _subtract_gradient_sample(ux[n], uy[n], phi[n], inv_dx, vx[n], vy[n], phi_sum[n])
-
-
-@jit(parallel=True)
-def _subtract_gradient_parallel(ux, uy, phi, inv_dx, vx, vy, phi_sum):
-    for n in prange(phi.shape[0]):
-        _subtract_gradient_sample(ux[n], uy[n], phi[n], inv_dx, vx[n], vy[n], phi_sum[n])
-
-
-@jit
 def _gradient_adjoint_sample(gx, gy, inv_dx, out):
     """One sample's out += -grad^T g = div of g with its wall faces zeroed (the adjoint of
     - grad phi)."""
@@ -520,18 +494,6 @@ def _gradient_adjoint_sample(gx, gy, inv_dx, out):
             if i + 1 <= H - 1:
                 s += gy[i + 1, j]
             out[i, j] += s * inv_dx
-
-
-@jit
-def _gradient_adjoint_serial(gx, gy, inv_dx, out):
-    for n in range(out.shape[0]):
-        _gradient_adjoint_sample(gx[n], gy[n], inv_dx, out[n])
-
-
-@jit(parallel=True)
-def _gradient_adjoint_parallel(gx, gy, inv_dx, out):
-    for n in prange(out.shape[0]):
-        _gradient_adjoint_sample(gx[n], gy[n], inv_dx, out[n])
 
 
 @jit(inline="always")
@@ -565,22 +527,6 @@ def _penalize_divergence_adjoint_sample(gvx, gvy, gpx, gpy, gdiv, wx, wy, bx, by
             gwy[i, j] -= gpy[i, j]
             gby[i, j] += gb
             gdy[i, j] += gd
-
-
-@jit
-def _penalize_divergence_adjoint_serial(gvx, gvy, gpx, gpy, gdiv, wx, wy, bx, by, dx_, dy_, inv_dx, gwx, gwy,
-                                        gbx, gby, gdx, gdy):
-    for n in range(gdiv.shape[0]):
-        _penalize_divergence_adjoint_sample(gvx[n], gvy[n], gpx[n], gpy[n], gdiv[n], wx[n], wy[n], bx[n], by[n],
-                                            dx_[n], dy_[n], inv_dx, gwx[n], gwy[n], gbx[n], gby[n], gdx[n], gdy[n])
-
-
-@jit(parallel=True)
-def _penalize_divergence_adjoint_parallel(gvx, gvy, gpx, gpy, gdiv, wx, wy, bx, by, dx_, dy_, inv_dx, gwx, gwy,
-                                          gbx, gby, gdx, gdy):
-    for n in prange(gdiv.shape[0]):
-        _penalize_divergence_adjoint_sample(gvx[n], gvy[n], gpx[n], gpy[n], gdiv[n], wx[n], wy[n], bx[n], by[n],
-                                            dx_[n], dy_[n], inv_dx, gwx[n], gwy[n], gbx[n], gby[n], gdx[n], gdy[n])
 
 
 @jit
@@ -683,15 +629,16 @@ def _steps(v, masks, nu_n, dt_n, counts, inv_dx, walls, inverse, passes, keep):
     N, H, W = v[1].shape[0], v[0].shape[1], v[1].shape[2]
     out = (np.empty_like(v[0]), np.empty_like(v[1]))
     phi_sum, pen = np.zeros((N, H, W), v[0].dtype), (np.zeros_like(v[0]), np.zeros_like(v[1]))
-    tapes, slots = [], 2 + 2 * passes
+    tapes = []
     for n in range(N):
-        size = int(counts[n]) * slots if keep else 0
+        size = int(counts[n]) * (2 + 2 * passes) if keep else 0       # no tape without a gradient
         tape = (np.empty((size, H, W + 1), v[0].dtype), np.empty((size, H + 1, W), v[0].dtype))
         out[0][n], out[1][n] = _sample_steps(v[0][n], v[1][n], *(m[n] for m in masks), nu_n[n], dt_n[n], int(counts[n]),
                                              inv_dx, walls, inverse.pivots, inverse.dx, passes, keep, *tape,
                                              phi_sum[n], pen[0][n], pen[1][n])
-        tapes.append(tape)
-    return out, phi_sum, pen, tapes if keep else []
+        if keep:
+            tapes.append(tape)
+    return out, phi_sum, pen, tapes
 
 
 def _steps_adjoint(tapes, gv, gphi_all, gpen_all, masks, counts, nu_n, dt_n, inv_dx, walls, inverse, passes, need_nu):
@@ -706,7 +653,7 @@ def _steps_adjoint(tapes, gv, gphi_all, gpen_all, masks, counts, nu_n, dt_n, inv
                                                         gpen_all[1][n], *(m[n] for m in masks), nu_n[n], dt_n[n],
                                                         int(counts[n]), inv_dx, walls, inverse.pivots, inverse.dx,
                                                         passes, need_nu, *(m[n] for m in gmasks))
-        g_nu[n] = g if need_nu else 0.0
+        g_nu[n] = g                                   # 0 unless need_nu (``_sample_backward``)
     return out, gmasks, g_nu
 
 

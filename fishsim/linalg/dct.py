@@ -21,14 +21,7 @@ import torch
 from numba import prange
 from torch import Tensor
 
-from fishsim.compiled import each_sample, jit, serial_here
-
-try:  # pocketfft's transforms without scipy.fft's array-API dispatch, which costs ~8 us a call
-    # (62 -> 54 us on 100 x 300; 96 calls a frame of the numerical fluid), same results
-    from scipy.fft._pocketfft import dct as _dct
-    from scipy.fft._pocketfft import idct as _idct
-except ImportError:  # a scipy that moved them
-    _dct, _idct = sfft.dct, sfft.idct
+from fishsim.compiled import each_sample, jit
 
 
 def _phase(N: int, sign: float, like: Tensor) -> Tensor:
@@ -149,25 +142,25 @@ def _tridiagonal_sample(f, inv_pivot, dx):
 
 @jit
 def inverse_sample(f, inv_pivot, dx):
-    """L^+ f of one sample [H, W] in compiled code (``inverse_array``'s DCT-II along x, sweeps
-    along y and inverse DCT, bit for bit; the transforms through rocket-fft's scipy.fft): a new
-    array of f's dtype. Lets a compiled loop solve its Poisson equations without returning to
-    Python (``fluid.kernels.SplitStep``)."""
+    """L^+ f of one sample [H, W]: scipy.fft's DCT-II along x (compiled through rocket-fft, bit for
+    bit scipy's), ``_tridiagonal_sample``'s sweeps along y, the inverse DCT; a new array of f's
+    dtype. Compiled, so that a compiled loop solves its Poisson equations without returning to
+    Python (``fluid.kernels.SplitStep``); ``inverse_array`` runs it over a batch."""
     F = sfft.dct(f, 2, None, -1)
     _tridiagonal_sample(F, inv_pivot, dx)
     return sfft.idct(F, 2, None, -1)
 
 
 @jit
-def _tridiagonal_serial(F, inv_pivot, dx):
-    for n in range(F.shape[0]):
-        _tridiagonal_sample(F[n], inv_pivot, dx)
+def _inverse_serial(x, inv_pivot, dx, out):
+    for n in range(x.shape[0]):
+        out[n] = inverse_sample(x[n], inv_pivot, dx)
 
 
 @jit(parallel=True)
-def _tridiagonal_parallel(F, inv_pivot, dx):
-    for n in prange(F.shape[0]):
-        _tridiagonal_sample(F[n], inv_pivot, dx)
+def _inverse_parallel(x, inv_pivot, dx, out):
+    for n in prange(x.shape[0]):
+        out[n] = inverse_sample(x[n], inv_pivot, dx)
 
 
 def solve_neumann_poisson(f: Tensor, dx: float, inverse: NeumannInverse | None = None) -> Tensor:
@@ -194,10 +187,11 @@ class NeumannPoisson(torch.autograd.Function):
 
 
 def apply_inverse(f: Tensor, inverse: NeumannInverse) -> Tensor:
-    """L^+ f (no autograd), f [..., H, W]. On the CPU: scipy.fft's DCT-II along x, a tridiagonal
-    solve along y per x-mode (``_tridiagonal_sample``, compiled), the inverse DCT: 0.3 ms per 100 x 300
-    solve against 0.7 ms for scipy's 2D transforms with a division and 0.85 ms for the FFT-based
-    ``dct`` / ``idct`` above, which serve other devices (2D transforms)."""
+    """L^+ f (no autograd), f [..., H, W]. On the CPU ``inverse_array``: the DCT-II along x, a
+    tridiagonal solve along y per x-mode, the inverse DCT, compiled (0.1-0.16 ms per 100 x 300 in
+    float32; the same from Python with scipy's transforms took 0.15-0.3 ms, scipy's 2D transforms
+    with a division 0.7 ms and the FFT-based ``dct`` / ``idct`` above 0.85 ms: they serve other
+    devices, as 2D transforms)."""
     if f.device.type == "cpu":
         y = inverse_array(f.detach().reshape(-1, *f.shape[-2:]).numpy(), inverse)
         return torch.from_numpy(y).reshape(f.shape)
@@ -207,11 +201,9 @@ def apply_inverse(f: Tensor, inverse: NeumannInverse) -> Tensor:
 
 def inverse_array(x: np.ndarray, inverse: NeumannInverse) -> np.ndarray:
     """``apply_inverse`` on numpy arrays (CPU): L^+ x for x [N, H, W], a new C-contiguous array of
-    x's dtype (x is not changed). The transforms use up to one thread per sample: one sample's
-    rows split over threads cost more than they save (100 x 300, B = 1, a numerical step with 2
-    workers took 53 against 25 ms forward); in a thread of ``compiled.in_sample_chunks``, one."""
-    workers = 1 if serial_here() else min(torch.get_num_threads(), x.shape[0])
-    F = _dct(x, type=2, axis=-1, workers=workers)
-    each_sample(_tridiagonal_serial, _tridiagonal_parallel, F, inverse.pivots, inverse.dx)
-    y = _idct(F, type=2, axis=-1, workers=workers, overwrite_x=True)
-    return np.ascontiguousarray(y, dtype=x.dtype)
+    x's dtype (x is not changed): ``inverse_sample`` for each sample, over numba's threads for a
+    batch (``compiled.each_sample``: one sample, or a thread of ``in_sample_chunks``, serially)."""
+    x = np.ascontiguousarray(x)
+    out = np.empty_like(x)
+    each_sample(_inverse_serial, _inverse_parallel, x, inverse.pivots, inverse.dx, out)
+    return out
