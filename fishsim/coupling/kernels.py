@@ -522,50 +522,54 @@ def _chord(q, k):
 
 @jit
 def _samples(q, k, nx, ny, mask, outside, shape, dx, sigma_prime, radius, cell, ox, oy, weight):
-    """The (2r+1)^2 cells around node k: flat index (cell, -1 outside the grid), offsets
-    x_ij - q^k (ox, oy) and weights g_ij S(b_ij) H(n.(x_ij - q^k)) (ibm.sample_weights); returns
-    their sum."""
+    """The cells among the (2r+1)^2 around node k that node k samples (ibm.sample_weights): their
+    flat index (cell), offsets x_ij - q^k (ox, oy) and weights g_ij S(b_ij) H(n.(x_ij - q^k)) > 0,
+    in the first m entries of the arrays; returns (the weights' sum, m). The cells a node does not
+    sample (beyond the grid, on the body's side, in the mask's band) would add only zeros to the
+    fit and its adjoint. The kernel g_ij = exp(-|x_ij - q^k|^2 / (2 sigma')) T(x) T(y) is
+    separable: its factors are taken once per column and row."""
     H, W = shape
     cj, ci = math.floor(q[k, 0] / dx), math.floor(q[k, 1] / dx)
     inner, outer = (radius - 1) * dx, (radius + 0.5) * dx
-    total, c = 0.0, 0
-    for di in range(-radius, radius + 1):
-        for dj in range(-radius, radius + 1):
-            i, j = ci + di, cj + dj
+    n = 2 * radius + 1
+    along_x, along_y = np.empty(n), np.empty(n)
+    for a in range(n):
+        x, y = (cj - radius + a + 0.5) * dx - q[k, 0], (ci - radius + a + 0.5) * dx - q[k, 1]
+        along_x[a] = math.exp(-x * x * (0.5 / sigma_prime)) * _taper(x, inner, outer)[0]
+        along_y[a] = math.exp(-y * y * (0.5 / sigma_prime)) * _taper(y, inner, outer)[0]
+    total, m = 0.0, 0
+    for i in range(max(ci - radius, 0), min(ci + radius + 1, H)):
+        for j in range(max(cj - radius, 0), min(cj + radius + 1, W)):
             x, y = (j + 0.5) * dx - q[k, 0], (i + 0.5) * dx - q[k, 1]
-            ox[c], oy[c], cell[c], weight[c] = x, y, -1, 0.0
-            if 0 <= i < H and 0 <= j < W:
-                cell[c] = i * W + j
-                side = _taper(min(nx * x + ny * y - dx, 0.0), 0.0, dx)[0]
-                if side == 0.0:                                 # the body's side of the node: no sample
-                    c += 1
-                    continue
-                side *= _taper(mask[cell[c]], 0.0, outside)[0]
-                if side == 0.0:
-                    c += 1
-                    continue
-                weight[c] = (math.exp(-(x * x + y * y) * (0.5 / sigma_prime)) * _taper(x, inner, outer)[0]
-                             * _taper(y, inner, outer)[0] * side)
-                total += weight[c]
-            c += 1
-    return total
+            w = along_x[j - cj + radius] * along_y[i - ci + radius]
+            if w == 0.0:
+                continue
+            w *= _taper(min(nx * x + ny * y - dx, 0.0), 0.0, dx)[0]      # the body's side of the node: 0
+            if w == 0.0:
+                continue
+            w *= _taper(mask[i * W + j], 0.0, outside)[0]
+            if w == 0.0:
+                continue
+            cell[m], ox[m], oy[m], weight[m] = i * W + j, x, y, w
+            total += w
+            m += 1
+    return total, m
 
 
 @jit
-def _fit(p, cell, ox, oy, wn, sigma_prime, linear, d):
-    """p_k (ibm.fit_at_node) from the normalised weights wn; with ``linear`` also d (the plane
-    fit's coefficients, ibm.linear_fit_correction) and returns (p_k, pbar, rx, ry, ux, uy, det,
-    cxx, cyy, cxy)."""
+def _fit(p, cell, ox, oy, wn, m, sigma_prime, linear, d):
+    """p_k (ibm.fit_at_node) from the first m samples' normalised weights wn; with ``linear``
+    also d (the plane fit's coefficients, ibm.linear_fit_correction) and returns (p_k, pbar, rx,
+    ry, ux, uy, det, cxx, cyy, cxy)."""
     pbar, rx, ry = 0.0, 0.0, 0.0
-    for c in range(cell.shape[0]):
-        if cell[c] >= 0:
-            pbar += wn[c] * p[cell[c]]
-            rx += wn[c] * ox[c]
-            ry += wn[c] * oy[c]
+    for c in range(m):
+        pbar += wn[c] * p[cell[c]]
+        rx += wn[c] * ox[c]
+        ry += wn[c] * oy[c]
     if not linear:
         return pbar, pbar, rx, ry, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0
     cxx, cyy, cxy = 1e-6 * sigma_prime, 1e-6 * sigma_prime, 0.0
-    for c in range(cell.shape[0]):
+    for c in range(m):
         ex, ey = ox[c] - rx, oy[c] - ry
         cxx += wn[c] * ex * ex
         cyy += wn[c] * ey * ey
@@ -573,10 +577,9 @@ def _fit(p, cell, ox, oy, wn, sigma_prime, linear, d):
     det = cxx * cyy - cxy * cxy
     ux, uy = (cyy * rx - cxy * ry) / det, (cxx * ry - cxy * rx) / det
     p_k = pbar
-    for c in range(cell.shape[0]):
+    for c in range(m):
         d[c] = -wn[c] * (ux * (ox[c] - rx) + uy * (oy[c] - ry))
-        if cell[c] >= 0:
-            p_k += d[c] * (p[cell[c]] - pbar)
+        p_k += d[c] * (p[cell[c]] - pbar)
     return p_k, pbar, rx, ry, ux, uy, det, cxx, cyy, cxy
 
 
@@ -588,10 +591,11 @@ def _fish_ibm(q, p, mask, outside, shape, dx, sigma_prime, radius, linear, f):
     for k in range(q.shape[0]):
         ax, ay, _, _ = _chord(q, k)
         norm = math.sqrt(ax * ax + ay * ay)
-        total = max(_samples(q, k, ax / norm, ay / norm, mask, outside, shape, dx, sigma_prime, radius, cell, ox, oy, wn),
-                    np.finfo(np.float64).tiny)
-        wn /= total
-        p_k = _fit(p, cell, ox, oy, wn, sigma_prime, linear, d)[0]
+        raw, m = _samples(q, k, ax / norm, ay / norm, mask, outside, shape, dx, sigma_prime, radius, cell, ox, oy, wn)
+        total = max(raw, np.finfo(np.float64).tiny)
+        for c in range(m):
+            wn[c] /= total
+        p_k = _fit(p, cell, ox, oy, wn, m, sigma_prime, linear, d)[0]
         f[k, 0], f[k, 1] = -p_k * ax, -p_k * ay
 
 
@@ -606,23 +610,22 @@ def _fish_ibm_backward(q, p, mask, outside, shape, dx, sigma_prime, radius, line
         ax, ay, after, before = _chord(q, k)
         norm = math.sqrt(ax * ax + ay * ay)
         nx, ny = ax / norm, ay / norm
-        raw = _samples(q, k, nx, ny, mask, outside, shape, dx, sigma_prime, radius, cell, ox, oy, wn)
+        raw, m = _samples(q, k, nx, ny, mask, outside, shape, dx, sigma_prime, radius, cell, ox, oy, wn)
         total = max(raw, np.finfo(np.float64).tiny)
-        wn /= total
-        p_k, pbar, rx, ry, ux, uy, det, cxx, cyy, cxy = _fit(p, cell, ox, oy, wn, sigma_prime, linear, d)
+        for c in range(m):
+            wn[c] /= total
+        p_k, pbar, rx, ry, ux, uy, det, cxx, cyy, cxy = _fit(p, cell, ox, oy, wn, m, sigma_prime, linear, d)
         g_pk = -(gf[k, 0] * ax + gf[k, 1] * ay)                     # f = -p_k a
         g_ax, g_ay = -p_k * gf[k, 0], -p_k * gf[k, 1]
-        g_wn[:] = 0.0
-        g_ox[:] = 0.0
-        g_oy[:] = 0.0
+        g_wn[:m] = 0.0
+        g_ox[:m] = 0.0
+        g_oy[:m] = 0.0
         g_pbar = g_pk
         if linear:                                                  # p_k = pbar + sum d (p - pbar)
             g_ux, g_uy, g_rx, g_ry = 0.0, 0.0, 0.0, 0.0
             g_cxx, g_cyy, g_cxy = 0.0, 0.0, 0.0
             sum_d, sum_gex, sum_gey = 0.0, 0.0, 0.0
-            for c in range(M):
-                if cell[c] < 0:
-                    continue
+            for c in range(m):
                 sum_d += d[c]
                 g_d = g_pk * (p[cell[c]] - pbar)
                 gp[cell[c]] += g_pk * d[c]
@@ -649,7 +652,7 @@ def _fish_ibm_backward(q, p, mask, outside, shape, dx, sigma_prime, radius, line
             g_cxx += g_det * cyy                                    # det = cxx cyy - cxy^2
             g_cyy += g_det * cxx
             g_cxy -= 2.0 * g_det * cxy
-            for c in range(M):                                      # C = sum wn e e^T (+ eps I)
+            for c in range(m):                                      # C = sum wn e e^T (+ eps I)
                 ex, ey = ox[c] - rx, oy[c] - ry
                 g_wn[c] += g_cxx * ex * ex + g_cyy * ey * ey + g_cxy * ex * ey
                 g_ex = wn[c] * (2.0 * g_cxx * ex + g_cxy * ey)
@@ -660,19 +663,18 @@ def _fish_ibm_backward(q, p, mask, outside, shape, dx, sigma_prime, radius, line
                 sum_gey += g_ey
             g_rx -= sum_gex                                         # e = o - r
             g_ry -= sum_gey
-            for c in range(M):                                      # r = sum wn o
+            for c in range(m):                                      # r = sum wn o
                 g_wn[c] += g_rx * ox[c] + g_ry * oy[c]
                 g_ox[c] += g_rx * wn[c]
                 g_oy[c] += g_ry * wn[c]
         mean = 0.0
-        for c in range(M):                                          # pbar = sum wn p
-            if cell[c] >= 0:
-                g_wn[c] += g_pbar * p[cell[c]]
-                gp[cell[c]] += g_pbar * wn[c]
+        for c in range(m):                                          # pbar = sum wn p
+            g_wn[c] += g_pbar * p[cell[c]]
+            gp[cell[c]] += g_pbar * wn[c]
             mean += g_wn[c] * wn[c]
         g_nx, g_ny, g_qx, g_qy = 0.0, 0.0, 0.0, 0.0
-        for c in range(M):                                          # wn = W / Z, W = g S(b) H(h)
-            if cell[c] < 0 or wn[c] == 0.0:                         # (S, H and their slopes vanish there)
+        for c in range(m):                                          # wn = W / Z, W = g S(b) H(h)
+            if wn[c] == 0.0:                                        # (S, H and their slopes vanish there)
                 continue
             g_w = (g_wn[c] - mean) / total if raw >= np.finfo(np.float64).tiny else g_wn[c] / total
             x, y = ox[c], oy[c]
