@@ -33,12 +33,19 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from fishsim.compiled import thread_pool
-from fishsim.coupling import CouplingConfig, exchange_to_solid, fluid_to_solid, solid_to_fluid
+from fishsim.coupling import (
+    CouplingConfig,
+    exchange_to_solid,
+    fish_band,
+    fluid_to_solid,
+    on_grid,
+    united_with_nothing,
+)
 from fishsim.coupling.added_mass import mass_centroid, stabilise_translation, stabilising_force
 from fishsim.coupling.config import AVERAGE
 from fishsim.errors import ConfigError, SimulationBlowUp
 from fishsim.fields import Boundary, FluidModel, FluidParams, FluidState, Grid
-from fishsim.fluid.grid import curl, faces_to_centres, union
+from fishsim.fluid.grid import curl, faces_to_centres
 from fishsim.mesh.triangulate import element_areas
 from fishsim.solid import SolidModel, SolverCache, pd_step, predicted_start
 from fishsim.solid.controller import WaveController
@@ -165,7 +172,8 @@ class Swimmer:
         if tunnel and (not fluid.exerts_force or walls is None):
             raise ConfigError("a swim tunnel needs a fluid and its channel walls")
         self.solid, self.fluid, self.coupling = solid, fluid, coupling
-        self.walls, self.fluid_dtype, self.hold = walls, fluid_dtype, (hold_x or tunnel, hold_y)
+        self.walls = None if walls is None else united_with_nothing(walls)
+        self.fluid_dtype, self.hold = fluid_dtype, (hold_x or tunnel, hold_y)
         self.tunnel = tunnel
         self.surface = torch.as_tensor(solid.mesh.surface, dtype=torch.long)
         self.triangles = torch.as_tensor(solid.mesh.triangles, dtype=torch.long)
@@ -191,23 +199,26 @@ class Swimmer:
 
     def boundary(self, state: SwimState) -> Boundary:
         """Step 1: the fish's soft mask and velocity, united with the tank walls."""
-        return self.fish_and_boundary(state)[1]
+        return self.fish_and_boundary(state, alone=False)[1]
 
-    def fish_and_boundary(self, state: SwimState, grid: Grid | None = None) -> tuple[Boundary, Boundary]:
-        """(the fish's own Boundary, the fish united with the tank walls) on ``grid``: the fluid's
-        (default) or a finer one, r times (the walls' cell bands prolonged exactly)."""
+    def fish_and_boundary(self, state: SwimState, grid: Grid | None = None,
+                          alone: bool = True) -> tuple[Boundary | None, Boundary]:
+        """(the fish's own Boundary, or None without ``alone``, the fish united with the tank
+        walls) on ``grid``: the fluid's (default) or a finer one, r times (the walls' cell bands
+        prolonged exactly)."""
         grid = self.fluid.grid if grid is None else grid
-        fish = solid_to_fluid(state.q, state.qdot, self.surface, grid, self.coupling, dtype=self.fluid_dtype)
+        band = fish_band(state.q, state.qdot, self.surface, grid, self.coupling, dtype=self.fluid_dtype)
+        fish = on_grid(band, grid) if alone or self.walls is None else None
         if self.walls is None:
             return fish, fish
         B, r = state.q.shape[0], grid.W // self.fluid.grid.W
-        velocity = self.walls.velocity.expand(B, -1, -1, -1)
+        walls = self.walls
         if self.tunnel:                                 # the water comes at the fish (facing +x) at U
-            velocity = velocity * -state.tunnel[:, 0].to(velocity.dtype).view(B, 1, 1, 1)
-        walls = Boundary(self.walls.mask.expand(B, -1, -1, -1), velocity)
+            velocity = walls.velocity * -state.tunnel[:, 0].to(walls.velocity.dtype).view(B, 1, 1, 1)
+            walls = Boundary(walls.mask, velocity)
         if r > 1:
             walls = Boundary(*(F.interpolate(x, scale_factor=r, mode="nearest") for x in (walls.mask, walls.velocity)))
-        return fish, union(fish, walls)
+        return fish, on_grid(band, grid, walls)
 
     def tunnel_speed(self, state: SwimState, f_ext: Tensor, rho: Tensor, mass: Tensor) -> Tensor:
         """The swim tunnel's speed after this frame, [B, 2] (U_t+1, U_t), from the fish's x
@@ -255,7 +266,8 @@ class Swimmer:
         are on the fluid's grid, where the sampled pressure is read."""
         t0, dev = time.perf_counter(), state.q.device
         fine = getattr(self.fluid, "boundary_grid", self.fluid.grid)
-        body, body_boundary = (fish, boundary) if fine == self.fluid.grid else self.fish_and_boundary(state, fine)
+        body, body_boundary = (fish, boundary) if fine == self.fluid.grid else self.fish_and_boundary(
+            state, fine, alone=self.coupling.force == "exchange")
         t0 = timer.add("coupling", t0, dev)
         if self.coupling.force == "exchange":
             fluid, diag = self.fluid.step_with_diagnostics(state.fluid, body_boundary, params.fluid)
@@ -292,7 +304,7 @@ class Swimmer:
         fluid, boundary = state.fluid, None
         f_ext, mass = torch.zeros_like(state.q), self.node_mass(state.q)
         if self.fluid.exerts_force:
-            fish, boundary = self.fish_and_boundary(state)
+            fish, boundary = self.fish_and_boundary(state, alone=self.coupling.force == "exchange")
             t0 = clock.add("coupling", t0, dev)
             fluid, f_ext = self.fluid_step(state, fish, boundary, params, t, start, mass, clock)
             t0 = time.perf_counter()

@@ -1,6 +1,8 @@
 """The coupling layer: solid -> fluid (b, v_d) and fluid -> solid (f_ext) (docs/physics.md section 7).
 
     solid_to_fluid(q, qdot, surface, grid, cfg) -> Boundary(b, v_d)     step 1 of the coupled step
+    fish_band(q, qdot, surface, grid, cfg) -> (band, b, v_d on its cells); on_grid(that, grid, walls)
+                                                                        the same in two parts
     fluid_to_solid(q, p, boundary, surface, grid, cfg, step) -> f_ext   step 3 (sampled pressure)
     exchange_to_solid(q, cell_force, surface, grid, cfg, step) -> f_ext
                                                                         step 3 (momentum exchange)
@@ -12,7 +14,7 @@ and combines them as a union of soft sets:
     v_total = (b_fish v_fish + b_wall v_wall) / (b_fish + b_wall)     (fishsim.fluid.grid.union)
 
 and may pass the combined Boundary to ``fluid_to_solid`` (wall cells are then not sampled by the
-default fluid-side IBM weight either).
+default fluid-side IBM weight either).  ``on_grid`` forms the union on the fish's band of cells only.
 """
 
 from __future__ import annotations
@@ -21,13 +23,14 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from fishsim.coupling.band import band_margin, surface_band
+from fishsim.coupling.band import SurfaceBand, band_margin, scatter_band, surface_band
 from fishsim.coupling.config import CouplingConfig
 from fishsim.coupling.exchange import spread_to_surface
 from fishsim.coupling.forces import burn_in_scale, fext_from_surface
 from fishsim.coupling.ibm import ibm_force
-from fishsim.coupling.mask import band_boundary
+from fishsim.coupling.mask import band_values
 from fishsim.fields import Boundary, Grid
+from fishsim.fluid.grid import union
 
 
 def surface_index(surface, device) -> Tensor:
@@ -38,7 +41,7 @@ def surface_index(surface, device) -> Tensor:
 
 
 def solid_to_fluid(q: Tensor, qdot: Tensor, surface, grid: Grid, cfg: CouplingConfig,
-                   dtype: torch.dtype = torch.float32) -> Boundary:
+                   dtype: torch.dtype = torch.float32, walls: Boundary | None = None) -> Boundary:
     """The fish as a fluid boundary: mask b [B, 1, H, W] and v_d [B, 2, H, W] in ``dtype``.
 
     v_d is the solid's velocity field on the band of cells around the body (the softmin-weighted
@@ -47,12 +50,44 @@ def solid_to_fluid(q: Tensor, qdot: Tensor, surface, grid: Grid, cfg: CouplingCo
 
     q, qdot: world-frame node positions (m) and velocities (m/s) [B, N, 2]; surface: [S] mesh
     indices of the ccw surface polyline (FishMesh.surface).  Differentiable in q and qdot.
+    walls: a Boundary to unite the fish with (``on_grid``), or None for the fish alone.
     """
+    return on_grid(fish_band(q, qdot, surface, grid, cfg, dtype), grid, walls)
+
+
+def fish_band(q: Tensor, qdot: Tensor, surface, grid: Grid, cfg: CouplingConfig,
+              dtype: torch.dtype = torch.float32) -> tuple[SurfaceBand, Tensor, Tensor]:
+    """``solid_to_fluid`` on the band of cells around the body (fishsim.coupling.band), the only
+    cells where b and v_d are not zero: (band, b [B, 1, P], v_d [B, 2, P])."""
     idx = surface_index(surface, q.device)
     qs, qdots = q[:, idx], qdot[:, idx]
     band = surface_band(qs, grid, band_margin(cfg.sigma, grid.dx), cfg.k_nearest, cfg.distance, cfg.sigma)
-    mask, velocity = band_boundary(qs, qdots, band, grid, cfg.xi, cfg.sigma, cfg.tau, cfg.mean, dtype)
-    return Boundary(mask=mask, velocity=velocity)
+    return band, *band_values(qs, qdots, band, cfg.xi, cfg.sigma, cfg.tau, cfg.mean, dtype)
+
+
+def on_grid(fish: tuple[SurfaceBand, Tensor, Tensor], grid: Grid, walls: Boundary | None = None) -> Boundary:
+    """``fish_band``'s fish as grid fields, alone (``walls`` None) or united with ``walls``, a
+    Boundary [1 or B, ., H, W] in the fish's dtype: ``union(fish, walls)`` (module docstring),
+    formed on the band's cells only (~1,300 of 30,000 at B = 1). Elsewhere b_fish = 0 and the
+    union is the walls themselves as ``united_with_nothing(walls)`` gives them: pass them so.
+    Differentiable in the fish's and the walls' fields."""
+    band, mask, velocity = fish
+    if walls is None:
+        return Boundary(mask=scatter_band(mask, band, grid), velocity=scatter_band(velocity, band, grid))
+    B, index = mask.shape[0], band.flat.unsqueeze(1)
+    wall_mask = walls.mask.expand(B, -1, -1, -1).flatten(2)                 # [B, 1, H W]
+    wall_velocity = walls.velocity.expand(B, -1, -1, -1).flatten(2)         # [B, 2, H W]
+    pair = index.expand(-1, 2, -1)
+    joint = union(Boundary(mask, velocity), Boundary(wall_mask.gather(2, index), wall_velocity.gather(2, pair)))
+    return Boundary(mask=wall_mask.scatter(2, index, joint.mask).view(B, 1, grid.H, grid.W),
+                    velocity=wall_velocity.scatter(2, pair, joint.velocity).view(B, 2, grid.H, grid.W))
+
+
+def united_with_nothing(walls: Boundary) -> Boundary:
+    """``union(nothing, walls)``: the walls as a union leaves them where no body is (b = 1 - (1 -
+    b_wall), v_d = 0 where b_wall = 0); ``solid_to_fluid``'s walls."""
+    empty = torch.zeros_like(walls.mask)
+    return union(Boundary(empty, torch.zeros_like(walls.velocity)), walls)
 
 
 def fluid_to_solid(q: Tensor, p: Tensor, boundary: Boundary, surface, grid: Grid,

@@ -124,31 +124,42 @@ def soft_mask(qs: Tensor, grid: Grid, xi: float = XI, sigma: float = SIGMA,
     """
     if band is None:
         band = surface_band(qs, grid, band_margin(sigma, grid.dx), distance=distance)
-    dtype = dtype or qs.dtype
+    return scatter_band(_band_mask(qs, band, xi, sigma, mean, dtype or qs.dtype).unsqueeze(1), band, grid)
+
+
+def _band_mask(qs: Tensor, band: SurfaceBand, xi: float, sigma: float, mean: str, dtype: torch.dtype) -> Tensor:
+    """b [B, P] of the band's cells (``soft_mask``'s formulas)."""
     e, _ = element_distances(qs, band, dtype)
     d = soft_distance(e, xi, mean, band.truncated)
     delta = torch.where(band.inside, 1.0, -1.0).to(d.dtype)
-    b = torch.sigmoid(delta * d / sigma)
-    return scatter_band(b.unsqueeze(1), band, grid)
+    return torch.sigmoid(delta * d / sigma)
 
 
-def band_boundary(qs: Tensor, qdots: Tensor, band: SurfaceBand, grid: Grid, xi: float = XI, sigma: float = SIGMA,
-                  tau: float = TAU, mean: str = HARMONIC, dtype: torch.dtype | None = None) -> tuple[Tensor, Tensor]:
-    """``soft_mask`` and ``boundary_velocity(weighted=False)`` on one band: (b [B, 1, H, W],
-    v_d [B, 2, H, W]) in ``dtype`` (default qs.dtype), differentiable in qs and qdots [B, S, 2].
-    On the CPU in one compiled pass over the band's cells (fishsim.coupling.kernels.BandBoundary,
-    float64 inside); elsewhere the torch formulas."""
+def band_values(qs: Tensor, qdots: Tensor, band: SurfaceBand, xi: float = XI, sigma: float = SIGMA,
+                tau: float = TAU, mean: str = HARMONIC, dtype: torch.dtype | None = None) -> tuple[Tensor, Tensor]:
+    """``soft_mask`` and ``boundary_velocity(weighted=False)`` on the band's cells only: (b [B, 1, P],
+    v_d [B, 2, P]) in ``dtype`` (default qs.dtype), differentiable in qs and qdots [B, S, 2]; every
+    other cell has b = v_d = 0 (``scatter_band`` makes them grid fields). On the CPU in one
+    compiled pass over the band's cells (fishsim.coupling.kernels.BandBoundary, float64 inside);
+    elsewhere the torch formulas."""
+    dtype = dtype or qs.dtype
     if qs.device.type != "cpu":
-        mask = soft_mask(qs, grid, xi, sigma, band.distance, mean, band, dtype)
-        return mask, boundary_velocity(qs, qdots, mask, grid, tau, band.distance, band, weighted=False)
+        b = _band_mask(qs, band, xi, sigma, mean, dtype)
+        return b.unsqueeze(1), _band_velocity(qs, qdots, band, tau, dtype).transpose(1, 2)
     from fishsim.coupling.kernels import BandBoundary
 
     if mean not in (HARMONIC, ARITHMETIC):
         raise ValueError(f"mean must be 'harmonic' or 'arithmetic', got {mean!r}")
     b, u = BandBoundary.apply(qs - band.origin, qdots, band.centres, band.nearest, band.inside, band.unranked, xi,
-                              sigma, tau, mean == HARMONIC, band.distance == SEGMENT, band.truncated,
-                              dtype or qs.dtype)
-    return scatter_band(b.unsqueeze(1), band, grid), scatter_band(u.transpose(1, 2), band, grid)
+                              sigma, tau, mean == HARMONIC, band.distance == SEGMENT, band.truncated, dtype)
+    return b.unsqueeze(1), u.transpose(1, 2)
+
+
+def band_boundary(qs: Tensor, qdots: Tensor, band: SurfaceBand, grid: Grid, xi: float = XI, sigma: float = SIGMA,
+                  tau: float = TAU, mean: str = HARMONIC, dtype: torch.dtype | None = None) -> tuple[Tensor, Tensor]:
+    """``band_values`` as grid fields: (b [B, 1, H, W], v_d [B, 2, H, W])."""
+    b, u = band_values(qs, qdots, band, xi, sigma, tau, mean, dtype)
+    return scatter_band(b, band, grid), scatter_band(u, band, grid)
 
 
 def element_velocities(qdots: Tensor, band: SurfaceBand, t: Tensor | None) -> Tensor:
@@ -179,9 +190,14 @@ def boundary_velocity(qs: Tensor, qdots: Tensor, mask: Tensor, grid: Grid, tau: 
     """
     if band is None:
         band = surface_band(qs, grid, band_margin(SIGMA, grid.dx), distance=distance)
-    e, t = element_distances(qs, band, mask.dtype)
-    w = softmin_weights(e, tau, band.truncated)
-    u = (w.unsqueeze(-1) * element_velocities(qdots.to(mask.dtype), band, t)).sum(2)  # [B, P, 2]
+    u = _band_velocity(qs, qdots, band, tau, mask.dtype).transpose(1, 2)  # [B, 2, P]
     b = mask.flatten(2).gather(2, band.flat.unsqueeze(1))  # [B, 1, P]
-    u = u.transpose(1, 2)
     return scatter_band(u * b if weighted else u, band, grid)
+
+
+def _band_velocity(qs: Tensor, qdots: Tensor, band: SurfaceBand, tau: float, dtype: torch.dtype) -> Tensor:
+    """The softmin-weighted element velocity u [B, P, 2] of the band's cells (``boundary_velocity``
+    without the factor b)."""
+    e, t = element_distances(qs, band, dtype)
+    w = softmin_weights(e, tau, band.truncated)
+    return (w.unsqueeze(-1) * element_velocities(qdots.to(dtype), band, t)).sum(2)
