@@ -211,14 +211,11 @@ class Swimmer:
         fish = on_grid(band, grid) if alone or self.walls is None else None
         if self.walls is None:
             return fish, fish
-        B, r = state.q.shape[0], grid.W // self.fluid.grid.W
-        walls = self.walls
-        if self.tunnel:                                 # the water comes at the fish (facing +x) at U
-            velocity = walls.velocity * -state.tunnel[:, 0].to(walls.velocity.dtype).view(B, 1, 1, 1)
-            walls = Boundary(walls.mask, velocity)
+        r, walls = grid.W // self.fluid.grid.W, self.walls
+        scale = -state.tunnel[:, 0] if self.tunnel else None    # the water comes at the fish (facing +x) at U
         if r > 1:
             walls = Boundary(*(F.interpolate(x, scale_factor=r, mode="nearest") for x in (walls.mask, walls.velocity)))
-        return fish, on_grid(band, grid, walls)
+        return fish, on_grid(band, grid, walls, scale)
 
     def tunnel_speed(self, state: SwimState, f_ext: Tensor, rho: Tensor, mass: Tensor) -> Tensor:
         """The swim tunnel's speed after this frame, [B, 2] (U_t+1, U_t), from the fish's x

@@ -496,6 +496,104 @@ class BandBoundary(torch.autograd.Function):
 
 
 # ---------------------------------------------------------------------------------------------
+# The fish united with the tank's walls on the grid (grid.union, formed on the band's cells), and
+# its adjoint
+
+
+@jit
+def _union(b, u, flat, wall_mask, wall_velocity, scale, one, floor, mask, velocity):
+    """mask [B, H W] and velocity [B, 2, H W]: the walls (wall_mask [1 or B, H W], wall_velocity
+    [1 or B, 2, H W] times scale [B]) with each fish's band cells flat [B, P] replaced by
+    grid.union((b [B, P], u [B, 2, P]), walls), in the fields' own dtype (``one``, ``floor``: 1 and
+    grid.MASK_FLOOR in it), the operations in grid.union's order."""
+    for f in range(b.shape[0]):
+        w = f if wall_mask.shape[0] > 1 else 0
+        mask[f] = wall_mask[w]
+        for k in range(2):
+            for c in range(mask.shape[1]):
+                velocity[f, k, c] = wall_velocity[w, k, c] * scale[f]
+        for p in range(b.shape[1]):
+            c = flat[f, p]
+            b_fish, b_wall = b[f, p], wall_mask[w, c]
+            mask[f, c] = one - (one - b_fish) * (one - b_wall)
+            total = max(b_fish + b_wall, floor)
+            for k in range(2):
+                velocity[f, k, c] = (b_fish * u[f, k, p] + b_wall * (wall_velocity[w, k, c] * scale[f])) / total
+
+
+@jit
+def _union_adjoint(b, u, flat, wall_mask, wall_velocity, scale, floor, g_mask, g_velocity, need_scale, gb, gu,
+                   g_scale):
+    """gb [B, P], gu [B, 2, P] and g_scale [B] (if ``need_scale``) of _union for the cotangents
+    g_mask [B, H W] and g_velocity [B, 2, H W], in float64."""
+    for f in range(b.shape[0]):
+        w = f if wall_mask.shape[0] > 1 else 0
+        total_scale = 0.0
+        if need_scale:                                      # velocity = scale v_wall off the band
+            for k in range(2):
+                for c in range(g_velocity.shape[2]):
+                    total_scale += g_velocity[f, k, c] * wall_velocity[w, k, c]
+        for p in range(b.shape[1]):
+            c = flat[f, p]
+            b_fish, b_wall = b[f, p], wall_mask[w, c]
+            raw = b_fish + b_wall
+            total = max(raw, floor)
+            g_b = g_mask[f, c] * (1.0 - b_wall)
+            for k in range(2):
+                v_wall = wall_velocity[w, k, c] * scale[f]
+                v = (b_fish * u[f, k, p] + b_wall * v_wall) / total
+                g_v = g_velocity[f, k, c]
+                gu[f, k, p] = g_v * b_fish / total
+                g_b += g_v * ((u[f, k, p] - v) / total if raw > floor else u[f, k, p] / total)
+                if need_scale:
+                    total_scale += g_v * (b_wall / total - 1.0) * wall_velocity[w, k, c]
+            gb[f, p] = g_b
+        g_scale[f] = total_scale
+
+
+class BandUnion(torch.autograd.Function):
+    """(mask [B, 1, H, W], velocity [B, 2, H, W]) = grid.union(fish, walls) for a fish whose mask
+    b [B, 1, P] and velocity u [B, 2, P] vanish off its band's cells flat [B, P] (band.py), and
+    walls (wall_mask [1 or B, 1, H, W], wall_velocity [1 or B, 2, H, W]: constants, as
+    layer.united_with_nothing gives them) whose velocity is scaled by scale [B] (a swim tunnel's
+    -U). One compiled pass instead of ~20 torch operations; the union is computed in the fields'
+    dtype in grid.union's order (the same values bit for bit), its adjoint in float64. CPU
+    tensors; differentiable in b, u and scale."""
+
+    @staticmethod
+    def forward(ctx, b: Tensor, u: Tensor, flat: Tensor, wall_mask: Tensor, wall_velocity: Tensor, scale: Tensor):
+        from fishsim.fluid.grid import MASK_FLOOR
+
+        if wall_mask.requires_grad or wall_velocity.requires_grad:
+            raise ValueError("BandUnion: the walls are constants (their velocity varies through ``scale``)")
+        B, H, W = b.shape[0], wall_mask.shape[-2], wall_mask.shape[-1]
+        dtype = wall_mask.numpy().dtype
+        args = (np.ascontiguousarray(b.detach().numpy()[:, 0]), np.ascontiguousarray(u.detach().numpy()),
+                np.ascontiguousarray(flat.numpy()), _flat_grid(wall_mask, wall_mask.shape[0], H * W),
+                np.ascontiguousarray(wall_velocity.numpy()).reshape(-1, 2, H * W),
+                scale.detach().numpy().astype(dtype))
+        mask, velocity = np.empty((B, H * W), dtype), np.empty((B, 2, H * W), dtype)
+        _union(*args, np.ones(1, dtype)[0], np.full(1, MASK_FLOOR, dtype)[0], mask, velocity)
+        ctx.args, ctx.floor = args, MASK_FLOOR
+        ctx.dtypes = (b.dtype, u.dtype, scale.dtype)
+        return torch.from_numpy(mask).view(B, 1, H, W), torch.from_numpy(velocity).view(B, 2, H, W)
+
+    @staticmethod
+    def backward(ctx, g_mask: Tensor, g_velocity: Tensor):
+        b, u, flat, wall_mask, wall_velocity, scale = ctx.args
+        B, P = b.shape
+        g_mask = np.zeros((B, wall_mask.shape[-1])) if g_mask is None else _f64(g_mask).reshape(B, -1)
+        g_velocity = np.zeros((B, 2, wall_mask.shape[-1])) if g_velocity is None else _f64(g_velocity).reshape(B, 2, -1)
+        gb, gu, g_scale = np.empty((B, P)), np.empty((B, 2, P)), np.zeros(B)
+        _union_adjoint(b.astype(np.float64), u.astype(np.float64), flat, wall_mask.astype(np.float64),
+                       wall_velocity.astype(np.float64), scale.astype(np.float64), ctx.floor, g_mask, g_velocity,
+                       ctx.needs_input_grad[5], gb, gu, g_scale)
+        b_dtype, u_dtype, scale_dtype = ctx.dtypes
+        return (torch.from_numpy(gb).to(b_dtype).unsqueeze(1), torch.from_numpy(gu).to(u_dtype), None, None, None,
+                torch.from_numpy(g_scale).to(scale_dtype))
+
+
+# ---------------------------------------------------------------------------------------------
 # Fluid -> solid: the IBM pressure force f_k = -p_k a_k with ibm.py's default sampling ("outside"
 # weights, "chord" elements; "linear" or "mean" fit), and its adjoint
 

@@ -65,18 +65,31 @@ def fish_band(q: Tensor, qdot: Tensor, surface, grid: Grid, cfg: CouplingConfig,
     return band, *band_values(qs, qdots, band, cfg.xi, cfg.sigma, cfg.tau, cfg.mean, dtype)
 
 
-def on_grid(fish: tuple[SurfaceBand, Tensor, Tensor], grid: Grid, walls: Boundary | None = None) -> Boundary:
+def on_grid(fish: tuple[SurfaceBand, Tensor, Tensor], grid: Grid, walls: Boundary | None = None,
+            scale: Tensor | None = None) -> Boundary:
     """``fish_band``'s fish as grid fields, alone (``walls`` None) or united with ``walls``, a
-    Boundary [1 or B, ., H, W] in the fish's dtype: ``union(fish, walls)`` (module docstring),
-    formed on the band's cells only (~1,300 of 30,000 at B = 1). Elsewhere b_fish = 0 and the
-    union is the walls themselves as ``united_with_nothing(walls)`` gives them: pass them so.
-    Differentiable in the fish's and the walls' fields."""
+    Boundary [1 or B, ., H, W] in the fish's dtype whose velocity is multiplied by ``scale`` [B]
+    (a swim tunnel's -U; None: 1): ``union(fish, walls)`` (module docstring), formed on the band's
+    cells only (~1,300 of 30,000 at B = 1; on the CPU in one compiled pass, kernels.BandUnion).
+    Elsewhere b_fish = 0 and the union is the walls themselves as ``united_with_nothing(walls)``
+    gives them: pass them so, as constants. Differentiable in the fish's fields and ``scale``."""
     band, mask, velocity = fish
     if walls is None:
         return Boundary(mask=scatter_band(mask, band, grid), velocity=scatter_band(velocity, band, grid))
+    scale = mask.new_ones(mask.shape[0]) if scale is None else scale.to(mask.dtype)
+    if mask.device.type == "cpu":
+        from fishsim.coupling.kernels import BandUnion
+
+        return Boundary(*BandUnion.apply(mask, velocity, band.flat, walls.mask, walls.velocity, scale))
+    return torch_band_union(band, mask, velocity, grid, walls, scale)
+
+
+def torch_band_union(band: SurfaceBand, mask: Tensor, velocity: Tensor, grid: Grid, walls: Boundary,
+                     scale: Tensor) -> Boundary:
+    """``on_grid``'s union in torch operations (CUDA; the reference of kernels.BandUnion)."""
     B, index = mask.shape[0], band.flat.unsqueeze(1)
     wall_mask = walls.mask.expand(B, -1, -1, -1).flatten(2)                 # [B, 1, H W]
-    wall_velocity = walls.velocity.expand(B, -1, -1, -1).flatten(2)         # [B, 2, H W]
+    wall_velocity = (walls.velocity * scale.view(B, 1, 1, 1)).flatten(2)    # [B, 2, H W]
     pair = index.expand(-1, 2, -1)
     joint = union(Boundary(mask, velocity), Boundary(wall_mask.gather(2, index), wall_velocity.gather(2, pair)))
     return Boundary(mask=wall_mask.scatter(2, index, joint.mask).view(B, 1, grid.H, grid.W),

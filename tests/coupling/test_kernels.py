@@ -173,33 +173,34 @@ def test_band_cells_equal_the_torch_window(B):
 
 
 def test_the_union_with_the_walls_on_the_band_equals_the_union_on_the_grid():
-    """``solid_to_fluid(walls=...)`` forms the fish + walls union on the band's cells only; it
-    equals ``grid.union`` over the whole grid, values and gradients (w.r.t. the surface, its
-    velocities and a swim tunnel's speed scaling the walls' velocity), for two fish, one of them
-    touching a wall band with a moving wall velocity."""
-    from fishsim.coupling import united_with_nothing
+    """``on_grid`` forms the fish + walls union on the band's cells only (compiled on the CPU,
+    kernels.BandUnion; torch operations elsewhere, ``torch_band_union``); both equal
+    ``grid.union`` over the whole grid, values and gradients w.r.t. the surface, its velocities and
+    a swim tunnel's speed scaling the walls' velocity, for two fish, one of them in a wall band."""
+    from fishsim.coupling import fish_band, on_grid, united_with_nothing
+    from fishsim.coupling.layer import torch_band_union
     from fishsim.fields import Boundary
     from fishsim.fluid.grid import channel, union
 
     qs, qdots = bent_fish()
-    qs[1] += torch.tensor([0.0, -0.04], dtype=torch.float64)            # into the bottom wall band
+    qs[1] += torch.tensor([0.035, -0.01], dtype=torch.float64)          # into the walls' inflow band
     walls = channel(GRID, 1.0, 3, 5, 1, None, torch.float64)
     speed = torch.tensor([0.3, -0.2], dtype=torch.float64, requires_grad=True)
     qs.requires_grad_(True)
     qdots.requires_grad_(True)
     surface, cfg = torch.arange(qs.shape[1]), CouplingConfig()
-    alone = united_with_nothing(walls)
-    moving = lambda w: Boundary(w.mask, w.velocity * speed.view(2, 1, 1, 1))
-    fish = solid_to_fluid(qs, qdots, surface, GRID, cfg, torch.float64)
-    assert (fish.mask[1] * walls.mask[0] > 0.1).any() and not (fish.mask[0] * walls.mask[0] > 0).any()
-    fields = lambda x: (x.mask, x.velocity)
-    want = fields(union(fish, moving(walls)))
-    got = fields(solid_to_fluid(qs, qdots, surface, GRID, cfg, torch.float64, walls=moving(alone)))
-    for a, b in zip(got, want):
-        assert (a - b).abs().max() <= 1e-15 * b.abs().max()
-    g = torch.Generator().manual_seed(3)
-    cot = [torch.randn(x.shape, generator=g, dtype=torch.float64) for x in want]
-    grads = [torch.autograd.grad(sum((c * x).sum() for c, x in zip(cot, out)), (qs, qdots, speed), retain_graph=True)
-             for out in (got, want)]
-    for a, b in zip(*grads):
-        assert (a - b).abs().max() <= 1e-12 * b.abs().max()
+    fish = fish_band(qs, qdots, surface, GRID, cfg, torch.float64)
+    alone, fields = on_grid(fish, GRID), lambda x: (x.mask, x.velocity)
+    meets = lambda field: bool((alone.mask[1] * field.abs() > 0.1).any())
+    assert meets(walls.mask[0, 0]) and meets(walls.velocity[0, 0]) and not (alone.mask[0] * walls.mask[0] > 0).any()
+    want = fields(union(alone, Boundary(walls.mask, walls.velocity * speed.view(2, 1, 1, 1))))
+    walls = united_with_nothing(walls)
+    for got in (fields(on_grid(fish, GRID, walls, speed)), fields(torch_band_union(*fish, GRID, walls, speed))):
+        for a, b in zip(got, want):
+            assert (a - b).abs().max() <= 1e-15 * b.abs().max()
+        g = torch.Generator().manual_seed(3)
+        cot = [torch.randn(x.shape, generator=g, dtype=torch.float64) for x in want]
+        grads = [torch.autograd.grad(sum((c * x).sum() for c, x in zip(cot, out)), (qs, qdots, speed),
+                                     retain_graph=True) for out in (got, want)]
+        for a, b in zip(*grads):
+            assert (a - b).abs().max() <= 1e-12 * b.abs().max()
