@@ -267,15 +267,23 @@ def faces_to_centres(v: Faces) -> Tensor:
 def centres_to_faces(q: Tensor) -> Faces:
     """Average a centre field onto the faces, each face the mean of its two cells; a wall face
     takes its one cell's value.  q: [B, C, H, W] -> ([B, C, H, W+1], [B, C, H+1, W])."""
+    return _to_x_faces(q), _to_y_faces(q)
+
+
+def _to_x_faces(q: Tensor) -> Tensor:
     qx = torch.cat([q[..., :1], q, q[..., -1:]], X)
+    return 0.5 * (qx[..., 1:] + qx[..., :-1])
+
+
+def _to_y_faces(q: Tensor) -> Tensor:
     qy = torch.cat([q[..., :1, :], q, q[..., -1:, :]], Y)
-    return 0.5 * (qx[..., 1:] + qx[..., :-1]), 0.5 * (qy[..., 1:, :] + qy[..., :-1, :])
+    return 0.5 * (qy[..., 1:, :] + qy[..., :-1, :])
 
 
 def vector_to_faces(v: Tensor) -> Faces:
     """A centre vector field [B, 2, H, W] (x, y) -> its normal components on the faces:
     vx from channel 0 onto the vertical faces, vy from channel 1 onto the horizontal faces."""
-    return centres_to_faces(v[:, 0:1])[0], centres_to_faces(v[:, 1:2])[1]
+    return _to_x_faces(v[:, 0:1]), _to_y_faces(v[:, 1:2])
 
 
 def face_masks(b: Tensor) -> Faces:

@@ -366,6 +366,46 @@ def _flat(t: Tensor) -> np.ndarray:
     return a.reshape(-1, *a.shape[-2:])
 
 
+@jit
+def _face_speed(v, b, v_d, speed, finite):
+    """speed[n] = max(speed[n], max over sample n's faces of |v| and |b v_d|) (in the faces'
+    dtype, as torch computes them); finite[n] &= every one of them is finite. v, b, v_d: [N, cells]."""
+    for n in range(v.shape[0]):
+        top, ok = speed[n], finite[n]
+        for i in range(v.shape[1]):
+            a, c = abs(v[n, i]), abs(b[n, i] * v_d[n, i])
+            ok = ok & (a < np.inf) & (c < np.inf)                 # False for inf and NaN
+            top = max(top, a, c)
+        speed[n], finite[n] = top, ok
+
+
+def face_speed(v: tuple[Tensor, Tensor], b: tuple[Tensor, Tensor], v_d: tuple[Tensor, Tensor]) -> Tensor:
+    """max over each sample's faces of |v| and |b v_d|, [B] float64 (NaN where any is not
+    finite), from the face fields [B, 1, ., .] (b, v_d broadcast to v): the sub-step count's
+    speed (NumericalFluid._count_substeps) in one compiled pass, not ~20 torch operations."""
+    B = v[0].shape[0]
+    speed, finite = np.zeros(B), np.ones(B, np.bool_)
+    for c, bc, dc in zip(v, b, v_d):
+        _face_speed(*(_flat(t.expand_as(c)).reshape(B, -1) for t in (c, bc, dc)), speed, finite)
+    speed[~finite] = np.nan
+    return torch.from_numpy(speed)
+
+
+@jit
+def _finite(a):
+    """Whether every entry of the 1-D array a is finite."""
+    for i in range(a.shape[0]):
+        if not abs(a[i]) < np.inf:
+            return False
+    return True
+
+
+def all_finite(*tensors: Tensor) -> bool:
+    """Whether every entry of the CPU tensors is finite (compiled: one pass, stopping at the first
+    that is not)."""
+    return all(_finite(_flat(t).reshape(-1)) for t in tensors)
+
+
 def _per_sample(x: Tensor | float, like: Tensor) -> np.ndarray:
     """A scalar or [B, 1, 1, 1] tensor as one float64 per sample [B * C]."""
     x = torch.as_tensor(x, dtype=torch.float64).detach()

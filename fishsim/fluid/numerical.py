@@ -78,6 +78,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
@@ -99,7 +100,7 @@ from fishsim.fluid.grid import (
     vector_to_faces,
     zero_walls,
 )
-from fishsim.fluid.kernels import Predict, SplitStep
+from fishsim.fluid.kernels import Predict, SplitStep, all_finite, face_speed
 from fishsim.fluid.pressure import SchwarzPreconditioner, WeightedPoisson
 from fishsim.fluid.residual import per_sample
 from fishsim.linalg.dct import neumann_inverse, solve_neumann_poisson
@@ -496,17 +497,21 @@ class NumericalFluid:
         b's max|v| (h/n) / dx <= cfl and nu (h/n) / dx^2 <= diffusion."""
         dx = self.fine.dx
         with torch.no_grad():
-            speed = torch.stack([torch.maximum(c.abs().amax(dim=(1, 2, 3)), (bc * vc).abs().amax(dim=(1, 2, 3)))
-                                 for c, bc, vc in zip(v, b, v_d)]).amax(0).double().cpu()
-            nu_b = torch.broadcast_to(nu.detach().reshape(-1), speed.shape[:1]).double().cpu()
-        if not bool(torch.isfinite(speed).all()):
+            if self._compiled(v[0]):
+                speed = face_speed(v, b, v_d)
+            else:
+                speed = torch.stack([torch.maximum(c.abs().amax(dim=(1, 2, 3)), (bc * vc).abs().amax(dim=(1, 2, 3)))
+                                     for c, bc, vc in zip(v, b, v_d)]).amax(0).double().cpu()
+            nu_b = np.broadcast_to(nu.detach().double().cpu().numpy().reshape(-1), speed.shape[:1])
+        speed = speed.numpy()                             # [B] float64: a few numpy operations
+        if not np.isfinite(speed).all():
             raise SimulationBlowUp(
                 "fluid step: non-finite velocity in the input state or boundary "
                 "velocity; the previous step diverged (CFL/viscous instability) or v_d is NaN"
             )
-        floor = torch.full_like(speed, self.refinement * self.substeps)
-        n = torch.maximum(floor, torch.maximum(torch.ceil(speed * h / (self.cfl * dx)),
-                                               torch.ceil(nu_b * h / (self.diffusion * dx**2)))).long()
+        n = np.maximum(float(self.refinement * self.substeps),
+                       np.maximum(np.ceil(speed * h / (self.cfl * dx)),
+                                  np.ceil(nu_b * h / (self.diffusion * dx**2)))).astype(np.int64)
         if int(n.max()) > self.max_substeps:
             b = int(n.argmax())
             raise SimulationBlowUp(
@@ -514,11 +519,11 @@ class NumericalFluid:
                 f"need {int(n[b])} sub-steps (> max_substeps = {self.max_substeps}) at h = {h:g} s, dx = {dx:g} m: "
                 "runaway velocity (CFL); check the boundary velocity, h and mu/rho"
             )
-        return n
+        return torch.from_numpy(n)
 
     def _check_finite(self, v: Faces, h: float) -> None:
         with torch.no_grad():
-            ok = all(bool(torch.isfinite(c).all()) for c in v)
+            ok = all_finite(*v) if self._compiled(v[0]) else all(bool(torch.isfinite(c).all()) for c in v)
         if not ok:
             raise SimulationBlowUp(
                 f"fluid step: non-finite velocity after the step "

@@ -111,3 +111,23 @@ def test_split_step_in_sample_chunks_equals_one_thread(monkeypatch):
     assert chunks == [[slice(0, 1), slice(1, 2)]]
     for name, x, y in zip(["a", "p", "pen_x", "pen_y", "da", "dmask", "dvelocity", "dmu"], one, two):
         assert torch.equal(x, y), name
+
+
+def test_the_compiled_step_checks_equal_the_torch_ones():
+    """``face_speed`` (the sub-step count's speed) and ``all_finite`` (the blow-up check) against
+    the torch formulas they replace on the CPU, a mask broadcast over the batch, and a NaN and an
+    infinity each caught."""
+    from fishsim.fluid.kernels import all_finite, face_speed
+
+    g = torch.Generator().manual_seed(5)
+    v = (torch.randn(3, 1, 6, 9, generator=g), torch.randn(3, 1, 7, 8, generator=g))
+    b = (torch.rand(1, 1, 6, 9, generator=g), torch.rand(1, 1, 7, 8, generator=g))
+    v_d = (9 * torch.randn(3, 1, 6, 9, generator=g), torch.randn(3, 1, 7, 8, generator=g))
+    want = torch.stack([torch.maximum(c.abs().amax(dim=(1, 2, 3)), (bc * vc).abs().amax(dim=(1, 2, 3)))
+                        for c, bc, vc in zip(v, b, v_d)]).amax(0).double()
+    assert torch.equal(face_speed(v, b, v_d), want) and all_finite(*v)
+    v[1][1, 0, 2, 3] = float("nan")
+    v_d[0][2, 0, 4, 1] = float("inf")
+    speed = face_speed(v, b, v_d)
+    assert speed[0] == want[0] and speed[1:].isnan().all()
+    assert not all_finite(*v) and all_finite(v[0]) and not all_finite(v_d[0])
