@@ -316,7 +316,8 @@ def _soft_distance(e, w, xi, harmonic):
         return (w * e).sum()
     floor, total = 1e-8 * xi, 0.0
     for k in range(e.shape[0]):
-        total += w[k] / max(e[k], floor)
+        if w[k] != 0.0:                                     # most of a cell's elements (_weights)
+            total += w[k] / max(e[k], floor)
     return 1.0 / total
 
 
@@ -326,6 +327,8 @@ def _velocity(qdot, nearest, t, w):
     S = qdot.shape[0]
     u0, u1 = 0.0, 0.0
     for k in range(nearest.shape[0]):
+        if w[k] == 0.0:
+            continue
         l = nearest[k]
         m = l + 1 if l + 1 < S else 0
         s = t[k]
