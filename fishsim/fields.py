@@ -107,6 +107,22 @@ class Boundary:
     velocity: Tensor
 
 
+MASK_FLOOR = 1e-12
+"""The smallest mask value divided by (union's b1 + b2, a body's share of a mask): below it a mask
+is negligible (b v_d < 1e-12 |v|), and dividing by a subnormal soft-mask tail would overflow the
+quotient's derivative -num / w^2 to inf (NaN gradients)."""
+
+
+def union(first: Boundary, second: Boundary) -> Boundary:
+    """Two boundaries in one: b = 1 - (1 - b1)(1 - b2); v_d = (b1 v1 + b2 v2) / max(b1 + b2,
+    MASK_FLOOR), the mask-weighted mean wherever either mask is not negligible (every consumer
+    reads v_d as b v_d)."""
+    b1, b2 = first.mask, second.mask
+    b = 1 - (1 - b1) * (1 - b2)
+    vd = (b1 * first.velocity + b2 * second.velocity) / (b1 + b2).clamp_min(MASK_FLOOR)
+    return Boundary(mask=b, velocity=vd)
+
+
 @dataclass(frozen=True)
 class FluidParams:
     """Physical parameters of one step.

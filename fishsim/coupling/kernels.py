@@ -30,6 +30,7 @@ from numba import prange
 from torch import Tensor
 
 from fishsim.compiled import jit
+from fishsim.fields import MASK_FLOOR
 
 
 def _f64(t: Tensor) -> np.ndarray:
@@ -499,7 +500,7 @@ class BandBoundary(torch.autograd.Function):
 
 
 # ---------------------------------------------------------------------------------------------
-# The fish united with the tank's walls on the grid (grid.union, formed on the band's cells), and
+# The fish united with the tank's walls on the grid (fields.union, formed on the band's cells), and
 # its adjoint
 
 
@@ -507,8 +508,8 @@ class BandBoundary(torch.autograd.Function):
 def _union(b, u, flat, wall_mask, wall_velocity, scale, one, floor, mask, velocity):
     """mask [B, H W] and velocity [B, 2, H W]: the walls (wall_mask [1 or B, H W], wall_velocity
     [1 or B, 2, H W] times scale [B]) with each fish's band cells flat [B, P] replaced by
-    grid.union((b [B, P], u [B, 2, P]), walls), in the fields' own dtype (``one``, ``floor``: 1 and
-    grid.MASK_FLOOR in it), the operations in grid.union's order."""
+    fields.union((b [B, P], u [B, 2, P]), walls), in the fields' own dtype (``one``, ``floor``: 1 and
+    fields.MASK_FLOOR in it), the operations in fields.union's order."""
     for f in range(b.shape[0]):
         w = f if wall_mask.shape[0] > 1 else 0
         mask[f] = wall_mask[w]
@@ -555,18 +556,17 @@ def _union_adjoint(b, u, flat, wall_mask, wall_velocity, scale, floor, g_mask, g
 
 
 class BandUnion(torch.autograd.Function):
-    """(mask [B, 1, H, W], velocity [B, 2, H, W]) = grid.union(fish, walls) for a fish whose mask
+    """(mask [B, 1, H, W], velocity [B, 2, H, W]) = fields.union(fish, walls) for a fish whose mask
     b [B, 1, P] and velocity u [B, 2, P] vanish off its band's cells flat [B, P] (band.py), and
     walls (wall_mask [1 or B, 1, H, W], wall_velocity [1 or B, 2, H, W]: constants, as
     layer.united_with_nothing gives them) whose velocity is scaled by scale [B] (a swim tunnel's
-    -U). One compiled pass instead of ~20 torch operations; the union is computed in the fields'
-    dtype in grid.union's order (the same values bit for bit), its adjoint in float64. CPU
+    -U; rounded to the fields' dtype as it scales them, its gradient summed in float64 and
+    returned in its own dtype). One compiled pass instead of ~20 torch operations; the union is computed in the fields'
+    dtype in fields.union's order (the same values bit for bit), its adjoint in float64. CPU
     tensors; differentiable in b, u and scale."""
 
     @staticmethod
     def forward(ctx, b: Tensor, u: Tensor, flat: Tensor, wall_mask: Tensor, wall_velocity: Tensor, scale: Tensor):
-        from fishsim.fluid.grid import MASK_FLOOR
-
         if wall_mask.requires_grad or wall_velocity.requires_grad:
             raise ValueError("BandUnion: the walls are constants (their velocity varies through ``scale``)")
         B, H, W = b.shape[0], wall_mask.shape[-2], wall_mask.shape[-1]

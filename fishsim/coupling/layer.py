@@ -11,7 +11,7 @@ Only the fish is described here.  The rollout adds the tank walls (mask b_wall, 
 and combines them as a union of soft sets:
 
     b_total = 1 - (1 - b_fish)(1 - b_wall)    (= max(b_fish, b_wall) where they do not overlap)
-    v_total = (b_fish v_fish + b_wall v_wall) / (b_fish + b_wall)     (fishsim.fluid.grid.union)
+    v_total = (b_fish v_fish + b_wall v_wall) / (b_fish + b_wall)     (fishsim.fields.union)
 
 and may pass the combined Boundary to ``fluid_to_solid`` (wall cells are then not sampled by the
 default fluid-side IBM weight either).  ``on_grid`` forms the union on the fish's band of cells only.
@@ -29,8 +29,7 @@ from fishsim.coupling.exchange import spread_to_surface
 from fishsim.coupling.forces import burn_in_scale, fext_from_surface
 from fishsim.coupling.ibm import ibm_force
 from fishsim.coupling.mask import band_values
-from fishsim.fields import Boundary, Grid
-from fishsim.fluid.grid import union
+from fishsim.fields import Boundary, Grid, union
 
 
 def surface_index(surface, device) -> Tensor:
@@ -76,12 +75,12 @@ def on_grid(fish: tuple[SurfaceBand, Tensor, Tensor], grid: Grid, walls: Boundar
     band, mask, velocity = fish
     if walls is None:
         return Boundary(mask=scatter_band(mask, band, grid), velocity=scatter_band(velocity, band, grid))
-    scale = mask.new_ones(mask.shape[0]) if scale is None else scale.to(mask.dtype)
+    scale = mask.new_ones(mask.shape[0]) if scale is None else scale
     if mask.device.type == "cpu":
         from fishsim.coupling.kernels import BandUnion
 
         return Boundary(*BandUnion.apply(mask, velocity, band.flat, walls.mask, walls.velocity, scale))
-    return torch_band_union(band, mask, velocity, grid, walls, scale)
+    return torch_band_union(band, mask, velocity, grid, walls, scale.to(mask.dtype))
 
 
 def torch_band_union(band: SurfaceBand, mask: Tensor, velocity: Tensor, grid: Grid, walls: Boundary,
