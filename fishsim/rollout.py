@@ -259,8 +259,9 @@ class Swimmer:
         pressure or (``coupling.force=exchange``) by momentum exchange (fishsim.coupling); mass:
         the nodal masses [N] (how averaged forces are shared); timer: where the phases' time goes.
         The fluid reads the body on its ``boundary_grid`` if it has a finer one (a refined
-        numerical fluid: the fish's mask is sampled on its fine cells); ``fish`` and ``boundary``
-        are on the fluid's grid, where the sampled pressure is read."""
+        numerical fluid: the fish's mask is sampled on its fine cells); ``fish`` (the fish alone,
+        None unless the momentum exchange needs it) and ``boundary`` are on the fluid's grid,
+        where the sampled pressure is read."""
         t0, dev = time.perf_counter(), state.q.device
         fine = getattr(self.fluid, "boundary_grid", self.fluid.grid)
         body, body_boundary = (fish, boundary) if fine == self.fluid.grid else self.fish_and_boundary(

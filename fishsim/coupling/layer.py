@@ -40,7 +40,7 @@ def surface_index(surface, device) -> Tensor:
 
 
 def solid_to_fluid(q: Tensor, qdot: Tensor, surface, grid: Grid, cfg: CouplingConfig,
-                   dtype: torch.dtype = torch.float32, walls: Boundary | None = None) -> Boundary:
+                   dtype: torch.dtype = torch.float32) -> Boundary:
     """The fish as a fluid boundary: mask b [B, 1, H, W] and v_d [B, 2, H, W] in ``dtype``.
 
     v_d is the solid's velocity field on the band of cells around the body (the softmin-weighted
@@ -49,9 +49,9 @@ def solid_to_fluid(q: Tensor, qdot: Tensor, surface, grid: Grid, cfg: CouplingCo
 
     q, qdot: world-frame node positions (m) and velocities (m/s) [B, N, 2]; surface: [S] mesh
     indices of the ccw surface polyline (FishMesh.surface).  Differentiable in q and qdot.
-    walls: a Boundary to unite the fish with (``on_grid``), or None for the fish alone.
+    (The rollout unites the fish with the walls: ``fish_band`` and ``on_grid``.)
     """
-    return on_grid(fish_band(q, qdot, surface, grid, cfg, dtype), grid, walls)
+    return on_grid(fish_band(q, qdot, surface, grid, cfg, dtype), grid)
 
 
 def fish_band(q: Tensor, qdot: Tensor, surface, grid: Grid, cfg: CouplingConfig,

@@ -119,7 +119,7 @@ def soft_mask(qs: Tensor, grid: Grid, xi: float = XI, sigma: float = SIGMA,
     Cost of these torch formulas (100 x 300 grid, 250 surface nodes, bent fish, float32, 2 CPU
     cores, unloaded): mask + v_d + IBM forward ~10 ms at B = 1 and ~110 ms at B = 16 (mostly the
     no-grad band pass), backward ~5 / ~40 ms; autograd keeps ~9 / ~90 MiB, peak RSS grows
-    ~30 / ~280 MiB. The coupling runs them on CUDA; on the CPU it runs ``band_boundary`` (the
+    ~30 / ~280 MiB. The coupling runs them on CUDA; on the CPU it runs ``band_values`` (the
     same formulas compiled: mask + v_d 2.2 ms forward, 3.8 ms with the backward, B = 1, one thread).
     """
     if band is None:
