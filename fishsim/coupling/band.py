@@ -147,12 +147,11 @@ def surface_band(qs: Tensor, grid: Grid, margin: int, k_nearest: int = 24,
     S, k = qs.shape[1], min(k_nearest + 1, qs.shape[1])
     truncated = k_nearest + 1 < S
     if qs.device.type == "cpu":                      # compiled, in float64 (fishsim.coupling.kernels)
-        from fishsim.coupling.kernels import NEGLIGIBLE, band_cells, nearest_and_inside
+        from fishsim.coupling.kernels import NEGLIGIBLE, band_selection
 
-        flat, centres, origin, (h, w) = band_cells(qs.detach(), grid.dx, grid.H, grid.W, margin)
-        centres, origin = centres.to(qs.dtype), origin.to(qs.dtype)
         far = math.inf if sigma is None else NEGLIGIBLE * sigma
-        nearest, inside, unranked = nearest_and_inside(qs - origin, centres, k, distance == SEGMENT, w, far)
+        flat, centres, origin, nearest, inside, unranked, _ = band_selection(
+            qs, grid.dx, grid.H, grid.W, margin, k, distance == SEGMENT, far)
         if sigma is None:
             unranked = None
     else:

@@ -42,4 +42,4 @@ def fext_from_surface(f_surface: Tensor, surface_idx: Tensor, n_nodes: int,
         raise ValueError(f"mode must be 'per_node' or 'average', got {mode!r}")
     if fix_lateral:
         f = f * f.new_tensor([1.0, 0.0])
-    return f * scale
+    return f if scale == 1.0 else f * scale

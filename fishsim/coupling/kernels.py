@@ -98,14 +98,6 @@ def _band_cells(q, dx, H, W, margin):
     return flat, centres, origin, h, w
 
 
-def band_cells(qs: Tensor, dx: float, H: int, W: int, margin: int) -> tuple[Tensor, Tensor, Tensor, tuple[int, int]]:
-    """The band's cells of the polylines qs [B, S, 2] (m, CPU): (flat indices [B, P], centres
-    [B, P, 2] relative to the origin, origin [B, 1, 2], both float64, (h, w)), band.py's window
-    and origin in one compiled pass (~10 us against ~0.2 ms of small torch operations)."""
-    flat, centres, origin, h, w = _band_cells(_f64(qs), float(dx), H, W, margin)
-    return torch.from_numpy(flat), torch.from_numpy(centres), torch.from_numpy(origin).unsqueeze(1), (h, w)
-
-
 @jit
 def _select(d, index, n, k):
     """Partially order index[:n] (and d[:n] alike) so that its first k entries hold the k
@@ -242,11 +234,31 @@ def nearest_and_inside(qs: Tensor, centres: Tensor, k: int, segment: bool, width
     cells wide) for the polylines ``qs`` [B, S, 2] (both relative to the band's origin, m; CPU).
     Cells outside the body farther than sqrt(far) [m] from it get elements 0..k-1, unranked
     (``_fish_nearest``)."""
-    q, x = _f64(qs), _f64(centres)
+    return tuple(torch.from_numpy(a) for a in _nearest(_f64(qs), _f64(centres), k, segment, width, far))
+
+
+def _nearest(q: np.ndarray, x: np.ndarray, k: int, segment: bool, width: int, far: float) -> tuple:
+    """``nearest_and_inside`` on float64 arrays: (nearest, inside, unranked) as numpy arrays."""
     B, P = x.shape[:2]
     nearest, inside, unranked = np.empty((B, P, k), np.int64), np.empty((B, P), np.bool_), np.empty((B, P), np.bool_)
     _each_fish(_fish_nearest, _nearest_parallel, q, x, width, segment, float(far), nearest, inside, unranked)
-    return torch.from_numpy(nearest), torch.from_numpy(inside), torch.from_numpy(unranked)
+    return nearest, inside, unranked
+
+
+def band_selection(qs: Tensor, dx: float, H: int, W: int, margin: int, k: int, segment: bool,
+                   far: float = math.inf) -> tuple:
+    """band.py's window of cells (``_band_cells``: flat indices [B, P], centres [B, P, 2] relative
+    to the origin, origin [B, 1, 2] the bounding boxes' centres, in qs's dtype) and
+    ``nearest_and_inside`` in one call, numpy in between (band.surface_band's CPU path): (flat,
+    centres, origin, nearest, inside, unranked, (h, w)); ~10 us against ~0.2 ms of small torch
+    operations for the window."""
+    q = qs.detach().numpy()
+    flat, centres, origin, h, w = _band_cells(np.ascontiguousarray(q, np.float64), float(dx), H, W, margin)
+    centres, origin = centres.astype(q.dtype, copy=False), origin.astype(q.dtype, copy=False)
+    rel = np.ascontiguousarray(q - origin[:, None, :], np.float64)
+    nearest, inside, unranked = _nearest(rel, np.ascontiguousarray(centres, np.float64), k, segment, w, far)
+    return (torch.from_numpy(flat), torch.from_numpy(centres), torch.from_numpy(origin).unsqueeze(1),
+            torch.from_numpy(nearest), torch.from_numpy(inside), torch.from_numpy(unranked), (h, w))
 
 
 # ---------------------------------------------------------------------------------------------

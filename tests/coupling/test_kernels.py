@@ -156,10 +156,11 @@ def test_compiled_ibm_force_gradient_against_central_differences():
 
 @pytest.mark.parametrize("B", [1, 3])
 def test_band_cells_equal_the_torch_window(B):
-    """The compiled window, cell indices, centres and origin are band.py's torch ones, bit for bit
+    """The compiled window (``band_selection``), cell indices, centres and origin are band.py's
+    torch ones, bit for bit
     (float64), also for a fish whose window is clipped by the grid's edge."""
     from fishsim.coupling.band import _band_cells
-    from fishsim.coupling.kernels import band_cells
+    from fishsim.coupling.kernels import band_selection
 
     qs, _ = bent_fish(B=B)
     qs = qs.clone()
@@ -167,8 +168,8 @@ def test_band_cells_equal_the_torch_window(B):
     for margin in (0, 3):
         flat, centres, (h, w) = _band_cells(qs, GRID, margin)
         origin = 0.5 * (qs.amin(1, keepdim=True) + qs.amax(1, keepdim=True))
-        got = band_cells(qs, GRID.dx, GRID.H, GRID.W, margin)
-        assert got[3] == (h, w) and torch.equal(got[0], flat)
+        got = band_selection(qs, GRID.dx, GRID.H, GRID.W, margin, 5, True)
+        assert got[6] == (h, w) and torch.equal(got[0], flat)
         assert torch.equal(got[2], origin) and torch.equal(got[1], centres - origin)
 
 
