@@ -162,6 +162,7 @@ def episode_timing(fluid: str, batch: int, frames: int) -> dict:
             "backward_solid_adjoint_s": adjoint["solid"], "backward_fluid_adjoint_s": adjoint["fluid"],
             "forward_per_fish_s": forward / batch, "backward_per_fish_s": backward / batch,
             "forward_ms_per_frame_per_fish": 1e3 * forward / (frames * batch),
+            "forward_coupling_ms_per_frame_per_fish": 1e3 * split["coupling"] / (frames * batch),
             "backward_ms_per_frame_per_fish": 1e3 * backward / (frames * batch),
             "peak_rss_mib": _peak_mib(), "ddistance_domega": float(omega.grad[0])}
 
