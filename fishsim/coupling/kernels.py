@@ -589,7 +589,7 @@ class BandUnion(torch.autograd.Function):
                 scale.detach().numpy().astype(dtype))
         mask, velocity = np.empty((B, H * W), dtype), np.empty((B, 2, H * W), dtype)
         _union(*args, np.ones(1, dtype)[0], np.full(1, MASK_FLOOR, dtype)[0], mask, velocity)
-        ctx.args, ctx.floor = args, MASK_FLOOR
+        ctx.args = args
         ctx.dtypes = (b.dtype, u.dtype, scale.dtype)
         return torch.from_numpy(mask).view(B, 1, H, W), torch.from_numpy(velocity).view(B, 2, H, W)
 
@@ -601,7 +601,7 @@ class BandUnion(torch.autograd.Function):
         g_velocity = np.zeros((B, 2, wall_mask.shape[-1])) if g_velocity is None else _f64(g_velocity).reshape(B, 2, -1)
         gb, gu, g_scale = np.empty((B, P)), np.empty((B, 2, P)), np.zeros(B)
         _union_adjoint(b.astype(np.float64), u.astype(np.float64), flat, wall_mask.astype(np.float64),
-                       wall_velocity.astype(np.float64), scale.astype(np.float64), ctx.floor, g_mask, g_velocity,
+                       wall_velocity.astype(np.float64), scale.astype(np.float64), MASK_FLOOR, g_mask, g_velocity,
                        ctx.needs_input_grad[5], gb, gu, g_scale)
         b_dtype, u_dtype, scale_dtype = ctx.dtypes
         return (torch.from_numpy(gb).to(b_dtype).unsqueeze(1), torch.from_numpy(gu).to(u_dtype), None, None, None,

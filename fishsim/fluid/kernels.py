@@ -391,21 +391,6 @@ def face_speed(v: tuple[Tensor, Tensor], b: tuple[Tensor, Tensor], v_d: tuple[Te
     return torch.from_numpy(speed)
 
 
-@jit
-def _finite(a):
-    """Whether every entry of the 1-D array a is finite."""
-    for i in range(a.shape[0]):
-        if not abs(a[i]) < np.inf:
-            return False
-    return True
-
-
-def all_finite(*tensors: Tensor) -> bool:
-    """Whether every entry of the CPU tensors is finite (compiled: one pass, stopping at the first
-    that is not)."""
-    return all(_finite(_flat(t).reshape(-1)) for t in tensors)
-
-
 def _per_sample(x: Tensor | float, like: Tensor) -> np.ndarray:
     """A scalar or [B, 1, 1, 1] tensor as one float64 per sample [B * C]."""
     x = torch.as_tensor(x, dtype=torch.float64).detach()

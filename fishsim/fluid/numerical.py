@@ -84,7 +84,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from fishsim.errors import SimulationBlowUp
-from fishsim.fields import Boundary, FluidParams, FluidState, Grid, RefinedState, rest_state
+from fishsim.fields import Boundary, FluidParams, FluidState, Grid, RefinedState, all_finite, rest_state
 from fishsim.fluid.grid import (
     MASK_FLOOR,
     NO_SLIP,
@@ -100,7 +100,7 @@ from fishsim.fluid.grid import (
     vector_to_faces,
     zero_walls,
 )
-from fishsim.fluid.kernels import Predict, SplitStep, all_finite, face_speed
+from fishsim.fluid.kernels import Predict, SplitStep, face_speed
 from fishsim.fluid.pressure import SchwarzPreconditioner, WeightedPoisson
 from fishsim.fluid.residual import per_sample
 from fishsim.linalg.dct import neumann_inverse, solve_neumann_poisson
@@ -522,9 +522,7 @@ class NumericalFluid:
         return torch.from_numpy(n)
 
     def _check_finite(self, v: Faces, h: float) -> None:
-        with torch.no_grad():
-            ok = all_finite(*v) if self._compiled(v[0]) else all(bool(torch.isfinite(c).all()) for c in v)
-        if not ok:
+        if not all_finite(*v):
             raise SimulationBlowUp(
                 f"fluid step: non-finite velocity after the step "
                 f"(h = {h:g} s, {self.fine.H}x{self.fine.W} cells); likely an unstable sub-step count "

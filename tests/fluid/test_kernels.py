@@ -114,10 +114,11 @@ def test_split_step_in_sample_chunks_equals_one_thread(monkeypatch):
 
 
 def test_the_compiled_step_checks_equal_the_torch_ones():
-    """``face_speed`` (the sub-step count's speed) and ``all_finite`` (the blow-up check) against
+    """``face_speed`` (the sub-step count's speed) and ``fields.all_finite`` (the blow-up check) against
     the torch formulas they replace on the CPU, a mask broadcast over the batch, and a NaN and an
     infinity each caught."""
-    from fishsim.fluid.kernels import all_finite, face_speed
+    from fishsim.fields import all_finite
+    from fishsim.fluid.kernels import face_speed
 
     g = torch.Generator().manual_seed(5)
     v = (torch.randn(3, 1, 6, 9, generator=g), torch.randn(3, 1, 7, 8, generator=g))
