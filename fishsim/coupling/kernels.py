@@ -23,6 +23,7 @@ another one; its weight is ~0 there by the tapered softmin's construction.
 from __future__ import annotations
 
 import math
+from collections import namedtuple
 
 import numpy as np
 import torch
@@ -478,6 +479,24 @@ def _backward_parallel(q, qdot, centres, nearest, inside, unranked, xi, sigma, t
                        truncated, b[n], gb[n], gu[n], gq[n], gqdot[n])
 
 
+def _band_boundary(args: tuple) -> tuple[np.ndarray, np.ndarray]:
+    """(b [B, P], u [B, P, 2]) in float64 of the band cells for ``_fish_forward``'s arguments
+    ``args`` = (q, qdot, centres, nearest, inside, unranked, xi, sigma, tau, harmonic, segment,
+    truncated)."""
+    B, P = args[3].shape[:2]
+    b, u = np.empty((B, P)), np.empty((B, P, 2))
+    _each_fish(_fish_forward, _forward_parallel, *args, b, u)
+    return b, u
+
+
+def _band_boundary_adjoint(args: tuple, b: np.ndarray, gb: np.ndarray, gu: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(dL/dq, dL/dqdot) [B, S, 2] of ``_band_boundary(args)`` (its b) for the cotangents gb [B, P]
+    and gu [B, P, 2] (float64)."""
+    gq, gqdot = np.zeros(args[0].shape), np.zeros(args[1].shape)
+    _each_fish(_fish_backward, _backward_parallel, *args, b, gb, gu, gq, gqdot)
+    return gq, gqdot
+
+
 class BandBoundary(torch.autograd.Function):
     """(b [B, P], u [B, P, 2]) of the band cells (module docstring) in ``dtype``, from the surface
     positions qs and velocities qdots [B, S, 2] (m, m/s; relative to the band's origin), the cell
@@ -493,9 +512,7 @@ class BandBoundary(torch.autograd.Function):
         args = (_f64(qs), _f64(qdots), _f64(centres), np.ascontiguousarray(nearest.numpy()),
                 np.ascontiguousarray(inside.numpy()), flags, float(xi), float(sigma), float(tau), bool(harmonic),
                 bool(segment), bool(truncated))
-        B, P = nearest.shape[:2]
-        b, u = np.empty((B, P)), np.empty((B, P, 2))
-        _each_fish(_fish_forward, _forward_parallel, *args, b, u)
+        b, u = _band_boundary(args)
         ctx.args, ctx.b, ctx.dtypes = args, b, (qs.dtype, qdots.dtype)
         return torch.from_numpy(b).to(dtype), torch.from_numpy(u).to(dtype)
 
@@ -504,24 +521,23 @@ class BandBoundary(torch.autograd.Function):
         args, b = ctx.args, ctx.b
         gb = np.zeros(b.shape) if gb is None else _f64(gb)
         gu = np.zeros((*b.shape, 2)) if gu is None else _f64(gu)
-        gq, gqdot = np.zeros(args[0].shape), np.zeros(args[1].shape)
-        _each_fish(_fish_backward, _backward_parallel, *args, b, gb, gu, gq, gqdot)
+        gq, gqdot = _band_boundary_adjoint(args, b, gb, gu)
         q_dtype, qdot_dtype = ctx.dtypes
         return (torch.from_numpy(gq).to(q_dtype), torch.from_numpy(gqdot).to(qdot_dtype),
                 *([None] * 11))
 
 
 # ---------------------------------------------------------------------------------------------
-# The fish united with the tank's walls on the grid (fields.union, formed on the band's cells), and
-# its adjoint
+# The fish united with the tank's walls on the grid (fields.union, formed on the band's cells) in
+# one call from the mesh nodes, and its adjoint
 
 
 @jit
 def _union(b, u, flat, wall_mask, wall_velocity, scale, one, floor, mask, velocity):
     """mask [B, H W] and velocity [B, 2, H W]: the walls (wall_mask [1 or B, H W], wall_velocity
     [1 or B, 2, H W] times scale [B]) with each fish's band cells flat [B, P] replaced by
-    fields.union((b [B, P], u [B, 2, P]), walls), in the fields' own dtype (``one``, ``floor``: 1 and
-    fields.MASK_FLOOR in it), the operations in fields.union's order."""
+    fields.union((b [B, P], u [B, P, 2]), walls), in the fields' own dtype (``one``, ``floor``: 1
+    and fields.MASK_FLOOR in it), the operations in fields.union's order."""
     for f in range(b.shape[0]):
         w = f if wall_mask.shape[0] > 1 else 0
         mask[f] = wall_mask[w]
@@ -534,13 +550,13 @@ def _union(b, u, flat, wall_mask, wall_velocity, scale, one, floor, mask, veloci
             mask[f, c] = one - (one - b_fish) * (one - b_wall)
             total = max(b_fish + b_wall, floor)
             for k in range(2):
-                velocity[f, k, c] = (b_fish * u[f, k, p] + b_wall * (wall_velocity[w, k, c] * scale[f])) / total
+                velocity[f, k, c] = (b_fish * u[f, p, k] + b_wall * (wall_velocity[w, k, c] * scale[f])) / total
 
 
 @jit
 def _union_adjoint(b, u, flat, wall_mask, wall_velocity, scale, floor, g_mask, g_velocity, need_scale, gb, gu,
                    g_scale):
-    """gb [B, P], gu [B, 2, P] and g_scale [B] (if ``need_scale``) of _union for the cotangents
+    """gb [B, P], gu [B, P, 2] and g_scale [B] (if ``need_scale``) of _union for the cotangents
     g_mask [B, H W] and g_velocity [B, 2, H W], in float64."""
     for f in range(b.shape[0]):
         w = f if wall_mask.shape[0] > 1 else 0
@@ -557,55 +573,76 @@ def _union_adjoint(b, u, flat, wall_mask, wall_velocity, scale, floor, g_mask, g
             g_b = g_mask[f, c] * (1.0 - b_wall)
             for k in range(2):
                 v_wall = wall_velocity[w, k, c] * scale[f]
-                v = (b_fish * u[f, k, p] + b_wall * v_wall) / total
+                v = (b_fish * u[f, p, k] + b_wall * v_wall) / total
                 g_v = g_velocity[f, k, c]
-                gu[f, k, p] = g_v * b_fish / total
-                g_b += g_v * ((u[f, k, p] - v) / total if raw > floor else u[f, k, p] / total)
+                gu[f, p, k] = g_v * b_fish / total
+                g_b += g_v * ((u[f, p, k] - v) / total if raw > floor else u[f, p, k] / total)
                 if need_scale:
                     total_scale += g_v * (b_wall / total - 1.0) * wall_velocity[w, k, c]
             gb[f, p] = g_b
         g_scale[f] = total_scale
 
 
-class BandUnion(torch.autograd.Function):
-    """(mask [B, 1, H, W], velocity [B, 2, H, W]) = fields.union(fish, walls) for a fish whose mask
-    b [B, 1, P] and velocity u [B, 2, P] vanish off its band's cells flat [B, P] (band.py), and
+BandSettings = namedtuple("BandSettings", "dx H W margin k segment far xi sigma tau harmonic truncated")
+BandSettings.__doc__ = """What ``FishOnGrid`` needs besides the tensors: the grid (cell size dx in m, H x W cells),
+the band's margin (cells) and k nearest elements (band.surface_band), segments or nodes, the
+squared distance beyond which an outside cell is negligible (m^2), the mask's xi, sigma and the
+velocity's tau (m^2), the harmonic or arithmetic soft distance, the truncated soft-mins."""
+
+
+class FishOnGrid(torch.autograd.Function):
+    """(mask [B, 1, H, W], velocity [B, 2, H, W]) = fields.union(fish, walls) from the mesh nodes
+    q, qdot [B, N, 2] (m, m/s; the nodes ``surface`` [S] (numpy) make the fish's polyline) in one
+    call: the band's window and nearest elements (``band_selection``), the mask and velocity of its
+    cells (``BandBoundary``'s formulas, float64) rounded to ``dtype``, and their union with the
     walls (wall_mask [1 or B, 1, H, W], wall_velocity [1 or B, 2, H, W]: constants, as
     layer.united_with_nothing gives them) whose velocity is scaled by scale [B] (a swim tunnel's
-    -U; rounded to the fields' dtype as it scales them, its gradient summed in float64 and
-    returned in its own dtype). One compiled pass instead of ~20 torch operations; the union is computed in the fields'
-    dtype in fields.union's order (the same values bit for bit), its adjoint in float64. CPU
-    tensors; differentiable in b, u and scale."""
+    -U) on the band's cells only (``_union``, in ``dtype``, fields.union's order). Off the band
+    the fish's b is 0 and the union is the walls. The same values bit for bit as layer.fish_band
+    followed by the union of ``layer.torch_band_union``, without their ~30 small torch operations
+    (0.3-0.4 ms a frame at B = 1). The adjoint runs in float64 (scale's gradient is returned in
+    its own dtype). CPU tensors; differentiable in q, qdot and scale."""
 
     @staticmethod
-    def forward(ctx, b: Tensor, u: Tensor, flat: Tensor, wall_mask: Tensor, wall_velocity: Tensor, scale: Tensor):
+    def forward(ctx, q: Tensor, qdot: Tensor, scale: Tensor, wall_mask: Tensor, wall_velocity: Tensor,
+                surface: np.ndarray, settings: BandSettings, dtype: torch.dtype):
         if wall_mask.requires_grad or wall_velocity.requires_grad:
-            raise ValueError("BandUnion: the walls are constants (their velocity varies through ``scale``)")
-        B, H, W = b.shape[0], wall_mask.shape[-2], wall_mask.shape[-1]
-        dtype = wall_mask.numpy().dtype
-        args = (np.ascontiguousarray(b.detach().numpy()[:, 0]), np.ascontiguousarray(u.detach().numpy()),
-                np.ascontiguousarray(flat.numpy()), _flat_grid(wall_mask, wall_mask.shape[0], H * W),
-                np.ascontiguousarray(wall_velocity.numpy()).reshape(-1, 2, H * W),
-                scale.detach().numpy().astype(dtype))
-        mask, velocity = np.empty((B, H * W), dtype), np.empty((B, 2, H * W), dtype)
-        _union(*args, np.ones(1, dtype)[0], np.full(1, MASK_FLOOR, dtype)[0], mask, velocity)
-        ctx.args = args
-        ctx.dtypes = (b.dtype, u.dtype, scale.dtype)
-        return torch.from_numpy(mask).view(B, 1, H, W), torch.from_numpy(velocity).view(B, 2, H, W)
+            raise ValueError("FishOnGrid: the walls are constants (their velocity varies through ``scale``)")
+        st, cells = settings, settings.H * settings.W
+        qs = np.ascontiguousarray(q.detach().numpy()[:, surface], np.float64)
+        flat, centres, origin, _, width = _band_cells(qs, float(st.dx), st.H, st.W, st.margin)
+        rel = qs - origin[:, None, :]
+        nearest, inside, unranked = _nearest(rel, centres, st.k, st.segment, width, st.far)
+        args = (rel, np.ascontiguousarray(qdot.detach().numpy()[:, surface], np.float64), centres, nearest, inside,
+                unranked, st.xi, st.sigma, st.tau, st.harmonic, st.segment, st.truncated)
+        b, u = _band_boundary(args)
+        fields = torch.empty(0, dtype=dtype).numpy().dtype
+        walls = (_flat_grid(wall_mask, wall_mask.shape[0], cells),
+                 np.ascontiguousarray(wall_velocity.detach().numpy()).reshape(-1, 2, cells))
+        union = (b.astype(fields), u.astype(fields), flat, *walls, scale.detach().numpy().astype(fields))
+        B = flat.shape[0]
+        mask, velocity = np.empty((B, cells), fields), np.empty((B, 2, cells), fields)
+        _union(*union, fields.type(1.0), fields.type(MASK_FLOOR), mask, velocity)
+        ctx.args, ctx.b, ctx.union, ctx.surface = args, b, union, surface
+        ctx.shapes = (q.shape, q.dtype, qdot.dtype, scale.dtype)
+        return torch.from_numpy(mask).view(B, 1, st.H, st.W), torch.from_numpy(velocity).view(B, 2, st.H, st.W)
 
     @staticmethod
     def backward(ctx, g_mask: Tensor, g_velocity: Tensor):
-        b, u, flat, wall_mask, wall_velocity, scale = ctx.args
-        B, P = b.shape
-        g_mask = np.zeros((B, wall_mask.shape[-1])) if g_mask is None else _f64(g_mask).reshape(B, -1)
-        g_velocity = np.zeros((B, 2, wall_mask.shape[-1])) if g_velocity is None else _f64(g_velocity).reshape(B, 2, -1)
-        gb, gu, g_scale = np.empty((B, P)), np.empty((B, 2, P)), np.zeros(B)
-        _union_adjoint(b.astype(np.float64), u.astype(np.float64), flat, wall_mask.astype(np.float64),
+        b_d, u_d, flat, wall_mask, wall_velocity, scale = ctx.union
+        (B, P), cells = b_d.shape, wall_mask.shape[-1]
+        g_mask = np.zeros((B, cells)) if g_mask is None else _f64(g_mask).reshape(B, cells)
+        g_velocity = np.zeros((B, 2, cells)) if g_velocity is None else _f64(g_velocity).reshape(B, 2, cells)
+        gb, gu, g_scale = np.empty((B, P)), np.empty((B, P, 2)), np.zeros(B)
+        _union_adjoint(b_d.astype(np.float64), u_d.astype(np.float64), flat, wall_mask.astype(np.float64),
                        wall_velocity.astype(np.float64), scale.astype(np.float64), MASK_FLOOR, g_mask, g_velocity,
-                       ctx.needs_input_grad[5], gb, gu, g_scale)
-        b_dtype, u_dtype, scale_dtype = ctx.dtypes
-        return (torch.from_numpy(gb).to(b_dtype).unsqueeze(1), torch.from_numpy(gu).to(u_dtype), None, None, None,
-                torch.from_numpy(g_scale).to(scale_dtype))
+                       ctx.needs_input_grad[2], gb, gu, g_scale)
+        gq_s, gqdot_s = _band_boundary_adjoint(ctx.args, ctx.b, gb, gu)
+        shape, q_dtype, qdot_dtype, scale_dtype = ctx.shapes
+        gq, gqdot = np.zeros(shape), np.zeros(shape)
+        gq[:, ctx.surface], gqdot[:, ctx.surface] = gq_s, gqdot_s
+        return (torch.from_numpy(gq).to(q_dtype), torch.from_numpy(gqdot).to(qdot_dtype),
+                torch.from_numpy(g_scale).to(scale_dtype), None, None, None, None, None)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -1,8 +1,8 @@
 """The coupling layer: solid -> fluid (b, v_d) and fluid -> solid (f_ext) (docs/physics.md section 7).
 
     solid_to_fluid(q, qdot, surface, grid, cfg) -> Boundary(b, v_d)     step 1 of the coupled step
-    fish_band(q, qdot, surface, grid, cfg) -> (band, b, v_d on its cells); on_grid(that, grid, walls)
-                                                                        the same in two parts
+    fish_band(q, qdot, surface, grid, cfg) -> (band, b, v_d on its cells)  the same on the band only
+    with_walls(q, qdot, surface, grid, cfg, walls, scale) -> Boundary  step 1 with the tank's walls
     fluid_to_solid(q, p, boundary, surface, grid, cfg, step) -> f_ext   step 3 (sampled pressure)
     exchange_to_solid(q, cell_force, surface, grid, cfg, step) -> f_ext
                                                                         step 3 (momentum exchange)
@@ -14,7 +14,7 @@ and combines them as a union of soft sets:
     v_total = (b_fish v_fish + b_wall v_wall) / (b_fish + b_wall)     (fishsim.fields.union)
 
 and may pass the combined Boundary to ``fluid_to_solid`` (wall cells are then not sampled by the
-default fluid-side IBM weight either).  ``on_grid`` forms the union on the fish's band of cells only.
+default fluid-side IBM weight either).  ``with_walls`` forms the union on the fish's band of cells only.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ import torch
 from torch import Tensor
 
 from fishsim.coupling.band import SurfaceBand, band_margin, scatter_band, surface_band
-from fishsim.coupling.config import CouplingConfig
+from fishsim.coupling.config import HARMONIC, SEGMENT, CouplingConfig
 from fishsim.coupling.exchange import spread_to_surface
 from fishsim.coupling.forces import burn_in_scale, fext_from_surface
 from fishsim.coupling.ibm import ibm_force
@@ -49,9 +49,10 @@ def solid_to_fluid(q: Tensor, qdot: Tensor, surface, grid: Grid, cfg: CouplingCo
 
     q, qdot: world-frame node positions (m) and velocities (m/s) [B, N, 2]; surface: [S] mesh
     indices of the ccw surface polyline (FishMesh.surface).  Differentiable in q and qdot.
-    (The rollout unites the fish with the walls: ``fish_band`` and ``on_grid``.)
+    (The rollout unites the fish with the walls: ``with_walls``.)
     """
-    return on_grid(fish_band(q, qdot, surface, grid, cfg, dtype), grid)
+    band, mask, velocity = fish_band(q, qdot, surface, grid, cfg, dtype)
+    return Boundary(mask=scatter_band(mask, band, grid), velocity=scatter_band(velocity, band, grid))
 
 
 def fish_band(q: Tensor, qdot: Tensor, surface, grid: Grid, cfg: CouplingConfig,
@@ -64,28 +65,32 @@ def fish_band(q: Tensor, qdot: Tensor, surface, grid: Grid, cfg: CouplingConfig,
     return band, *band_values(qs, qdots, band, cfg.xi, cfg.sigma, cfg.tau, cfg.mean, dtype)
 
 
-def on_grid(fish: tuple[SurfaceBand, Tensor, Tensor], grid: Grid, walls: Boundary | None = None,
-            scale: Tensor | None = None) -> Boundary:
-    """``fish_band``'s fish as grid fields, alone (``walls`` None) or united with ``walls``, a
-    Boundary [1 or B, ., H, W] in the fish's dtype whose velocity is multiplied by ``scale`` [B]
-    (a swim tunnel's -U; None: 1): ``union(fish, walls)`` (module docstring), formed on the band's
-    cells only (~1,300 of 30,000 at B = 1; on the CPU in one compiled pass, kernels.BandUnion).
-    Elsewhere b_fish = 0 and the union is the walls themselves as ``united_with_nothing(walls)``
-    gives them: pass them so, as constants. Differentiable in the fish's fields and ``scale``."""
-    band, mask, velocity = fish
-    if walls is None:
-        return Boundary(mask=scatter_band(mask, band, grid), velocity=scatter_band(velocity, band, grid))
-    scale = mask.new_ones(mask.shape[0]) if scale is None else scale
-    if mask.device.type == "cpu":
-        from fishsim.coupling.kernels import BandUnion
+def with_walls(q: Tensor, qdot: Tensor, surface, grid: Grid, cfg: CouplingConfig, walls: Boundary,
+               scale: Tensor | None = None, dtype: torch.dtype = torch.float32) -> Boundary:
+    """The fish united with the tank's ``walls`` on ``grid``, a Boundary [B, ., H, W] in ``dtype``
+    whose walls' velocity is multiplied by ``scale`` [B] (a swim tunnel's -U; None: 1):
+    ``union(solid_to_fluid(...), walls)`` (module docstring), formed on the fish's band of cells
+    only (~1,300 of 30,000 at B = 1). Elsewhere b_fish = 0 and the union is the walls themselves
+    as ``united_with_nothing(walls)`` gives them: pass them so, as constants. On the CPU in one
+    compiled call from the nodes (kernels.FishOnGrid), elsewhere ``fish_band`` and
+    ``torch_band_union``. Differentiable in q, qdot and ``scale``."""
+    scale = q.new_ones(q.shape[0]) if scale is None else scale
+    if q.device.type != "cpu":
+        return torch_band_union(*fish_band(q, qdot, surface, grid, cfg, dtype), grid, walls, scale.to(dtype))
+    from fishsim.coupling.kernels import NEGLIGIBLE, BandSettings, FishOnGrid
 
-        return Boundary(*BandUnion.apply(mask, velocity, band.flat, walls.mask, walls.velocity, scale))
-    return torch_band_union(band, mask, velocity, grid, walls, scale.to(mask.dtype))
+    index = surface_index(surface, q.device).numpy()
+    S = len(index)
+    settings = BandSettings(grid.dx, grid.H, grid.W, band_margin(cfg.sigma, grid.dx), min(cfg.k_nearest + 1, S),
+                            cfg.distance == SEGMENT, NEGLIGIBLE * cfg.sigma, cfg.xi, cfg.sigma, cfg.tau,
+                            cfg.mean == HARMONIC, cfg.k_nearest + 1 < S)
+    return Boundary(*FishOnGrid.apply(q, qdot, scale, walls.mask, walls.velocity, index, settings, dtype))
 
 
 def torch_band_union(band: SurfaceBand, mask: Tensor, velocity: Tensor, grid: Grid, walls: Boundary,
                      scale: Tensor) -> Boundary:
-    """``on_grid``'s union in torch operations (CUDA; the reference of kernels.BandUnion)."""
+    """``with_walls``'s union in torch operations from ``fish_band``'s fish (CUDA; the reference of
+    kernels.FishOnGrid)."""
     B, index = mask.shape[0], band.flat.unsqueeze(1)
     wall_mask = walls.mask.expand(B, -1, -1, -1).flatten(2)                 # [B, 1, H W]
     wall_velocity = (walls.velocity * scale.view(B, 1, 1, 1)).flatten(2)    # [B, 2, H W]

@@ -174,34 +174,41 @@ def test_band_cells_equal_the_torch_window(B):
 
 
 def test_the_union_with_the_walls_on_the_band_equals_the_union_on_the_grid():
-    """``on_grid`` forms the fish + walls union on the band's cells only (compiled on the CPU,
-    kernels.BandUnion; torch operations elsewhere, ``torch_band_union``); both equal
-    ``grid.union`` over the whole grid, values and gradients w.r.t. the surface, its velocities and
-    a swim tunnel's speed scaling the walls' velocity, for two fish, one of them in a wall band."""
-    from fishsim.coupling import fish_band, on_grid, united_with_nothing
+    """``with_walls`` forms the fish + walls union on the band's cells only (compiled on the CPU
+    from the mesh nodes, kernels.FishOnGrid; torch operations elsewhere, ``torch_band_union``);
+    both equal ``grid.union`` over the whole grid, values and gradients w.r.t. the nodes, their
+    velocities and a swim tunnel's speed scaling the walls' velocity, for two fish, one of them
+    in a wall band, whose surface is every other node of the mesh; in float32 the compiled union
+    equals the torch one bit for bit."""
+    from fishsim.coupling import fish_band, solid_to_fluid, united_with_nothing, with_walls
     from fishsim.coupling.layer import torch_band_union
     from fishsim.fields import Boundary
     from fishsim.fluid.grid import channel, union
 
     qs, qdots = bent_fish()
     qs[1] += torch.tensor([0.035, -0.01], dtype=torch.float64)          # into the walls' inflow band
+    q = torch.stack([qs, qs + 1e-3], 2).flatten(1, 2).requires_grad_(True)    # surface: the even nodes
+    qdot = torch.stack([qdots, -qdots], 2).flatten(1, 2).requires_grad_(True)
     walls = channel(GRID, 1.0, 3, 5, 1, None, torch.float64)
     speed = torch.tensor([0.3, -0.2], dtype=torch.float64, requires_grad=True)
-    qs.requires_grad_(True)
-    qdots.requires_grad_(True)
-    surface, cfg = torch.arange(qs.shape[1]), CouplingConfig()
-    fish = fish_band(qs, qdots, surface, GRID, cfg, torch.float64)
-    alone, fields = on_grid(fish, GRID), lambda x: (x.mask, x.velocity)
+    surface, cfg = torch.arange(0, q.shape[1], 2), CouplingConfig()
+    alone, fields = solid_to_fluid(q, qdot, surface, GRID, cfg, torch.float64), lambda x: (x.mask, x.velocity)
     meets = lambda field: bool((alone.mask[1] * field.abs() > 0.1).any())
     assert meets(walls.mask[0, 0]) and meets(walls.velocity[0, 0]) and not (alone.mask[0] * walls.mask[0] > 0).any()
     want = fields(union(alone, Boundary(walls.mask, walls.velocity * speed.view(2, 1, 1, 1))))
     walls = united_with_nothing(walls)
-    for got in (fields(on_grid(fish, GRID, walls, speed)), fields(torch_band_union(*fish, GRID, walls, speed))):
+    fish = fish_band(q, qdot, surface, GRID, cfg, torch.float64)
+    for got in (fields(with_walls(q, qdot, surface, GRID, cfg, walls, speed, torch.float64)),
+                fields(torch_band_union(*fish, GRID, walls, speed))):
         for a, b in zip(got, want):
             assert (a - b).abs().max() <= 1e-15 * b.abs().max()
         g = torch.Generator().manual_seed(3)
         cot = [torch.randn(x.shape, generator=g, dtype=torch.float64) for x in want]
-        grads = [torch.autograd.grad(sum((c * x).sum() for c, x in zip(cot, out)), (qs, qdots, speed),
+        grads = [torch.autograd.grad(sum((c * x).sum() for c, x in zip(cot, out)), (q, qdot, speed),
                                      retain_graph=True) for out in (got, want)]
         for a, b in zip(*grads):
             assert (a - b).abs().max() <= 1e-12 * b.abs().max()
+    walls = united_with_nothing(channel(GRID, 1.0, 3, 5, 1, None, torch.float32))     # the fluid's float32
+    got = with_walls(q, qdot, surface, GRID, cfg, walls, speed)
+    want = torch_band_union(*fish_band(q, qdot, surface, GRID, cfg), GRID, walls, speed.float())
+    assert torch.equal(got.mask, want.mask) and torch.equal(got.velocity, want.velocity)
