@@ -172,7 +172,8 @@ class Swimmer:
         if tunnel and (not fluid.exerts_force or walls is None):
             raise ConfigError("a swim tunnel needs a fluid and its channel walls")
         self.solid, self.fluid, self.coupling = solid, fluid, coupling
-        self.walls = None if walls is None else united_with_nothing(walls)
+        self.walls = None if walls is None else united_with_nothing(   # the fields the fluid gets: its dtype
+            Boundary(walls.mask.to(fluid_dtype), walls.velocity.to(fluid_dtype)))
         self.fluid_dtype, self.hold = fluid_dtype, (hold_x or tunnel, hold_y)
         self.tunnel = tunnel
         self.surface = torch.as_tensor(solid.mesh.surface, dtype=torch.long)
@@ -216,7 +217,7 @@ class Swimmer:
         scale = -state.tunnel[:, 0] if self.tunnel else None    # the water comes at the fish (facing +x) at U
         if r > 1:
             walls = Boundary(*(F.interpolate(x, scale_factor=r, mode="nearest") for x in (walls.mask, walls.velocity)))
-        return fish, with_walls(state.q, state.qdot, self.surface, grid, self.coupling, walls, scale, self.fluid_dtype)
+        return fish, with_walls(state.q, state.qdot, self.surface, grid, self.coupling, walls, scale)
 
     def tunnel_speed(self, state: SwimState, f_ext: Tensor, rho: Tensor, mass: Tensor) -> Tensor:
         """The swim tunnel's speed after this frame, [B, 2] (U_t+1, U_t), from the fish's x

@@ -594,10 +594,10 @@ class FishOnGrid(torch.autograd.Function):
     """(mask [B, 1, H, W], velocity [B, 2, H, W]) = fields.union(fish, walls) from the mesh nodes
     q, qdot [B, N, 2] (m, m/s; the nodes ``surface`` [S] (numpy) make the fish's polyline) in one
     call: the band's window and nearest elements (``band_selection``), the mask and velocity of its
-    cells (``BandBoundary``'s formulas, float64) rounded to ``dtype``, and their union with the
-    walls (wall_mask [1 or B, 1, H, W], wall_velocity [1 or B, 2, H, W]: constants, as
+    cells (``BandBoundary``'s formulas, float64) rounded to the walls' dtype, and their union with
+    the walls (wall_mask [1 or B, 1, H, W], wall_velocity [1 or B, 2, H, W]: constants, as
     layer.united_with_nothing gives them) whose velocity is scaled by scale [B] (a swim tunnel's
-    -U) on the band's cells only (``_union``, in ``dtype``, fields.union's order). Off the band
+    -U) on the band's cells only (``_union``, in the walls' dtype, fields.union's order). Off the band
     the fish's b is 0 and the union is the walls. The same values bit for bit as layer.fish_band
     followed by the union of ``layer.torch_band_union``, without their ~30 small torch operations
     (0.3-0.4 ms a frame at B = 1). The adjoint runs in float64 (scale's gradient is returned in
@@ -605,7 +605,7 @@ class FishOnGrid(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, q: Tensor, qdot: Tensor, scale: Tensor, wall_mask: Tensor, wall_velocity: Tensor,
-                surface: np.ndarray, settings: BandSettings, dtype: torch.dtype):
+                surface: np.ndarray, settings: BandSettings):
         if wall_mask.requires_grad or wall_velocity.requires_grad:
             raise ValueError("FishOnGrid: the walls are constants (their velocity varies through ``scale``)")
         st, cells = settings, settings.H * settings.W
@@ -616,9 +616,9 @@ class FishOnGrid(torch.autograd.Function):
         args = (rel, np.ascontiguousarray(qdot.detach().numpy()[:, surface], np.float64), centres, nearest, inside,
                 unranked, st.xi, st.sigma, st.tau, st.harmonic, st.segment, st.truncated)
         b, u = _band_boundary(args)
-        fields = torch.empty(0, dtype=dtype).numpy().dtype
         walls = (_flat_grid(wall_mask, wall_mask.shape[0], cells),
                  np.ascontiguousarray(wall_velocity.detach().numpy()).reshape(-1, 2, cells))
+        fields = walls[0].dtype
         union = (b.astype(fields), u.astype(fields), flat, *walls, scale.detach().numpy().astype(fields))
         B = flat.shape[0]
         mask, velocity = np.empty((B, cells), fields), np.empty((B, 2, cells), fields)
@@ -642,7 +642,7 @@ class FishOnGrid(torch.autograd.Function):
         gq, gqdot = np.zeros(shape), np.zeros(shape)
         gq[:, ctx.surface], gqdot[:, ctx.surface] = gq_s, gqdot_s
         return (torch.from_numpy(gq).to(q_dtype), torch.from_numpy(gqdot).to(qdot_dtype),
-                torch.from_numpy(g_scale).to(scale_dtype), None, None, None, None, None)
+                torch.from_numpy(g_scale).to(scale_dtype), None, None, None, None)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -66,8 +66,8 @@ def fish_band(q: Tensor, qdot: Tensor, surface, grid: Grid, cfg: CouplingConfig,
 
 
 def with_walls(q: Tensor, qdot: Tensor, surface, grid: Grid, cfg: CouplingConfig, walls: Boundary,
-               scale: Tensor | None = None, dtype: torch.dtype = torch.float32) -> Boundary:
-    """The fish united with the tank's ``walls`` on ``grid``, a Boundary [B, ., H, W] in ``dtype``
+               scale: Tensor | None = None) -> Boundary:
+    """The fish united with the tank's ``walls`` on ``grid``, a Boundary [B, ., H, W] in the walls' dtype
     whose walls' velocity is multiplied by ``scale`` [B] (a swim tunnel's -U; None: 1):
     ``union(solid_to_fluid(...), walls)`` (module docstring), formed on the fish's band of cells
     only (~1,300 of 30,000 at B = 1). Elsewhere b_fish = 0 and the union is the walls themselves
@@ -76,6 +76,7 @@ def with_walls(q: Tensor, qdot: Tensor, surface, grid: Grid, cfg: CouplingConfig
     ``torch_band_union``. Differentiable in q, qdot and ``scale``."""
     scale = q.new_ones(q.shape[0]) if scale is None else scale
     if q.device.type != "cpu":
+        dtype = walls.mask.dtype
         return torch_band_union(*fish_band(q, qdot, surface, grid, cfg, dtype), grid, walls, scale.to(dtype))
     from fishsim.coupling.kernels import NEGLIGIBLE, BandSettings, FishOnGrid
 
@@ -84,7 +85,7 @@ def with_walls(q: Tensor, qdot: Tensor, surface, grid: Grid, cfg: CouplingConfig
     settings = BandSettings(grid.dx, grid.H, grid.W, band_margin(cfg.sigma, grid.dx), min(cfg.k_nearest + 1, S),
                             cfg.distance == SEGMENT, NEGLIGIBLE * cfg.sigma, cfg.xi, cfg.sigma, cfg.tau,
                             cfg.mean == HARMONIC, cfg.k_nearest + 1 < S)
-    return Boundary(*FishOnGrid.apply(q, qdot, scale, walls.mask, walls.velocity, index, settings, dtype))
+    return Boundary(*FishOnGrid.apply(q, qdot, scale, walls.mask, walls.velocity, index, settings))
 
 
 def torch_band_union(band: SurfaceBand, mask: Tensor, velocity: Tensor, grid: Grid, walls: Boundary,

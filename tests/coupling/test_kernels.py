@@ -198,7 +198,7 @@ def test_the_union_with_the_walls_on_the_band_equals_the_union_on_the_grid():
     want = fields(union(alone, Boundary(walls.mask, walls.velocity * speed.view(2, 1, 1, 1))))
     walls = united_with_nothing(walls)
     fish = fish_band(q, qdot, surface, GRID, cfg, torch.float64)
-    for got in (fields(with_walls(q, qdot, surface, GRID, cfg, walls, speed, torch.float64)),
+    for got in (fields(with_walls(q, qdot, surface, GRID, cfg, walls, speed)),
                 fields(torch_band_union(*fish, GRID, walls, speed))):
         for a, b in zip(got, want):
             assert (a - b).abs().max() <= 1e-15 * b.abs().max()
