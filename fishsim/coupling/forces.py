@@ -34,7 +34,7 @@ def fext_from_surface(f_surface: Tensor, surface_idx: Tensor, n_nodes: int,
     """
     B = f_surface.shape[0]
     if mode == PER_NODE:
-        f = f_surface.new_zeros(B, n_nodes, 2).index_add(1, surface_idx, f_surface)
+        f = f_surface.new_zeros(B, n_nodes, 2).index_copy(1, surface_idx, f_surface)   # a polyline's nodes differ
     elif mode == AVERAGE:
         total = f_surface.sum(1, keepdim=True)
         f = (total / n_nodes).expand(B, n_nodes, 2) if mass is None else total * (mass / mass.sum()).to(total)[:, None]

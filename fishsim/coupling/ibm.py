@@ -256,14 +256,15 @@ def surface_elements(qs: Tensor, area: str = CHORD) -> Tensor:
 
 def ibm_force(qs: Tensor, p: Tensor, mask: Tensor, grid: Grid, sigma_prime: float = 6.25e-6,
               weight: str = OUTSIDE, fit: str = LINEAR, area: str = CHORD,
-              viscous: tuple[Tensor, Tensor, Tensor | float] | None = None) -> Tensor:
+              viscous: tuple[Tensor, Tensor, Tensor | float] | None = None, surface: Tensor | None = None) -> Tensor:
     """IBM force on every surface node, [B, S, 2] N (per unit depth): the pressure force
     f_k = -e_k p_k and, with ``viscous`` = (qdots [B, S, 2] m/s, fluid velocity at the cell
     centres [B, 2, H, W] m/s, mu [B] or scalar Pa s), the viscous traction mu (G_k + G_k^T) e_k
     (module docstring), both from one sampling of the cells around each node.
 
-    qs: surface polyline [B, S, 2] (ccw, m); p: pressure [B, 1, H, W] (Pa); mask: b
-    [B, 1, H, W] (of the fish, or fish + walls: wall cells are then not sampled either).
+    qs: surface polyline [B, S, 2] (ccw, m), or with ``surface`` [S] (long) the mesh nodes [B, N, 2]
+    of which those make the polyline; p: pressure [B, 1, H, W] (Pa); mask: b [B, 1, H, W] (of the
+    fish, or fish + walls: wall cells are then not sampled either).
     sigma_prime (m^2), weight ("outside" | "fluid" | "body" | "none"), fit ("linear" | "mean"),
     area ("chord" | "paper"): see the module docstring; the traction needs "outside".
     Differentiable in every tensor input; sampling runs in p.dtype, the result is in qs.dtype.
@@ -275,8 +276,9 @@ def ibm_force(qs: Tensor, p: Tensor, mask: Tensor, grid: Grid, sigma_prime: floa
 
         if fit not in (LINEAR, MEAN):
             raise ValueError(f"fit must be 'mean' or 'linear', got {fit!r}")
-        return OutsidePressureForce.apply(qs, p, mask, OUTSIDE_MASK, grid.dx, sigma_prime,
-                                          kernel_radius(sigma_prime, grid.dx), fit == LINEAR)
+        return OutsidePressureForce.apply(qs, p, mask, None if surface is None else surface.numpy(), OUTSIDE_MASK,
+                                          grid.dx, sigma_prime, kernel_radius(sigma_prime, grid.dx), fit == LINEAR)
+    qs = qs if surface is None else qs[:, surface]
     return torch_ibm_force(qs, p, mask, grid, sigma_prime, weight, fit, area, viscous)
 
 

@@ -871,40 +871,44 @@ def _ibm_backward_parallel(q, p, mask, outside, shape, dx, sigma_prime, radius, 
 
 class OutsidePressureForce(torch.autograd.Function):
     """f [B, S, 2] = -p_k a_k (ibm.ibm_force with weight "outside", area "chord", no traction) in
-    qs's dtype from the surface qs [B, S, 2] (m), the pressure p and mask b [B, 1, H, W] (Pa, 1)
-    on the grid (H, W) of cells dx (m), the mask level above which cells are not sampled
-    (``outside``, ibm.OUTSIDE_MASK), the kernel variance sigma_prime (m^2) and window radius
-    (cells), ``linear`` or mean fit; CPU tensors. Differentiable in qs, p and b."""
+    q's dtype from the surface polyline q [B, S, 2] (m) or, with ``surface`` [S] (numpy), the mesh
+    nodes q [B, N, 2] of which those make it, the pressure p and mask b [B, 1, H, W] (Pa, 1) on the
+    grid (H, W) of cells dx (m), the mask level above which cells are not sampled (``outside``,
+    ibm.OUTSIDE_MASK), the kernel variance sigma_prime (m^2) and window radius (cells), ``linear``
+    or mean fit; CPU tensors. Differentiable in q, p and b."""
 
     @staticmethod
-    def arrays(qs: Tensor, p: Tensor, b: Tensor, settings: tuple) -> tuple:
-        """The kernels' arguments: a float64 copy of qs, p and b as flat arrays [B, H W] in their
-        own dtype (a float32 value reads exactly into the float64 arithmetic: no copies of two
-        whole grids), then the settings."""
+    def arrays(q: Tensor, p: Tensor, b: Tensor, surface: np.ndarray | None, settings: tuple) -> tuple:
+        """The kernels' arguments: a float64 copy of the polyline's nodes, p and b as flat arrays
+        [B, H W] in their own dtype (a float32 value reads exactly into the float64 arithmetic:
+        no copies of two whole grids), then the settings."""
         B, H, W = p.shape[0], p.shape[-2], p.shape[-1]
-        return _f64(qs), _flat_grid(p, B, H * W), _flat_grid(b, B, H * W), *settings
+        qs = _f64(q) if surface is None else np.ascontiguousarray(q.detach().numpy()[:, surface], np.float64)
+        return qs, _flat_grid(p, B, H * W), _flat_grid(b, B, H * W), *settings
 
     @staticmethod
-    def forward(ctx, qs: Tensor, p: Tensor, b: Tensor, outside: float, dx: float, sigma_prime: float, radius: int,
-                linear: bool):
+    def forward(ctx, q: Tensor, p: Tensor, b: Tensor, surface: np.ndarray | None, outside: float, dx: float,
+                sigma_prime: float, radius: int, linear: bool):
         settings = (float(outside), (p.shape[-2], p.shape[-1]), float(dx), float(sigma_prime), int(radius),
                     bool(linear))
-        args = OutsidePressureForce.arrays(qs, p, b, settings)
+        args = OutsidePressureForce.arrays(q, p, b, surface, settings)
         f = np.empty(args[0].shape)
         _each_fish(_fish_ibm, _ibm_parallel, *args, f)
         # the tensors, not their float64 copies (two whole grids a frame), wait for the backward
-        ctx.save_for_backward(qs, p, b)
-        ctx.settings = settings
-        return torch.from_numpy(f).to(qs.dtype)
+        ctx.save_for_backward(q, p, b)
+        ctx.surface, ctx.settings = surface, settings
+        return torch.from_numpy(f).to(q.dtype)
 
     @staticmethod
     def backward(ctx, gf: Tensor):
-        qs, p_in, b_in = ctx.saved_tensors
-        args = OutsidePressureForce.arrays(qs, p_in, b_in, ctx.settings)
-        q, p = args[0], args[1]
-        gq, gp, gmask = np.zeros(q.shape), np.zeros(p.shape), np.zeros(p.shape)
-        _each_fish(_fish_ibm_backward, _ibm_backward_parallel, *args, _f64(gf), gq, gp, gmask)
+        q_in, p_in, b_in = ctx.saved_tensors
+        args = OutsidePressureForce.arrays(q_in, p_in, b_in, ctx.surface, ctx.settings)
+        qs, p = args[0], args[1]
+        gqs, gp, gmask = np.zeros(qs.shape), np.zeros(p.shape), np.zeros(p.shape)
+        _each_fish(_fish_ibm_backward, _ibm_backward_parallel, *args, _f64(gf), gqs, gp, gmask)
+        gq = gqs if ctx.surface is None else np.zeros(q_in.shape)
+        if ctx.surface is not None:
+            gq[:, ctx.surface] = gqs
         H, W = args[4]
-        q_dtype, p_dtype, b_dtype = qs.dtype, p_in.dtype, b_in.dtype
-        return (torch.from_numpy(gq).to(q_dtype), torch.from_numpy(gp).to(p_dtype).view(-1, 1, H, W),
-                torch.from_numpy(gmask).to(b_dtype).view(-1, 1, H, W), None, None, None, None, None)
+        return (torch.from_numpy(gq).to(q_in.dtype), torch.from_numpy(gp).to(p_in.dtype).view(-1, 1, H, W),
+                torch.from_numpy(gmask).to(b_in.dtype).view(-1, 1, H, W), None, None, None, None, None, None)

@@ -125,8 +125,8 @@ def fluid_to_solid(q: Tensor, p: Tensor, boundary: Boundary, surface, grid: Grid
     if viscous is not None:
         qdot, v, mu = viscous
         viscous = (qdot[:, idx], v, mu)
-    f = ibm_force(q[:, idx], p, boundary.mask, grid, cfg.sigma_prime, cfg.ibm_weight,
-                  cfg.ibm_fit, cfg.ibm_area, viscous)
+    f = ibm_force(q, p, boundary.mask, grid, cfg.sigma_prime, cfg.ibm_weight, cfg.ibm_fit, cfg.ibm_area, viscous,
+                  surface=idx)
     scale = 1.0 if step is None else burn_in_scale(step, cfg.n_burn_in)
     return fext_from_surface(f, idx, q.shape[1], cfg.force_mode, cfg.fix_lateral, scale, mass)
 

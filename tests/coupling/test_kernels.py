@@ -145,11 +145,27 @@ def test_ibm_force_and_its_adjoint_equal_the_torch_formulas(fit):
         assert scale > 0 and (got - want).abs().max() <= 1e-10 * scale, float((got - want).abs().max() / scale)
 
 
+def test_ibm_force_read_from_the_mesh_nodes_equals_it_on_the_polyline():
+    """``ibm_force(nodes, surface=index)`` (the rollout's call: compiled, the polyline read from
+    the nodes) gives the polyline's forces bit for bit and their gradient on its nodes, zero on the
+    others."""
+    qs, _ = bent_fish()
+    nodes = torch.stack([qs, qs + 1e-3], 2).flatten(1, 2).requires_grad_(True)     # the polyline: even nodes
+    qs.requires_grad_(True)
+    mask = soft_mask(qs, GRID, dtype=torch.float64).detach()
+    p = 50 * torch.randn(2, 1, GRID.H, GRID.W, generator=torch.Generator().manual_seed(9), dtype=torch.float64)
+    got, want = ibm_force(nodes, p, mask, GRID, surface=torch.arange(0, nodes.shape[1], 2)), ibm_force(qs, p, mask, GRID)
+    assert torch.equal(got, want)
+    cot = torch.randn(got.shape, generator=torch.Generator().manual_seed(10), dtype=torch.float64)
+    (g_nodes,), (g_qs,) = torch.autograd.grad((got * cot).sum(), nodes), torch.autograd.grad((want * cot).sum(), qs)
+    assert torch.equal(g_nodes[:, 0::2], g_qs) and not g_nodes[:, 1::2].any() and g_qs.abs().max() > 0
+
+
 def test_compiled_ibm_force_gradient_against_central_differences():
     qs, _ = bent_fish(B=1, n=30)
     mask = soft_mask(qs, GRID, dtype=torch.float64).detach()
     p = torch.randn(1, 1, GRID.H, GRID.W, generator=torch.Generator().manual_seed(8), dtype=torch.float64)
-    fn = lambda q, pr, b: OutsidePressureForce.apply(q, pr, b, 0.05, GRID.dx, 6.25e-6, 4, True)
+    fn = lambda q, pr, b: OutsidePressureForce.apply(q, pr, b, None, 0.05, GRID.dx, 6.25e-6, 4, True)
     assert gradcheck(fn, (qs.requires_grad_(True), p.requires_grad_(True), mask.requires_grad_(True)), eps=1e-8,
                      atol=1e-6, rtol=1e-4, fast_mode=True)
 
