@@ -129,6 +129,12 @@ def _inside(centres: Tensor, qs: Tensor, h: int, w: int) -> Tensor:
     return (right % 2 == 1).flatten(1)
 
 
+def nearest_count(k_nearest: int, S: int) -> tuple[int, bool]:
+    """(K', truncated): the K' = min(K + 1, S) elements a band cell ranks for K = ``k_nearest``
+    of the surface's S, and whether that leaves some out (its soft-mins are then tapered)."""
+    return min(k_nearest + 1, S), k_nearest + 1 < S
+
+
 @torch.no_grad()
 def surface_band(qs: Tensor, grid: Grid, margin: int, k_nearest: int = 24,
                  distance: str = SEGMENT, sigma: float | None = None) -> SurfaceBand:
@@ -144,8 +150,7 @@ def surface_band(qs: Tensor, grid: Grid, margin: int, k_nearest: int = 24,
     """
     if distance not in (SEGMENT, NODE):
         raise ValueError(f"distance must be 'segment' or 'node', got {distance!r}")
-    S, k = qs.shape[1], min(k_nearest + 1, qs.shape[1])
-    truncated = k_nearest + 1 < S
+    k, truncated = nearest_count(k_nearest, qs.shape[1])
     if qs.device.type == "cpu":                      # compiled, in float64 (fishsim.coupling.kernels)
         from fishsim.coupling.kernels import NEGLIGIBLE, band_selection
 

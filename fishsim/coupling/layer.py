@@ -23,7 +23,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from fishsim.coupling.band import SurfaceBand, band_margin, scatter_band, surface_band
+from fishsim.coupling.band import SurfaceBand, band_margin, nearest_count, scatter_band, surface_band
 from fishsim.coupling.config import HARMONIC, SEGMENT, CouplingConfig
 from fishsim.coupling.exchange import spread_to_surface
 from fishsim.coupling.forces import burn_in_scale, fext_from_surface
@@ -81,10 +81,9 @@ def with_walls(q: Tensor, qdot: Tensor, surface, grid: Grid, cfg: CouplingConfig
     from fishsim.coupling.kernels import NEGLIGIBLE, BandSettings, FishOnGrid
 
     index = surface_index(surface, q.device).numpy()
-    S = len(index)
-    settings = BandSettings(grid.dx, grid.H, grid.W, band_margin(cfg.sigma, grid.dx), min(cfg.k_nearest + 1, S),
-                            cfg.distance == SEGMENT, NEGLIGIBLE * cfg.sigma, cfg.xi, cfg.sigma, cfg.tau,
-                            cfg.mean == HARMONIC, cfg.k_nearest + 1 < S)
+    k, truncated = nearest_count(cfg.k_nearest, len(index))
+    settings = BandSettings(grid.dx, grid.H, grid.W, band_margin(cfg.sigma, grid.dx), k, cfg.distance == SEGMENT,
+                            NEGLIGIBLE * cfg.sigma, cfg.xi, cfg.sigma, cfg.tau, cfg.mean == HARMONIC, truncated)
     return Boundary(*FishOnGrid.apply(q, qdot, scale, walls.mask, walls.velocity, index, settings))
 
 
