@@ -39,6 +39,22 @@ def _f64(t: Tensor) -> np.ndarray:
     return np.ascontiguousarray(t.detach().to(torch.float64).numpy())
 
 
+def _surface_f64(t: Tensor, surface: np.ndarray | None) -> np.ndarray:
+    """The surface nodes ``surface`` [S] of t [B, N, 2] (all of t if None) as a C-contiguous float64
+    array [B, S, 2]."""
+    return _f64(t) if surface is None else np.ascontiguousarray(t.detach().numpy()[:, surface], np.float64)
+
+
+def _on_nodes(g: np.ndarray, surface: np.ndarray | None, shape: tuple) -> np.ndarray:
+    """A gradient g [B, S, 2] on the surface nodes as one on all nodes [B, N, 2] = ``shape``
+    (zeros elsewhere; g itself if ``surface`` is None)."""
+    if surface is None:
+        return g
+    out = np.zeros(shape)
+    out[:, surface] = g
+    return out
+
+
 def _flat_grid(t: Tensor, B: int, cells: int) -> np.ndarray:
     """A [B, 1, H, W] field as a C-contiguous numpy array [B, H W] of its own dtype (a view when
     it is contiguous)."""
@@ -609,12 +625,12 @@ class FishOnGrid(torch.autograd.Function):
         if wall_mask.requires_grad or wall_velocity.requires_grad:
             raise ValueError("FishOnGrid: the walls are constants (their velocity varies through ``scale``)")
         st, cells = settings, settings.H * settings.W
-        qs = np.ascontiguousarray(q.detach().numpy()[:, surface], np.float64)
+        qs = _surface_f64(q, surface)
         flat, centres, origin, _, width = _band_cells(qs, float(st.dx), st.H, st.W, st.margin)
         rel = qs - origin[:, None, :]
         nearest, inside, unranked = _nearest(rel, centres, st.k, st.segment, width, st.far)
-        args = (rel, np.ascontiguousarray(qdot.detach().numpy()[:, surface], np.float64), centres, nearest, inside,
-                unranked, st.xi, st.sigma, st.tau, st.harmonic, st.segment, st.truncated)
+        args = (rel, _surface_f64(qdot, surface), centres, nearest, inside, unranked, st.xi, st.sigma, st.tau,
+                st.harmonic, st.segment, st.truncated)
         b, u = _band_boundary(args)
         walls = (_flat_grid(wall_mask, wall_mask.shape[0], cells),
                  np.ascontiguousarray(wall_velocity.detach().numpy()).reshape(-1, 2, cells))
@@ -639,8 +655,7 @@ class FishOnGrid(torch.autograd.Function):
                        ctx.needs_input_grad[2], gb, gu, g_scale)
         gq_s, gqdot_s = _band_boundary_adjoint(ctx.args, ctx.b, gb, gu)
         shape, q_dtype, qdot_dtype, scale_dtype = ctx.shapes
-        gq, gqdot = np.zeros(shape), np.zeros(shape)
-        gq[:, ctx.surface], gqdot[:, ctx.surface] = gq_s, gqdot_s
+        gq, gqdot = _on_nodes(gq_s, ctx.surface, shape), _on_nodes(gqdot_s, ctx.surface, shape)
         return (torch.from_numpy(gq).to(q_dtype), torch.from_numpy(gqdot).to(qdot_dtype),
                 torch.from_numpy(g_scale).to(scale_dtype), None, None, None, None)
 
@@ -883,8 +898,7 @@ class OutsidePressureForce(torch.autograd.Function):
         [B, H W] in their own dtype (a float32 value reads exactly into the float64 arithmetic:
         no copies of two whole grids), then the settings."""
         B, H, W = p.shape[0], p.shape[-2], p.shape[-1]
-        qs = _f64(q) if surface is None else np.ascontiguousarray(q.detach().numpy()[:, surface], np.float64)
-        return qs, _flat_grid(p, B, H * W), _flat_grid(b, B, H * W), *settings
+        return _surface_f64(q, surface), _flat_grid(p, B, H * W), _flat_grid(b, B, H * W), *settings
 
     @staticmethod
     def forward(ctx, q: Tensor, p: Tensor, b: Tensor, surface: np.ndarray | None, outside: float, dx: float,
@@ -906,9 +920,6 @@ class OutsidePressureForce(torch.autograd.Function):
         qs, p = args[0], args[1]
         gqs, gp, gmask = np.zeros(qs.shape), np.zeros(p.shape), np.zeros(p.shape)
         _each_fish(_fish_ibm_backward, _ibm_backward_parallel, *args, _f64(gf), gqs, gp, gmask)
-        gq = gqs if ctx.surface is None else np.zeros(q_in.shape)
-        if ctx.surface is not None:
-            gq[:, ctx.surface] = gqs
         H, W = args[4]
-        return (torch.from_numpy(gq).to(q_in.dtype), torch.from_numpy(gp).to(p_in.dtype).view(-1, 1, H, W),
+        return (torch.from_numpy(_on_nodes(gqs, ctx.surface, q_in.shape)).to(q_in.dtype), torch.from_numpy(gp).to(p_in.dtype).view(-1, 1, H, W),
                 torch.from_numpy(gmask).to(b_in.dtype).view(-1, 1, H, W), None, None, None, None, None, None)
