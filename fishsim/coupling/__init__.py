@@ -4,8 +4,8 @@ solid -> fluid: ``soft_mask`` (b), ``boundary_velocity`` (v_d), on a band of cel
 ``band_boundary`` both at once (compiled on the CPU), ``band_values`` on the band's cells only.
 fluid -> solid: ``ibm_force`` (pressure forces on surface nodes) or ``spread_to_surface`` (the
 numerical fluid's momentum exchange, exchange.py), ``fext_from_surface`` (modes, x-axis fixing,
-burn-in).  ``solid_to_fluid`` / ``fluid_to_solid`` / ``exchange_to_solid`` do each direction in
-one call from a ``CouplingConfig``.  added_mass.py: the stabilisation of the explicit coupling.
+burn-in).  ``solid_to_fluid`` (``with_walls``: united with the tank's walls) / ``fluid_to_solid`` /
+``exchange_to_solid`` do each direction in one call from a ``CouplingConfig``.  added_mass.py: the stabilisation of the explicit coupling.
 """
 
 from fishsim.lazy import exports
