@@ -1,5 +1,5 @@
 """Compiled (numba) coupling on the CPU: the band's nearest surface elements and inside flags
-(``nearest_and_inside``, no gradient), the mask and boundary velocity of every band cell
+(``band_selection``, no gradient), the mask and boundary velocity of every band cell
 (``BandBoundary``) and the IBM pressure force with ibm.py's default sampling
 (``OutsidePressureForce``), both with hand-written adjoints. They compute band.py's, mask.py's
 and ibm.py's formulas, which stay as the reference (tests/coupling/test_kernels.py) and run on
@@ -244,38 +244,40 @@ def _nearest_parallel(q, centres, width, segment, far, nearest, inside, unranked
         _fish_nearest(q[b], centres[b], width, segment, far, nearest[b], inside[b], unranked[b])
 
 
-def nearest_and_inside(qs: Tensor, centres: Tensor, k: int, segment: bool, width: int,
-                       far: float = math.inf) -> tuple[Tensor, Tensor, Tensor]:
-    """The k nearest elements [B, P, k] (long, in no particular order), inside flags [B, P] and
-    unranked flags [B, P] of the band cells ``centres`` [B, P, 2] (a row-major window ``width``
-    cells wide) for the polylines ``qs`` [B, S, 2] (both relative to the band's origin, m; CPU).
-    Cells outside the body farther than sqrt(far) [m] from it get elements 0..k-1, unranked
-    (``_fish_nearest``)."""
-    return tuple(torch.from_numpy(a) for a in _nearest(_f64(qs), _f64(centres), k, segment, width, far))
-
-
 def _nearest(q: np.ndarray, x: np.ndarray, k: int, segment: bool, width: int, far: float) -> tuple:
-    """``nearest_and_inside`` on float64 arrays: (nearest, inside, unranked) as numpy arrays."""
+    """The k nearest elements [B, P, k] (int64, in no particular order), inside flags [B, P] and
+    unranked flags [B, P] of the band cells x [B, P, 2] (a row-major window ``width`` cells wide)
+    for the polylines q [B, S, 2] (both float64, relative to the band's origin, m). Cells outside
+    the body farther than sqrt(far) [m] from it get elements 0..k-1, unranked (``_fish_nearest``)."""
     B, P = x.shape[:2]
     nearest, inside, unranked = np.empty((B, P, k), np.int64), np.empty((B, P), np.bool_), np.empty((B, P), np.bool_)
     _each_fish(_fish_nearest, _nearest_parallel, q, x, width, segment, float(far), nearest, inside, unranked)
     return nearest, inside, unranked
 
 
-def band_selection(qs: Tensor, dx: float, H: int, W: int, margin: int, k: int, segment: bool,
-                   far: float = math.inf) -> tuple:
-    """band.py's window of cells (``_band_cells``: flat indices [B, P], centres [B, P, 2] relative
-    to the origin, origin [B, 1, 2] the bounding boxes' centres, in qs's dtype) and
-    ``nearest_and_inside`` in one call, numpy in between (band.surface_band's CPU path): (flat,
-    centres, origin, nearest, inside, unranked, (h, w)); ~10 us against ~0.2 ms of small torch
-    operations for the window."""
-    q = qs.detach().numpy()
+def _selection(q: np.ndarray, dx: float, H: int, W: int, margin: int, k: int, segment: bool, far: float) -> tuple:
+    """The band of the polylines q [B, S, 2] (m, numpy of any float dtype): (flat indices [B, P],
+    centres [B, P, 2] relative to the origin and origin [B, 2] (the bounding boxes' centres) in
+    q's dtype, q relative to the origin in float64, then ``_nearest``'s nearest, inside and
+    unranked, and the window's (h, w)); ``band_selection`` and ``FishOnGrid`` select so."""
     flat, centres, origin, h, w = _band_cells(np.ascontiguousarray(q, np.float64), float(dx), H, W, margin)
     centres, origin = centres.astype(q.dtype, copy=False), origin.astype(q.dtype, copy=False)
     rel = np.ascontiguousarray(q - origin[:, None, :], np.float64)
     nearest, inside, unranked = _nearest(rel, np.ascontiguousarray(centres, np.float64), k, segment, w, far)
+    return flat, centres, origin, rel, nearest, inside, unranked, (h, w)
+
+
+def band_selection(qs: Tensor, dx: float, H: int, W: int, margin: int, k: int, segment: bool,
+                   far: float = math.inf) -> tuple:
+    """band.py's window of cells (flat indices [B, P], centres [B, P, 2] relative to the origin,
+    origin [B, 1, 2] the bounding boxes' centres, in qs's dtype) and each cell's nearest elements,
+    inside and unranked flags (``_selection``) for the polylines qs [B, S, 2] (m; CPU), as tensors
+    (band.surface_band's CPU path): (flat, centres, origin, nearest, inside, unranked, (h, w));
+    ~10 us against ~0.2 ms of small torch operations for the window."""
+    flat, centres, origin, _, nearest, inside, unranked, window = _selection(qs.detach().numpy(), dx, H, W, margin,
+                                                                            k, segment, far)
     return (torch.from_numpy(flat), torch.from_numpy(centres), torch.from_numpy(origin).unsqueeze(1),
-            torch.from_numpy(nearest), torch.from_numpy(inside), torch.from_numpy(unranked), (h, w))
+            torch.from_numpy(nearest), torch.from_numpy(inside), torch.from_numpy(unranked), window)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -625,10 +627,8 @@ class FishOnGrid(torch.autograd.Function):
         if wall_mask.requires_grad or wall_velocity.requires_grad:
             raise ValueError("FishOnGrid: the walls are constants (their velocity varies through ``scale``)")
         st, cells = settings, settings.H * settings.W
-        qs = _surface_f64(q, surface)
-        flat, centres, origin, _, width = _band_cells(qs, float(st.dx), st.H, st.W, st.margin)
-        rel = qs - origin[:, None, :]
-        nearest, inside, unranked = _nearest(rel, centres, st.k, st.segment, width, st.far)
+        flat, centres, _, rel, nearest, inside, unranked, _ = _selection(
+            _surface_f64(q, surface), st.dx, st.H, st.W, st.margin, st.k, st.segment, st.far)
         args = (rel, _surface_f64(qdot, surface), centres, nearest, inside, unranked, st.xi, st.sigma, st.tau,
                 st.harmonic, st.segment, st.truncated)
         b, u = _band_boundary(args)
@@ -921,5 +921,6 @@ class OutsidePressureForce(torch.autograd.Function):
         gqs, gp, gmask = np.zeros(qs.shape), np.zeros(p.shape), np.zeros(p.shape)
         _each_fish(_fish_ibm_backward, _ibm_backward_parallel, *args, _f64(gf), gqs, gp, gmask)
         H, W = args[4]
-        return (torch.from_numpy(_on_nodes(gqs, ctx.surface, q_in.shape)).to(q_in.dtype), torch.from_numpy(gp).to(p_in.dtype).view(-1, 1, H, W),
+        return (torch.from_numpy(_on_nodes(gqs, ctx.surface, q_in.shape)).to(q_in.dtype),
+                torch.from_numpy(gp).to(p_in.dtype).view(-1, 1, H, W),
                 torch.from_numpy(gmask).to(b_in.dtype).view(-1, 1, H, W), None, None, None, None, None, None)
