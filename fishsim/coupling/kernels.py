@@ -575,7 +575,8 @@ def _union(b, u, flat, wall_mask, wall_velocity, scale, one, floor, mask, veloci
 def _union_adjoint(b, u, flat, wall_mask, wall_velocity, scale, floor, g_mask, g_velocity, need_scale, gb, gu,
                    g_scale):
     """gb [B, P], gu [B, P, 2] and g_scale [B] (if ``need_scale``) of _union for the cotangents
-    g_mask [B, H W] and g_velocity [B, 2, H W], in float64."""
+    g_mask [B, H W] and g_velocity [B, 2, H W], in float64 (b, u, scale and the cotangents float64;
+    the walls may be float32: each of their entries meets a float64 operand)."""
     for f in range(b.shape[0]):
         w = f if wall_mask.shape[0] > 1 else 0
         total_scale = 0.0
@@ -650,9 +651,11 @@ class FishOnGrid(torch.autograd.Function):
         g_mask = np.zeros((B, cells)) if g_mask is None else _f64(g_mask).reshape(B, cells)
         g_velocity = np.zeros((B, 2, cells)) if g_velocity is None else _f64(g_velocity).reshape(B, 2, cells)
         gb, gu, g_scale = np.empty((B, P)), np.empty((B, P, 2)), np.zeros(B)
-        _union_adjoint(b_d.astype(np.float64), u_d.astype(np.float64), flat, wall_mask.astype(np.float64),
-                       wall_velocity.astype(np.float64), scale.astype(np.float64), MASK_FLOOR, g_mask, g_velocity,
-                       ctx.needs_input_grad[2], gb, gu, g_scale)
+        # the walls as they are (constant grids: a float32 entry meets a float64 operand in every
+        # product and sum of the adjoint, so it reads exactly as its float64 copy would)
+        _union_adjoint(b_d.astype(np.float64), u_d.astype(np.float64), flat, wall_mask, wall_velocity,
+                       scale.astype(np.float64), MASK_FLOOR, g_mask, g_velocity, ctx.needs_input_grad[2], gb, gu,
+                       g_scale)
         gq_s, gqdot_s = _band_boundary_adjoint(ctx.args, ctx.b, gb, gu)
         shape, q_dtype, qdot_dtype, scale_dtype = ctx.shapes
         gq, gqdot = _on_nodes(gq_s, ctx.surface, shape), _on_nodes(gqdot_s, ctx.surface, shape)
