@@ -36,8 +36,9 @@ from fishsim.compiled import thread_pool
 from fishsim.coupling import (
     CouplingConfig,
     exchange_to_solid,
+    fish_band,
     fluid_to_solid,
-    solid_to_fluid,
+    on_grid,
     united_with_nothing,
     with_walls,
 )
@@ -208,16 +209,17 @@ class Swimmer:
         walls) on ``grid``: the fluid's (default) or a finer one, r times (the walls' cell bands
         prolonged exactly)."""
         grid = self.fluid.grid if grid is None else grid
-        fish = None
+        band = None                                     # the fish on its band, selected once
         if alone or self.walls is None:
-            fish = solid_to_fluid(state.q, state.qdot, self.surface, grid, self.coupling, dtype=self.fluid_dtype)
+            band = fish_band(state.q, state.qdot, self.surface, grid, self.coupling, dtype=self.fluid_dtype)
+        fish = None if band is None else on_grid(band, grid)
         if self.walls is None:
             return fish, fish
         r, walls = grid.W // self.fluid.grid.W, self.walls
         scale = -state.tunnel[:, 0] if self.tunnel else None    # the water comes at the fish (facing +x) at U
         if r > 1:
             walls = Boundary(*(F.interpolate(x, scale_factor=r, mode="nearest") for x in (walls.mask, walls.velocity)))
-        return fish, with_walls(state.q, state.qdot, self.surface, grid, self.coupling, walls, scale)
+        return fish, with_walls(state.q, state.qdot, self.surface, grid, self.coupling, walls, scale, band)
 
     def tunnel_speed(self, state: SwimState, f_ext: Tensor, rho: Tensor, mass: Tensor) -> Tensor:
         """The swim tunnel's speed after this frame, [B, 2] (U_t+1, U_t), from the fish's x

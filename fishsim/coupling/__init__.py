@@ -17,7 +17,7 @@ __getattr__, __all__ = exports(__name__, {
     "forces": ("burn_in_scale", "fext_from_surface"),
     "geometry": ("area_vectors", "polygon_area", "surface_geometry"),
     "ibm": ("ibm_force", "surface_pressure"),
-    "layer": ("exchange_to_solid", "fish_band", "fluid_to_solid", "solid_to_fluid", "united_with_nothing",
+    "layer": ("exchange_to_solid", "fish_band", "fluid_to_solid", "on_grid", "solid_to_fluid", "united_with_nothing",
               "with_walls"),
     "mask": ("band_boundary", "band_values", "boundary_velocity", "soft_distance", "soft_mask"),
 })

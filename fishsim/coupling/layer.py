@@ -1,7 +1,8 @@
 """The coupling layer: solid -> fluid (b, v_d) and fluid -> solid (f_ext) (docs/physics.md section 7).
 
     solid_to_fluid(q, qdot, surface, grid, cfg) -> Boundary(b, v_d)     step 1 of the coupled step
-    fish_band(q, qdot, surface, grid, cfg) -> (band, b, v_d on its cells)  the same on the band only
+    fish_band(q, qdot, surface, grid, cfg) -> (band, b, v_d on its cells); on_grid(that, grid)
+                                                                        the same in two parts
     with_walls(q, qdot, surface, grid, cfg, walls, scale) -> Boundary  step 1 with the tank's walls
     fluid_to_solid(q, p, boundary, surface, grid, cfg, step) -> f_ext   step 3 (sampled pressure)
     exchange_to_solid(q, cell_force, surface, grid, cfg, step) -> f_ext
@@ -51,8 +52,7 @@ def solid_to_fluid(q: Tensor, qdot: Tensor, surface, grid: Grid, cfg: CouplingCo
     indices of the ccw surface polyline (FishMesh.surface).  Differentiable in q and qdot.
     (The rollout unites the fish with the walls: ``with_walls``.)
     """
-    band, mask, velocity = fish_band(q, qdot, surface, grid, cfg, dtype)
-    return Boundary(mask=scatter_band(mask, band, grid), velocity=scatter_band(velocity, band, grid))
+    return on_grid(fish_band(q, qdot, surface, grid, cfg, dtype), grid)
 
 
 def fish_band(q: Tensor, qdot: Tensor, surface, grid: Grid, cfg: CouplingConfig,
@@ -65,19 +65,28 @@ def fish_band(q: Tensor, qdot: Tensor, surface, grid: Grid, cfg: CouplingConfig,
     return band, *band_values(qs, qdots, band, cfg.xi, cfg.sigma, cfg.tau, cfg.mean, dtype)
 
 
+def on_grid(fish: tuple[SurfaceBand, Tensor, Tensor], grid: Grid) -> Boundary:
+    """``fish_band``'s fish as grid fields [B, ., H, W] (zero off its band's cells)."""
+    band, mask, velocity = fish
+    return Boundary(mask=scatter_band(mask, band, grid), velocity=scatter_band(velocity, band, grid))
+
+
 def with_walls(q: Tensor, qdot: Tensor, surface, grid: Grid, cfg: CouplingConfig, walls: Boundary,
-               scale: Tensor | None = None) -> Boundary:
+               scale: Tensor | None = None, fish: tuple[SurfaceBand, Tensor, Tensor] | None = None) -> Boundary:
     """The fish united with the tank's ``walls`` on ``grid``, a Boundary [B, ., H, W] in the walls' dtype
     whose walls' velocity is multiplied by ``scale`` [B] (a swim tunnel's -U; None: 1):
     ``union(solid_to_fluid(...), walls)`` (module docstring), formed on the fish's band of cells
     only (~1,300 of 30,000 at B = 1). Elsewhere b_fish = 0 and the union is the walls themselves
     as ``united_with_nothing(walls)`` gives them: pass them so, as constants. On the CPU in one
     compiled call from the nodes (kernels.FishOnGrid), elsewhere ``fish_band`` and
-    ``torch_band_union``. Differentiable in q, qdot and ``scale``."""
+    ``torch_band_union``; ``fish``: ``fish_band``'s fish in the walls' dtype if the caller has it
+    already (it is then united as it is, not selected again). Differentiable in q, qdot and
+    ``scale``."""
     scale = q.new_ones(q.shape[0]) if scale is None else scale
-    if q.device.type != "cpu":
+    if fish is not None or q.device.type != "cpu":
         dtype = walls.mask.dtype
-        return torch_band_union(*fish_band(q, qdot, surface, grid, cfg, dtype), grid, walls, scale.to(dtype))
+        fish = fish_band(q, qdot, surface, grid, cfg, dtype) if fish is None else fish
+        return torch_band_union(*fish, grid, walls, scale.to(dtype))
     from fishsim.coupling.kernels import NEGLIGIBLE, BandSettings, FishOnGrid
 
     index = surface_index(surface, q.device).numpy()
