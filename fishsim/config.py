@@ -214,6 +214,11 @@ class NumericalConfig(WaterConfig):
     penalization_iterations: penalize -> project passes per stage (K) of the split scheme. 3 with
         8 sub-steps: one sub-step more or less moves the frequency study by <= 0.5 % (2 passes:
         0.76 %), for ~1.2x a coupled frame's forward time (1.3-1.4x the fluid step's).
+    penalization_rate: lambda_p (1/s) of the split scheme's blend, 1 - (1 - b)^(lambda_p dt / K) a
+        pass: a band cell relaxes to the body at a rate independent of the sub-steps and grid
+        (2400: the blend is b itself at 8 x 3 of a 0.01 s frame); the fish converges in sub-steps
+        and grid with it, a body a few cells thick needs more passes (fishsim/fluid/numerical.py).
+        null (default): the blend is b at any dt, the band stiffening with K n.
     brinkman: lambda (1/s) of the rate penalisation solved jointly with the projection, which
         converges in sub-steps (fishsim/fluid/numerical.py); null: the split scheme.
     scheme: advection interpolation, "koren" (third order, TVD limited by min/max: a
@@ -226,6 +231,7 @@ class NumericalConfig(WaterConfig):
     substeps: int = 8
     cfl: float = 0.8
     penalization_iterations: int = 3
+    penalization_rate: float | None = None
     brinkman: float | None = None
     scheme: str = "koren"
 
@@ -237,6 +243,8 @@ class NumericalConfig(WaterConfig):
         _require(self.scheme in ("koren", "albada"), f"{key}.scheme must be koren or albada (got '{self.scheme}')")
         _require(1 <= self.penalization_iterations <= 16,
                  f"{key}.penalization_iterations must be in [1, 16] (got {self.penalization_iterations})")
+        _require(self.penalization_rate is None or self.penalization_rate > 0,
+                 f"{key}.penalization_rate must be > 0 (1/s) or null (got {self.penalization_rate})")
         _require(self.brinkman is None or self.brinkman > 0,
                  f"{key}.brinkman must be > 0 (1/s) or null (got {self.brinkman})")
 
