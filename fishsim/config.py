@@ -212,13 +212,13 @@ class NumericalConfig(WaterConfig):
         the frame map; the scheme stays stable beyond it (that fish ran 120 frames at 4 sub-steps,
         Courant number 1.04).
     penalization_iterations: penalize -> project passes per stage (K) of the split scheme. 3 with
-        8 sub-steps: one sub-step more or less moves the frequency study by <= 0.5 % (2 passes:
-        0.76 %), for ~1.2x a coupled frame's forward time (1.3-1.4x the fluid step's).
+        8 sub-steps: within 0.2 % of 9 passes and 0.3 % of 16 sub-steps on the frequency study, for
+        ~1.2x a coupled frame's forward time of 2 passes (1.3-1.4x the fluid step's).
     penalization_rate: lambda_p (1/s) of the split scheme's blend, 1 - (1 - b)^(lambda_p dt / K) a
-        pass: a band cell relaxes to the body at a rate independent of the sub-steps and grid
-        (2400: the blend is b itself at 8 x 3 of a 0.01 s frame); the fish converges in sub-steps
-        and grid with it, a body a few cells thick needs more passes (fishsim/fluid/numerical.py).
-        null (default): the blend is b at any dt, the band stiffening with K n.
+        pass: a band cell relaxes to the body at a rate independent of the sub-steps and grid, and
+        the fish converges in both (2400: the blend is b itself at 8 x 3 of a 0.01 s frame; a body
+        a few cells thick needs more passes, fishsim/fluid/numerical.py). null: the blend is b at
+        any dt (the default until 2026-11-29), the band stiffening with K n.
     brinkman: lambda (1/s) of the rate penalisation solved jointly with the projection, which
         converges in sub-steps (fishsim/fluid/numerical.py); null: the split scheme.
     scheme: advection interpolation, "koren" (third order, TVD limited by min/max: a
@@ -231,7 +231,7 @@ class NumericalConfig(WaterConfig):
     substeps: int = 8
     cfl: float = 0.8
     penalization_iterations: int = 3
-    penalization_rate: float | None = None
+    penalization_rate: float | None = 2400.0
     brinkman: float | None = None
     scheme: str = "koren"
 

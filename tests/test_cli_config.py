@@ -92,8 +92,8 @@ def test_config_files_of_either_layout_and_any_fluid_load(tmp_path):
 
 
 def test_penalization_rate_is_positive_or_null():
-    assert load_config("simulate", ["fluid.penalization_rate=2400"]).fluid.penalization_rate == 2400
-    assert load_config("simulate", []).fluid.penalization_rate is None
+    assert load_config("simulate", []).fluid.penalization_rate == 2400
+    assert load_config("simulate", ["fluid.penalization_rate=null"]).fluid.penalization_rate is None
     with pytest.raises(ConfigError, match=r"fluid.penalization_rate must be > 0 \(1/s\) or null"):
         load_config("simulate", ["fluid.penalization_rate=0"])
 

@@ -6,44 +6,39 @@ two stages are the same three phases (Chorin projection with Brinkman penalizati
 
     predict    w = v + dt [ -(v . grad) v + nu lap v ]          advection: Koren-limited 3rd-order
                                                                upwind flux form; viscosity explicit
-    penalize   u = (1 - beta_f) w + beta_f v_d                 Brinkman blend, beta_f from the mask
-                                                               (or implicit with finite lambda)
+    penalize   u = (1 - beta_f) w + beta_f v_d                 Brinkman blend, beta_f a rate from
+                                                               the mask (or implicit, finite lambda)
     project    v = u - grad phi,  lap phi = div u              DCT-II direct solve, div v ~ 1e-15
 
     constrain  K times: w <- project(penalize(w))              alternating projections
     stage 1:  v1 = constrain(predict(v))
     stage 2:  v' = constrain((v + predict(v1)) / 2)
 
-Convergence. By default every pass blends by beta_f = b_f. One penalize -> project pass leaves a
-slip inside the body (the projection's pressure gradient acts there too), which the next pass
-removes; the body is enforced K n times a frame, and the answer depends mostly on the product
-K n. There is no limit to converge to: in the soft band of the mask (0 < b < 1) each pass pushes
-the velocity to v_d and the projection pushes part of it back, so the band stiffens with K n and
-the body thickens slowly into the mask's tail (the swimming study drifts by a few per cent from
-K n = 24 to 256, and a refined grid, whose sub-steps are r times more, sees a stiffer body). The
-coupling therefore reads the fish's pressure beyond the band (fishsim/coupling/ibm.py), and a
-converged penalisation gives the fish its full added mass, which the coupling's added-mass
-stabilisation must match (``coupling.added_mass_ratio``). Defaults K = 3, n = 8
-(``penalization_iterations``, ``substeps``): on the frequency study one sub-step more or less
-moves a fish by <= 0.5 % and every K >= 3 from n = 7 on lies on the same plateau
-(docs/validation.md, "Convergence of the numerical reference on the swimming task").
-
-Blend rate (``penalization_rate`` = lambda_p, 1/s, ``fluid.penalization_rate``): each pass blends by
+The blend is a rate (``penalization_rate`` = lambda_p, 1/s, ``fluid.penalization_rate``): each
+pass blends by
 
     beta_f = 1 - (1 - b_f)^e,   e = lambda_p dt / K,
 
 the exact relaxation of dv/dt = -lambda_p ln(1 - b_f) (v_d - v) over dt / K, so that a band cell
 relaxes towards the body at a rate that does not depend on how the frame is cut into sub-steps and
-passes (the core, b = 1, is set to v_d by every pass; lambda_p = 2400 1/s gives beta_f = b_f at
-8 x 3 of a 0.01 s frame). It is Brinkman-penalised Navier-Stokes with permeability
-1 / (lambda_p ln(1 / (1 - b))) in the limit, and converges once the passes do: the paper's fish
-(120 frames) goes 125.32 / 125.65 / 125.76 mm at 5 Hz with 8 / 16 / 32 sub-steps, one sub-step
-more or less moves it by <= 0.15 %, and r = 1 / 2 / 4 converge at an observed order ~3 at 5 and
-7 Hz. But three passes do not converge the slip of a body only a few cells thick: there the
-answer grows with K n towards the converged passes' limit (a 6 x 0.8 cm ellipse's added mass
-1.200 / 1.265 / 1.311 at n = 8 / 16 / 32 with K = 3, 1.362 / 1.366 / 1.369 with K = 81; blending
-by b_f: 1.200 / 1.242 / 1.278), so it is not the default (docs/validation.md, "The blend as a
-rate").
+passes, nor on the grid's sub-steps (the core, b = 1, is set to v_d by every pass). The default
+lambda_p = 2400 1/s gives beta_f = b_f, bit for bit, at the default K = 3, n = 8 of a 0.01 s frame
+(``penalization_iterations``, ``substeps``). In the limit it is Brinkman-penalised Navier-Stokes
+with permeability 1 / (lambda_p ln(1 / (1 - b))); one pass leaves a slip inside the body (the
+projection's pressure gradient acts there too), which the next removes, and the answer converges
+once the passes do. On the paper's fish (120 frames) 4 / 8 / 16 sub-steps give 123.0 / 125.3 /
+125.7 mm at 5 Hz (observed order 2.8), 1 / 3 / 9 passes 121.6 / 125.3 / 125.6, one sub-step more
+or less moves a fish by <= 0.15 %, and the grid r = 1 / 2 / 4 converges at an observed order ~3
+at 5 and 7 Hz (docs/validation.md, "The blend as a rate"). Three passes do not converge the slip
+of a body only a few cells thick: there the answer grows with K n towards the converged passes'
+limit (a 6 x 0.8 cm ellipse's added mass 1.200 / 1.265 / 1.311 at n = 8 / 16 / 32, 1.362 / 1.366
+/ 1.369 with K = 81). With ``penalization_rate`` None every pass blends by b_f whatever dt (the
+default until 2026-11-29): the band then relaxes K n times a frame and creeps into the mask's
+Gaussian tail as n or K grows, with no limit (the fish drifted by a few per cent from K n = 24 to
+256, and a refined grid, whose sub-steps are r times more, saw a stiffer body). The coupling reads
+the fish's pressure beyond the band (fishsim/coupling/ibm.py), and a converged penalisation gives
+the fish its full added mass, which the coupling's added-mass stabilisation must match
+(``coupling.added_mass_ratio``).
 
 Rate penalisation (``brinkman`` = lambda, ``fluid.brinkman``): the body forcing is a rate,
 dv/dt = ... + lambda chi(b) (v_d - v), taken implicitly together with the projection, so that the
@@ -353,8 +348,8 @@ class NumericalFluid:
         projections; 1 = classic Chorin-Brinkman splitting, more = less slip inside the body);
         the split scheme only (``brinkman`` None).
     penalization_rate: lambda_p [1/s] of the split scheme's blend, beta_f = 1 - (1 - b_f)^(lambda_p
-        dt / K) (module docstring; 2400: beta_f = b_f at 8 sub-steps x 3 passes of 0.01 s); None
-        (default): beta_f = b_f at any dt (the band stiffens with K n).
+        dt / K) (module docstring; the default 2400: beta_f = b_f at 8 sub-steps x 3 passes of
+        0.01 s); None: beta_f = b_f at any dt (the band stiffens with K n).
     """
 
     exerts_force = True
@@ -372,7 +367,7 @@ class NumericalFluid:
         substeps: int = 8,
         max_substeps: int = 400,
         penalization_iterations: int = 3,
-        penalization_rate: float | None = None,
+        penalization_rate: float | None = 2400.0,
     ):
         if refinement < 1:
             raise ValueError(f"refinement must be a positive integer, got {refinement}")
@@ -446,8 +441,7 @@ class NumericalFluid:
     def _blend_weight(self, b: Faces, h: float, n: Tensor) -> Faces:
         """The split scheme's blend weight of a pass, beta_f = 1 - (1 - b_f)^e with e = lambda_p h /
         (n K) per sample (module docstring): b_f itself where e = 1 (the defaults) and with
-        ``penalization_rate`` None (the default); the rate penalisation's chi(b) as it is.
-        Differentiable in b."""
+        ``penalization_rate`` None; the rate penalisation's chi(b) as it is. Differentiable in b."""
         if self.brinkman is not None or self.penalization_rate is None:
             return b
         e = self.penalization_rate * h / (n.double() * self.penalization_iterations)       # [B]
