@@ -444,10 +444,10 @@ class NumericalFluid:
         ``penalization_rate`` None; the rate penalisation's chi(b) as it is. Differentiable in b."""
         if self.brinkman is not None or self.penalization_rate is None:
             return b
-        e = self.penalization_rate * h / (n.double() * self.penalization_iterations)       # [B]
-        if bool(((e - 1).abs() < 1e-12).all()):
+        e = self.penalization_rate * h / (n.numpy() * self.penalization_iterations)    # [B] float64
+        if (np.abs(e - 1) < 1e-12).all():
             return b
-        e = e.to(b[0]).view(-1, 1, 1, 1)
+        e = torch.from_numpy(e).to(b[0]).view(-1, 1, 1, 1)
         return tuple(torch.where(c < 1, -torch.expm1(e * torch.log1p(-torch.where(c < 1, c, 0))), 1) for c in b)
 
     def _substeps(self, v: Faces, b: Faces, v_d: Faces, nu: Tensor, dt: Tensor, n: Tensor):
