@@ -440,15 +440,19 @@ class NumericalFluid:
 
     def _blend_weight(self, b: Faces, h: float, n: Tensor) -> Faces:
         """The split scheme's blend weight of a pass, beta_f = 1 - (1 - b_f)^e with e = lambda_p h /
-        (n K) per sample (module docstring): b_f itself where e = 1 (the defaults) and with
-        ``penalization_rate`` None; the rate penalisation's chi(b) as it is. Differentiable in b."""
+        (n K) per sample (module docstring): b_f itself, bit for bit, in every sample whose e = 1
+        (the defaults; whatever its batch mates' e) and with ``penalization_rate`` None; the rate
+        penalisation's chi(b) as it is. Differentiable in b."""
         if self.brinkman is not None or self.penalization_rate is None:
             return b
         e = self.penalization_rate * h / (n.numpy() * self.penalization_iterations)    # [B] float64
-        if (np.abs(e - 1) < 1e-12).all():
+        exact = np.abs(e - 1) < 1e-12
+        if exact.all():
             return b
+        keep = torch.from_numpy(exact).to(b[0].device).view(-1, 1, 1, 1)
         e = torch.from_numpy(e).to(b[0]).view(-1, 1, 1, 1)
-        return tuple(torch.where(c < 1, -torch.expm1(e * torch.log1p(-torch.where(c < 1, c, 0))), 1) for c in b)
+        return tuple(torch.where(keep | (c >= 1), c, -torch.expm1(e * torch.log1p(-torch.where(c < 1, c, 0))))
+                     for c in b)
 
     def _substeps(self, v: Faces, b: Faces, v_d: Faces, nu: Tensor, dt: Tensor, n: Tensor):
         """The step's sub-steps as torch formulas, sample b stopping after its own n_b; returns (v',

@@ -218,6 +218,17 @@ def test_the_blend_weight_is_a_rate_the_sub_steps_do_not_change():
     assert classic._blend_weight(faces, h, torch.tensor([16]))[0] is b
 
 
+def test_the_blend_weight_of_a_sample_does_not_depend_on_its_batch_mates():
+    """A sample at e = 1 blends by its mask itself, bit for bit, also when a batch mate's count (the
+    CFL safety net's) gives that one another exponent."""
+    b = torch.rand(2, 1, 50, 51, generator=torch.Generator().manual_seed(4))
+    b[:, :, :5] = 1
+    m = NumericalFluid(Grid(8, 8, 0.01))
+    beta = m._blend_weight((b, b), 0.01, torch.tensor([8, 9]))[0]
+    assert torch.equal(beta[0], b[0])
+    torch.testing.assert_close(1 - beta[1], (1 - b[1]) ** (8 / 9))
+
+
 @pytest.mark.slow
 def test_default_substeps_are_converged():
     """The paper's fish at 3 and 5 Hz, 30 frames, at the defaults (the blend as a rate): doubling
