@@ -221,6 +221,9 @@ class NumericalConfig(WaterConfig):
         any dt (the default until 2026-11-29), the band stiffening with K n.
     brinkman: lambda (1/s) of the rate penalisation solved jointly with the projection, which
         converges in sub-steps (fishsim/fluid/numerical.py); null: the split scheme.
+    implicit: solve each stage's penalisation at penalization_rate and its projection jointly,
+        the passes' limit (K -> infinity; converged in sub-steps, thin bodies included), by PCG in
+        torch formulas (~13x slower than the compiled passes); false: penalization_iterations passes.
     scheme: advection interpolation, "koren" (third order, TVD limited by min/max: a
         piecewise-smooth frame map) | "albada" (second order, van Albada limiter and upwinding
         written as smooth functions: smoother gradients; fishsim.fluid.grid.albada).
@@ -233,6 +236,7 @@ class NumericalConfig(WaterConfig):
     penalization_iterations: int = 3
     penalization_rate: float | None = 2400.0
     brinkman: float | None = None
+    implicit: bool = False
     scheme: str = "koren"
 
     def validate(self, key: str = "fluid") -> None:
@@ -247,6 +251,9 @@ class NumericalConfig(WaterConfig):
                  f"{key}.penalization_rate must be > 0 (1/s) or null (got {self.penalization_rate})")
         _require(self.brinkman is None or self.brinkman > 0,
                  f"{key}.brinkman must be > 0 (1/s) or null (got {self.brinkman})")
+        _require(not self.implicit or (self.penalization_rate is not None and self.brinkman is None),
+                 f"{key}.implicit=true solves for {key}.penalization_rate: set it (not null) and leave "
+                 f"{key}.brinkman null")
 
 
 @dataclass

@@ -98,6 +98,13 @@ def test_penalization_rate_is_positive_or_null():
         load_config("simulate", ["fluid.penalization_rate=0"])
 
 
+def test_implicit_needs_the_rate_and_no_brinkman():
+    assert load_config("simulate", ["fluid.implicit=true"]).fluid.implicit is True
+    for bad in ("fluid.penalization_rate=null", "fluid.brinkman=1e4"):
+        with pytest.raises(ConfigError, match=r"fluid.implicit=true solves for fluid.penalization_rate"):
+            load_config("simulate", ["fluid.implicit=true", bad])
+
+
 def test_brinkman_is_positive_or_null():
     assert load_config("simulate", ["fluid.brinkman=1e4"]).fluid.brinkman == 1e4
     with pytest.raises(ConfigError, match=r"fluid.brinkman must be > 0 \(1/s\) or null"):

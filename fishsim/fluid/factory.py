@@ -32,7 +32,8 @@ def make_fluid(cfg, tank, device=None) -> FluidModel:
 
         return NumericalFluid(tank.grid, refinement=cfg.refinement, substeps=cfg.substeps, cfl=cfg.cfl,
                               penalization_iterations=cfg.penalization_iterations, scheme=cfg.scheme,
-                              penalization_rate=cfg.penalization_rate, brinkman=cfg.brinkman)
+                              penalization_rate=cfg.penalization_rate, brinkman=cfg.brinkman,
+                              implicit=cfg.implicit)
     if cfg.model == "hydronet":
         from fishsim.fluid.hydronet import HydroNetFluid, load_hydronet
         from fishsim.fluid.pressure import RecoveryConfig
