@@ -140,7 +140,9 @@ def convergence_study(cfg: ConvergenceStudyConfig, device: str = "cpu",
                       progress: Callable[[str], None] | None = None) -> dict:
     """Each knob's settings run as one batched episode (identical runs shared); per knob the
     displacement and thrust per setting, their observed orders, Richardson estimates and the
-    default's error against the finest setting and against the Richardson estimate."""
+    default's error against the finest setting and against the Richardson estimate; for a knob
+    with a ``limit``, that run ("limit": its overrides, displacement, thrust, wall time) and the
+    default's error against it."""
     cache: dict[tuple, dict] = {}
     results = {}
     for name, knob in cfg.knobs.items():
@@ -165,5 +167,15 @@ def convergence_study(cfg: ConvergenceStudyConfig, device: str = "cpu",
             rich = np.asarray(entry["displacement"]["richardson"])
             entry["default_error_vs_finest"] = ((d[i] - d[-1]) / np.abs(d[-1])).tolist()
             entry["default_error_vs_richardson"] = ((d[i] - rich) / np.abs(rich)).tolist()
+        if knob.limit:
+            if progress:
+                progress(f"{name} limit {' '.join(knob.limit)}")
+            lim = episode([*cfg.overrides, *knob.limit], cfg.frequencies, frames, device)
+            entry["limit"] = {"overrides": list(knob.limit), "displacement_mm": lim["displacement_mm"],
+                              "mean_thrust_mN": lim["mean_thrust_mN"], "wall_s": lim["wall_s"],
+                              "failures": lim["failures"]}
+            if knob.default in knob.values:
+                d_lim = np.asarray(lim["displacement_mm"])
+                entry["default_error_vs_limit"] = ((d[i] - d_lim) / np.abs(d_lim)).tolist()
         results[name] = entry
     return results

@@ -78,9 +78,14 @@ def run_convergence(cfg: ValidateConfig) -> dict:
         o = r["displacement"]
         table.add_row("", "observed order p", " / ".join(f"{p:.2f}" for p in o["order"]), "", "")
         table.add_row("", "Richardson estimate", fmt(o["richardson"]), "", "")
-        if "default_error_vs_finest" in r:
-            table.add_row("", "default vs finest", " / ".join(f"{100 * e:+.1f} %" for e in r["default_error_vs_finest"]),
-                          "", "")
+        if "limit" in r:
+            lim = r["limit"]
+            table.add_row("", " ".join(lim["overrides"]) + " (limit)", fmt(lim["displacement_mm"]),
+                          fmt(lim["mean_thrust_mN"]), f"{lim['wall_s']:.0f}")
+        for what in ("finest", "limit"):
+            if f"default_error_vs_{what}" in r:
+                table.add_row("", f"default vs {what}",
+                              " / ".join(f"{100 * e:+.1f} %" for e in r[f"default_error_vs_{what}"]), "", "")
     Console(width=max(Console().width, 130)).print(table)
     Console().print(f"metrics: {out_dir / 'metrics.json'}   picture: {pictures[0]}")
     return metrics

@@ -163,8 +163,9 @@ def plot_solid_convergence(rows: Sequence[Mapping], beam_rows: Sequence[Mapping]
 def plot_convergence(results: Mapping[str, Mapping], frequencies: Sequence[float], path: str | Path) -> list[Path]:
     """One panel per numerical knob: the head's displacement against the knob's setting (log
     axis) as a change in % from the default setting's (from the finest where the default is not
-    among the settings), one line per frequency, the Richardson estimate dashed, the default
-    dotted and a +-2 % band shaded. results: fishsim.swim_study.convergence_study's output."""
+    among the settings), one line per frequency, the Richardson estimate dashed, the knob's limit
+    (where run) dash-dotted, the default dotted and a +-2 % band shaded. results:
+    fishsim.swim_study.convergence_study's output."""
     names = list(results)
     fig = Figure(figsize=(5.0 * min(len(names), 3), 3.4 * math.ceil(len(names) / 3)), layout="constrained")
     FigureCanvasAgg(fig)
@@ -181,6 +182,9 @@ def plot_convergence(results: Mapping[str, Mapping], frequencies: Sequence[float
             rich = r["displacement"]["richardson"][j]
             if np.isfinite(rich):
                 ax.axhline(100 * (rich / base[j] - 1), color=line.get_color(), linestyle="--", linewidth=0.8)
+            if "limit" in r:
+                ax.axhline(100 * (r["limit"]["displacement_mm"][j] / base[j] - 1), color=line.get_color(),
+                           linestyle="-.", linewidth=0.8)
         ax.axvline(r["default"], color="0.5", linestyle=":", label="default")
         ax.set_xscale("log")
         ax.set_xlabel(f"{r['key']} ({r['frames']} frames)")
