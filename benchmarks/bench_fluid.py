@@ -129,8 +129,12 @@ CYLINDER_LARGE = {"cells_per_d": 20, "length": 24.0, "width": 32.0, "x_centre": 
 
 # The same cylinder on the fish's grid and stepping: D = 2 cm in 2.5 mm cells (8 cells per D), h = 0.01 s at
 # U = 0.1 m/s (0.05 D/U), the fish's sub-steps and passes (NumericalFluid's defaults), float64.
+FISH_TIME_UNIT = 0.2
+"""D / U [s] of the fish-grid cylinder (D = 2 cm, U = 0.1 m/s), whose case runs in units of D / U:
+the fish's penalisation rate (1/s) times this is the same rate in the case's time unit."""
 CYLINDER_FISH_GRID = {"cells_per_d": 8, "length": 24.0, "width": 32.0, "x_centre": 6.0, "t_end": 120.0, "window": 40.0,
-                      "h": 0.05, "dtype": torch.float64, "stepping": {}}
+                      "h": 0.05, "dtype": torch.float64,
+                      "stepping": {"penalization_rate": 2400.0 * FISH_TIME_UNIT}}   # the fish's 8 x 3 blend
 CYLINDER_FISH_GRID_16 = {**CYLINDER_FISH_GRID, "cells_per_d": 16}   # a 4 cm cylinder in the fish's 2.5 mm cells
 
 
