@@ -184,7 +184,8 @@ def plot_convergence(results: Mapping[str, Mapping], frequencies: Sequence[float
                 ax.axhline(100 * (rich / base[j] - 1), color=line.get_color(), linestyle="--", linewidth=0.8)
             if "limit" in r:
                 ax.axhline(100 * (r["limit"]["displacement_mm"][j] / base[j] - 1), color=line.get_color(),
-                           linestyle="-.", linewidth=0.8)
+                           linestyle="-.", linewidth=0.8,
+                           label=f"limit: {' '.join(r['limit']['overrides'])}" if j == 0 else None)
         ax.axvline(r["default"], color="0.5", linestyle=":", label="default")
         ax.set_xscale("log")
         ax.set_xlabel(f"{r['key']} ({r['frames']} frames)")
