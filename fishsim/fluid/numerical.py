@@ -71,7 +71,8 @@ PDE. It converges in sub-steps at once, thin bodies included: the 6 x 0.8 cm ell
 reach 1.362 / 1.369 only at K = 81, n = 8 / 32 (the default 8 x 3: 1.200); the paper's fish (120
 frames, 3 / 5 / 7 Hz) swims 44.26 / 125.99 / 234.94 mm at n = 4, within 0.3 / 0.2 / 0.5 % of the
 passes at 16 x 9. Its cost is a PCG solve a stage (~8 iterations to a relative residual of 1e-6 with
-the Schwarz preconditioner), in torch formulas: ~13x the compiled passes' time.
+the Schwarz preconditioner; compiled on the CPU, the rest of the stage in torch formulas): ~9x
+the compiled passes' time at n = 8.
 
 Sub-steps are per sample and fixed: n_b = max(r * substeps, the count that keeps sample b's
 advective Courant number max|v| dt / dx <= ``cfl`` and its diffusion number nu dt / dx^2 <=
