@@ -108,9 +108,14 @@ class SchwarzPreconditioner:
         self.inverse = neumann_inverse(H, W, dx, weights[0].device, weights[0].dtype)
         self.subdomains: list | None = None
 
-    def __call__(self, r: Tensor) -> Tensor:
+    def factored(self, batch: int) -> list:
+        """The samples' (cells of S, banded Cholesky factor of A_S or None), factorised on first use."""
         if self.subdomains is None:
-            self.subdomains = [self._factor(b) for b in range(r.shape[0])]
+            self.subdomains = [self._factor(b) for b in range(batch)]
+        return self.subdomains
+
+    def __call__(self, r: Tensor) -> Tensor:
+        self.factored(r.shape[0])
         z = self._local(r)
         z = z - solve_neumann_poisson(r - self._apply(z), self.dx, self.inverse)
         z = z + self._local(r - self._apply(z))
@@ -281,13 +286,12 @@ def _solve_cpu(weights: Faces, f: Tensor, dx: float, tol: float, max_iter: int, 
                precondition: SchwarzPreconditioner) -> tuple[Tensor, int]:
     """``solve_weighted_poisson`` on the CPU: ``_pcg_sample`` per sample (f mean free, start mean
     free or None)."""
-    if precondition.subdomains is None:
-        precondition.subdomains = [precondition._factor(b) for b in range(f.shape[0])]
+    subdomains = precondition.factored(f.shape[0])
     wx, wy = (w.detach().expand(f.shape[0], 1, *w.shape[-2:]).numpy() for w in weights)
     rhs = f.detach().numpy()
     x = np.zeros_like(rhs) if start is None else start.numpy().copy()
     inverse, iterations = precondition.inverse, 0
-    for b, (cells, factor) in enumerate(precondition.subdomains):
+    for b, (cells, factor) in enumerate(subdomains):
         local = factor is not None
         lay = factor.layout if local else None
         args = ((cells.numpy(), factor.factor, lay.width, lay.perm, lay.inverse) if local else
