@@ -322,7 +322,7 @@ def rate_weight(b: Faces) -> Faces:
 
 
 IMMERSE_TOL = 1e-6      # PCG relative residual of ``immerse``: div v ~ 1e-6 of div u
-IMMERSE_MAX_ITER = 200  # ~11 iterations a solve on the heaving thin ellipse (lambda = 1e4, n = 4-16)
+IMMERSE_MAX_ITER = 200  # 7-9 iterations a solve on the fish (rate penalisation 1e4 1/s, implicit at n = 4)
 
 
 def immersion_weights(b: Faces, lam_dt: Tensor | float) -> Faces:
@@ -525,11 +525,11 @@ class NumericalFluid:
     def _constrain(self, w: Faces, b: Faces, v_d: Faces, dt: Tensor, start: Tensor | None = None,
                    precondition: SchwarzPreconditioner | None = None):
         """The body and the incompressibility for one stage; returns (v, phi, penalisation
-        increment). With ``brinkman``: ``immerse`` (``start``: PCG's guess for phi,
-        ``precondition``: the step's). Else
-        project(penalize(w)), repeated ``penalization_iterations`` times (alternating projections
-        onto {v = v_d in the body} and {div v = 0}), phi and the increment summed over them
-        (on the CPU the whole sub-step loop runs compiled: ``kernels.SplitStep``)."""
+        increment). With a joint solve (``stiffness``: ``brinkman``, or ``implicit``): ``immerse``
+        (``start``: PCG's guess for phi, ``precondition``: the step's). Else project(penalize(w)),
+        repeated ``penalization_iterations`` times (alternating projections onto {v = v_d in the
+        body} and {div v = 0}), phi and the increment summed over them (on the CPU the whole
+        sub-step loop runs compiled: ``kernels.SplitStep``)."""
         if self.stiffness is not None:
             return immerse(w, b, v_d, self.stiffness * dt, self.fine.dx, start, precondition)
         inverse = self._inverse(w[0])
