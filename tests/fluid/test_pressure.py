@@ -140,9 +140,10 @@ def _heave_added_mass(model, a=0.05, b=0.005, amplitude=5e-3, frequency=2.5, ste
 def test_hydronet_pressure_gives_a_thin_bodys_added_mass():
     """A thin ellipse (10 cm x 1 cm, 4 cells thick) heaving broadside, in units of rho pi a^2 (the
     potential-flow added mass of the ellipse, 1; the tank's walls raise it): the numerical solver
-    at its defaults 0.91 (its former single penalisation pass let the pressure jump leak through
-    the thin body: 0.27); the shipped HydroNet's own pressure 1.04 (+15 %; the model shipped
-    before 2026-11-26 gave 0.26), its recovered pressure 0.61."""
+    at its defaults 1.080 (three passes short of converged; with a single pass the pressure jump
+    leaked through the thin body: 0.27), with its passes converged (``implicit``) 1.239; the
+    shipped HydroNet's own pressure 1.239 (the model shipped before 2026-11-26 gave 0.26), its
+    recovered pressure 0.64 (measured 2026-11-29)."""
     from fishsim.fluid.factory import SHIPPED_HYDRONET
     from fishsim.fluid.hydronet import HydroNetFluid, load_hydronet
 
@@ -151,6 +152,8 @@ def test_hydronet_pressure_gives_a_thin_bodys_added_mass():
     own = _heave_added_mass(HydroNetFluid(net, g, pressure="network"))
     recovered = _heave_added_mass(HydroNetFluid(net, g, pressure="recovered"))
     reference = _heave_added_mass(NumericalFluid(g))
+    converged = _heave_added_mass(NumericalFluid(g, substeps=4, implicit=True))
     assert 0.85 < reference < 1.2, reference
     assert abs(own / reference - 1) < 0.25, (own, reference)
+    assert abs(own / converged - 1) < 0.05, (own, converged)
     assert 0.5 * reference < recovered < reference, (recovered, reference)
