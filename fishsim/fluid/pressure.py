@@ -117,12 +117,12 @@ class SchwarzPreconditioner:
     def __call__(self, r: Tensor) -> Tensor:
         self.factored(r.shape[0])
         z = self._local(r)
-        z = z - solve_neumann_poisson(r - self._apply(z), self.dx, self.inverse)
-        z = z + self._local(r - self._apply(z))
+        z = z - solve_neumann_poisson(r - self.apply(z), self.dx, self.inverse)
+        z = z + self._local(r - self.apply(z))
         return _mean_free(z)
 
-    def _apply(self, p: Tensor) -> Tensor:
-        """A p = -div(w grad p)."""
+    def apply(self, p: Tensor) -> Tensor:
+        """A p = -div(w grad p), the operator this preconditions."""
         return -divergence(tuple(w * g for w, g in zip(self.weights, gradient(p, self.dx))), self.dx)
 
     def _local(self, r: Tensor) -> Tensor:
@@ -309,20 +309,16 @@ def solve_weighted_poisson(weights: Faces, f: Tensor, dx: float, tol: float, max
     SchwarzPreconditioner of these weights, stopping at |f - A p| <= tol |f - mean(f)| per
     sample; returns (p, iterations of the slowest sample). On the CPU the iteration runs compiled
     (``_pcg_sample``, a sample at a time; on the fish's joint solves ~0.6 ms an iteration against
-    ~2 ms in torch calls), elsewhere as fishsim.linalg.pcg. weights: positive face weights (x, y) [B, 1, ., .];
-    start: initial guess (None: 0); precondition: a SchwarzPreconditioner of the same weights,
-    shared by several solves (None: built for this one)."""
+    ~2 ms in torch calls), elsewhere as fishsim.linalg.pcg. weights: positive face weights (x, y)
+    [B, 1, ., .]; start: initial guess (None: 0); precondition: a SchwarzPreconditioner of the
+    same weights, shared by several solves (None: built for this one)."""
     if precondition is None:
         precondition = SchwarzPreconditioner(weights, dx)
-
-    def A(p: Tensor) -> Tensor:
-        return -divergence(tuple(w * g for w, g in zip(weights, gradient(p, dx))), dx)
-
     f = _mean_free(f)
     start = None if start is None else _mean_free(start.detach().to(f.dtype))
     if f.device.type == "cpu":
         return _solve_cpu(weights, f, dx, tol, max_iter, start, precondition)
-    p, _, iterations = pcg(A, precondition, f, lambda r: r.flatten(1).norm(dim=1), tol, max_iter, start)
+    p, _, iterations = pcg(precondition.apply, precondition, f, lambda r: r.flatten(1).norm(dim=1), tol, max_iter, start)
     return _mean_free(p), iterations
 
 
