@@ -168,9 +168,12 @@ def convergence_study(cfg: ConvergenceStudyConfig, device: str = "cpu",
             entry["default_error_vs_finest"] = ((d[i] - d[-1]) / np.abs(d[-1])).tolist()
             entry["default_error_vs_richardson"] = ((d[i] - rich) / np.abs(rich)).tolist()
         if knob.limit:
-            if progress:
-                progress(f"{name} limit {' '.join(knob.limit)}")
-            lim = episode([*cfg.overrides, *knob.limit], cfg.frequencies, frames, device)
+            key = (tuple(knob.limit), frames)
+            if key not in cache:
+                if progress:
+                    progress(f"{name} limit {' '.join(knob.limit)}")
+                cache[key] = episode([*cfg.overrides, *knob.limit], cfg.frequencies, frames, device)
+            lim = cache[key]
             entry["limit"] = {"overrides": list(knob.limit), "displacement_mm": lim["displacement_mm"],
                               "mean_thrust_mN": lim["mean_thrust_mN"], "wall_s": lim["wall_s"],
                               "failures": lim["failures"]}
