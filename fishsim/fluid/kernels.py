@@ -1,10 +1,22 @@
-"""Compiled (numba) loops of the numerical fluid's split scheme on the CPU, with their hand-written
-adjoints: ``SplitStep`` runs a step's sub-steps (``NumericalFluid._substeps``: per sub-step two
-stages of ``numerical.predict``, i.e. ghost values, Koren advection, 5-point diffusion and the
-explicit update, then the K penalise -> project passes of ``NumericalFluid._constrain``) in one
-call; ``Predict`` is the predictor alone (the rate penalisation's stages). Other devices and
-schemes use the torch formulas, which stay the reference (tests/fluid/test_kernels.py;
-``numerical.COMPILED``).
+"""Compiled (numba) loops of the numerical fluid on the CPU, with their hand-written adjoints:
+``SplitStep`` runs a step's sub-steps (``NumericalFluid._substeps``: per sub-step two stages of
+``numerical.predict``, i.e. ghost values, Koren advection, 5-point diffusion and the explicit
+update, then ``NumericalFluid._constrain``: the K penalise -> project passes, or the joint
+penalisation + projection solve of ``numerical.immerse``, ``Immersion``) in one call; ``Predict``
+is the predictor alone. Other devices and schemes use the torch formulas, which stay the reference
+(tests/fluid/test_kernels.py; ``numerical.COMPILED``).
+
+The joint stage's adjoint: with v = u - c grad phi, pen = v - w + grad phi, phi = A(c)^+ (-div
+u), A(c) = -div(c grad .) (symmetric, so its adjoint solve is the same PCG), u = c (w + a s v_d)
+and c = 1 / (1 + a s), a = lambda dt, for dL/d(v, phi, pen) = (g_v, g_phi, g_pen) and g_t = g_v
++ g_pen:
+
+    lam = A^+ (g_phi + grad^T (g_pen - c g_t)),   dL/du = g_t - div^T lam,
+    dL/dc = -grad phi (g_t + grad lam),           dL/dw = c dL/du - g_pen,
+    dL/ds = a c^2 (dL/du (v_d - w) - dL/dc),      dL/dv_d = a c s dL/du
+
+on the interior faces (on the box-wall faces u = s v_d: dL/dw = -g_pen, dL/ds = v_d dL/du,
+dL/dv_d = s dL/du).
 
 Why: the torch formula tapes ~100 small full-grid temporaries per stage (the ghost layers'
 concatenations, the limiter's minima, maxima and selections, the slices) and its backward replays
@@ -50,6 +62,7 @@ operand (the float32 predictor ran 2x, its adjoint 2.1x slower than now: 0.42 / 
 from __future__ import annotations
 
 from collections import namedtuple
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -57,6 +70,7 @@ from numba import prange
 from torch import Tensor
 
 from fishsim.compiled import each_sample, in_sample_chunks, jit, sample_chunks
+from fishsim.fluid.pressure import _pcg_sample, local_solver, subdomain
 from fishsim.linalg.dct import inverse_sample
 
 Constants = namedtuple("Constants", "zero half one two three four five six sixth five_sixths third")
@@ -682,6 +696,213 @@ def _steps_adjoint(tapes, gv, gphi_all, gpen_all, masks, counts, nu_n, dt_n, inv
     return out, gmasks, g_nu
 
 
+# --------------------------------------------------------------------------------------------
+# The joint penalisation + projection stage (numerical.immerse) and its sub-steps, with adjoints
+# --------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Immersion:
+    """``SplitStep``'s stage for a joint solve (``numerical.immerse``): lambda [1/s] and the PCG's
+    relative tolerance and iteration cap."""
+
+    stiffness: float
+    tol: float
+    max_iter: int
+
+
+@jit
+def _immerse_sample(wx, wy, sx, sy, dx_, dy_, cx, cy, a, inv_dx, pivots, pdx, cells, band, width, perm, inverse,
+                    local, tol, max_iter, phi, px, py):
+    """One sample's ``numerical.immerse`` from w = (wx, wy): u = c (w + a s v_d) on the interior
+    faces (c = 1 / (1 + a s), a = lambda dt), s v_d on the wall faces; -div(c grad phi) = -div u
+    by ``_pcg_sample`` from phi (the start, overwritten with the mean-free solution); returns v = u
+    - c grad phi and adds the increment v - w + grad phi to (px, py)."""
+    H, W = phi.shape
+    a, inv_dx = wx.dtype.type(a), wx.dtype.type(inv_dx)
+    ux, uy = np.empty_like(wx), np.empty_like(wy)
+    for i in range(H):
+        ux[i, 0], ux[i, W] = sx[i, 0] * dx_[i, 0], sx[i, W] * dx_[i, W]
+        for j in range(1, W):
+            ux[i, j] = cx[i, j] * (wx[i, j] + a * sx[i, j] * dx_[i, j])
+    for j in range(W):
+        uy[0, j], uy[H, j] = sy[0, j] * dy_[0, j], sy[H, j] * dy_[H, j]
+    for i in range(1, H):
+        for j in range(W):
+            uy[i, j] = cy[i, j] * (wy[i, j] + a * sy[i, j] * dy_[i, j])
+    f = np.empty_like(phi)
+    for i in range(H):
+        for j in range(W):
+            f[i, j] = (ux[i, j] - ux[i, j + 1] + uy[i, j] - uy[i + 1, j]) * inv_dx
+    f -= f.mean()
+    phi -= phi.mean()
+    _pcg_sample(cx, cy, f, phi, inv_dx * inv_dx, pivots, pdx, cells, band, width, perm, inverse, local, tol, max_iter)
+    phi -= phi.mean()
+    vx, vy = ux.copy(), uy.copy()
+    for i in range(H):
+        for j in range(1, W):
+            g = (phi[i, j] - phi[i, j - 1]) * inv_dx
+            vx[i, j] -= cx[i, j] * g
+            px[i, j] += g
+    for i in range(1, H):
+        for j in range(W):
+            g = (phi[i, j] - phi[i - 1, j]) * inv_dx
+            vy[i, j] -= cy[i, j] * g
+            py[i, j] += g
+    px += vx - wx
+    py += vy - wy
+    return vx, vy
+
+
+@jit(inline="always")
+def _immerse_adjoint_faces(gt, gp, lam_in, lam_out, phi_in, phi_out, w, s, d, c, a, inv_dx, interior):
+    """One face's part of ``_immerse_adjoint_sample``: (dL/dw, dL/ds, dL/dv_d) for dL/dv + dL/dpen
+    = gt, dL/dpen = gp, the adjoint potential lam and the potential phi on the face's two cells
+    (``_in`` the cell the face's normal points into; 0 outside the box)."""
+    gu = gt + (lam_in - lam_out) * inv_dx                   # -div^T lam (grad lam inside)
+    if not interior:
+        return -gp, gu * d, gu * s
+    gc = -(phi_in - phi_out) * inv_dx * gu
+    acc = a * c * c
+    return gu * c - gp, gu * acc * (d - w) - gc * acc, gu * c * a * s
+
+
+@jit
+def _immerse_adjoint_sample(gvx, gvy, gphi, gpx, gpy, wx, wy, phi, sx, sy, dx_, dy_, cx, cy, a, inv_dx, pivots, pdx,
+                            cells, band, width, perm, inverse, local, tol, max_iter, gsx, gsy, gdx, gdy):
+    """dL/dw of ``_immerse_sample`` (input w, solution phi) for dL/d(v, phi, increment) = (gv,
+    gphi, gp); adds dL/d(s, v_d) into the g*. With gt = gv + gp: lam = A^+ (gphi + grad^T(gp - c
+    gt)) (A = -div(c grad .), symmetric: the same PCG, from 0), dL/du = gt - div^T lam, dL/dc =
+    -grad phi (gt + grad lam) (``fluid.pressure.WeightedPoisson``), then through u = c (w + a s
+    v_d), c = 1 / (1 + a s)."""
+    H, W = phi.shape
+    zero, a, inv_dx = wx.dtype.type(0.0), wx.dtype.type(a), wx.dtype.type(inv_dx)
+    gtx, gty = gvx + gpx, gvy + gpy
+    rhs = gphi.copy()
+    _gradient_adjoint_sample(cx * gtx - gpx, cy * gty - gpy, inv_dx, rhs)
+    rhs -= rhs.mean()
+    lam = np.zeros_like(rhs)
+    _pcg_sample(cx, cy, rhs, lam, inv_dx * inv_dx, pivots, pdx, cells, band, width, perm, inverse, local, tol,
+                max_iter)
+    lam -= lam.mean()
+    gwx, gwy = np.empty_like(wx), np.empty_like(wy)
+    for i in range(H):
+        for j in range(W + 1):
+            l_in, p_in = (lam[i, j], phi[i, j]) if j < W else (zero, zero)
+            l_out, p_out = (lam[i, j - 1], phi[i, j - 1]) if j > 0 else (zero, zero)
+            gwx[i, j], gs, gd = _immerse_adjoint_faces(gtx[i, j], gpx[i, j], l_in, l_out, p_in, p_out, wx[i, j],
+                                                       sx[i, j], dx_[i, j], cx[i, j], a, inv_dx, 0 < j < W)
+            gsx[i, j] += gs
+            gdx[i, j] += gd
+    for i in range(H + 1):
+        for j in range(W):
+            l_in, p_in = (lam[i, j], phi[i, j]) if i < H else (zero, zero)
+            l_out, p_out = (lam[i - 1, j], phi[i - 1, j]) if i > 0 else (zero, zero)
+            gwy[i, j], gs, gd = _immerse_adjoint_faces(gty[i, j], gpy[i, j], l_in, l_out, p_in, p_out, wy[i, j],
+                                                       sy[i, j], dy_[i, j], cy[i, j], a, inv_dx, 0 < i < H)
+            gsy[i, j] += gs
+            gdy[i, j] += gd
+    return gwx, gwy
+
+
+@jit
+def _sample_immersed_steps(vx, vy, sx, sy, dx_, dy_, cx, cy, a, nu, dt, count, inv_dx, walls, pivots, pdx, cells, band,
+                           width, perm, inverse, local, tol, max_iter, keep, tx, ty, tphi, phi_sum, pen_x, pen_y):
+    """One sample's ``count`` Heun sub-steps with the joint stage I = ``_immerse_sample`` (v1 =
+    I(P(v)), v' = I((v + P(v1)) / 2); each solve starts from the one before, the first from 0), in
+    one compiled call; returns v'. phi_sum and (pen_x, pen_y) (zeros on entry) receive the sums of
+    phi1/2 + phi2 and of pen1/2 + pen2. With ``keep``, sub-step s fills the tape: (tx, ty)[4 s +
+    ...] = v, v1, the stages' inputs w1, w2; tphi[2 s + ...] = phi1, phi2."""
+    half = _constants(vx).half
+    phi = np.zeros_like(phi_sum)
+    for s in range(count):
+        w1x, w1y = np.empty_like(vx), np.empty_like(vy)
+        _sample_forward(vx, vy, nu, dt, inv_dx, walls, w1x, w1y)
+        p1x, p1y = np.zeros_like(vx), np.zeros_like(vy)
+        v1x, v1y = _immerse_sample(w1x, w1y, sx, sy, dx_, dy_, cx, cy, a, inv_dx, pivots, pdx, cells, band, width,
+                                   perm, inverse, local, tol, max_iter, phi, p1x, p1y)
+        phi1 = phi.copy()
+        w2x, w2y = np.empty_like(vx), np.empty_like(vy)
+        _sample_forward(v1x, v1y, nu, dt, inv_dx, walls, w2x, w2y)
+        w2x, w2y = half * (vx + w2x), half * (vy + w2y)
+        if keep:
+            tx[4 * s], ty[4 * s], tx[4 * s + 1], ty[4 * s + 1] = vx, vy, v1x, v1y
+            tx[4 * s + 2], ty[4 * s + 2], tx[4 * s + 3], ty[4 * s + 3] = w1x, w1y, w2x, w2y
+            tphi[2 * s] = phi1
+        p2x, p2y = np.zeros_like(vx), np.zeros_like(vy)
+        vx, vy = _immerse_sample(w2x, w2y, sx, sy, dx_, dy_, cx, cy, a, inv_dx, pivots, pdx, cells, band, width,
+                                 perm, inverse, local, tol, max_iter, phi, p2x, p2y)
+        if keep:
+            tphi[2 * s + 1] = phi
+        phi_sum += half * phi1 + phi
+        pen_x += half * p1x + p2x
+        pen_y += half * p1y + p2y
+    return vx, vy
+
+
+@jit
+def _sample_immersed_steps_adjoint(tx, ty, tphi, gvx, gvy, gphi, gpx, gpy, sx, sy, dx_, dy_, cx, cy, a, nu, dt, count,
+                                   inv_dx, walls, pivots, pdx, cells, band, width, perm, inverse, local, tol, max_iter,
+                                   need_nu, gsx, gsy, gdx, gdy):
+    """The adjoint of ``_sample_immersed_steps`` from its tape for dL/d(v', phi sum, pen sum) =
+    (gv, gphi, gp): returns (dL/dv_x, dL/dv_y, dL/dnu) and adds dL/d(s_x, s_y, v_d,x, v_d,y) into
+    the g*."""
+    half = _constants(gvx).half
+    g_nu = 0.0
+    gvx, gvy = gvx.copy(), gvy.copy()
+    for s in range(count - 1, -1, -1):
+        g2x, g2y = _immerse_adjoint_sample(gvx, gvy, gphi, gpx, gpy, tx[4 * s + 3], ty[4 * s + 3], tphi[2 * s + 1],
+                                           sx, sy, dx_, dy_, cx, cy, a, inv_dx, pivots, pdx, cells, band, width, perm,
+                                           inverse, local, tol, max_iter, gsx, gsy, gdx, gdy)
+        g1x, g1y = np.zeros_like(g2x), np.zeros_like(g2y)
+        g_nu += _sample_backward(tx[4 * s + 1], ty[4 * s + 1], nu, dt, inv_dx, walls, half * g2x, half * g2y, g1x,
+                                 g1y, need_nu, False)[0]
+        g1x, g1y = _immerse_adjoint_sample(g1x, g1y, half * gphi, half * gpx, half * gpy, tx[4 * s + 2],
+                                           ty[4 * s + 2], tphi[2 * s], sx, sy, dx_, dy_, cx, cy, a, inv_dx, pivots,
+                                           pdx, cells, band, width, perm, inverse, local, tol, max_iter, gsx, gsy,
+                                           gdx, gdy)
+        gvx, gvy = half * g2x, half * g2y
+        g_nu += _sample_backward(tx[4 * s], ty[4 * s], nu, dt, inv_dx, walls, g1x, g1y, gvx, gvy, need_nu, False)[0]
+    return gvx, gvy, g_nu
+
+
+def _immersed_steps(v, masks, nu_n, dt_n, counts, inv_dx, walls, inverse, immersion, keep):
+    """``_steps`` with the joint stage (``Immersion``): per sample c = 1 / (1 + lambda dt s), the
+    Schwarz preconditioner's subdomain factor of c (``fluid.pressure.subdomain``, once a step),
+    then ``_sample_immersed_steps``. The tapes hold (tape, c, a, the factor's arrays) a sample."""
+    N, H, W = v[1].shape[0], v[0].shape[1], v[1].shape[2]
+    out = (np.empty_like(v[0]), np.empty_like(v[1]))
+    phi_sum, pen = np.zeros((N, H, W), v[0].dtype), (np.zeros_like(v[0]), np.zeros_like(v[1]))
+    tapes = []
+    for n in range(N):
+        a = immersion.stiffness * dt_n[n]
+        c = tuple(1 / (1 + v[0].dtype.type(a) * s[n]) for s in masks[:2])
+        solver = local_solver(*subdomain(*(w.astype(np.float64) for w in c), 1 / inv_dx))
+        size = int(counts[n]) if keep else 0
+        tape = (np.empty((4 * size, H, W + 1), v[0].dtype), np.empty((4 * size, H + 1, W), v[0].dtype),
+                np.empty((2 * size, H, W), v[0].dtype))
+        out[0][n], out[1][n] = _sample_immersed_steps(
+            v[0][n], v[1][n], *(m[n] for m in masks), *c, a, nu_n[n], dt_n[n], int(counts[n]), inv_dx, walls,
+            inverse.pivots, inverse.dx, *solver, immersion.tol, immersion.max_iter, keep, *tape, phi_sum[n],
+            pen[0][n], pen[1][n])
+        if keep:
+            tapes.append((tape, c, a, solver))
+    return out, phi_sum, pen, tapes
+
+
+def _immersed_steps_adjoint(tapes, gv, gphi_all, gpen_all, masks, counts, nu_n, dt_n, inv_dx, walls, inverse,
+                            immersion, need_nu):
+    """The adjoint of ``_immersed_steps`` (``_steps_adjoint``'s contract)."""
+    gmasks = tuple(np.zeros_like(m) for m in masks)
+    g_nu = np.zeros(len(nu_n))
+    out = (np.empty_like(gv[0]), np.empty_like(gv[1]))
+    for n, (tape, c, a, solver) in enumerate(tapes):
+        out[0][n], out[1][n], g_nu[n] = _sample_immersed_steps_adjoint(
+            *tape, gv[0][n], gv[1][n], gphi_all[n], gpen_all[0][n], gpen_all[1][n], *(m[n] for m in masks), *c, a,
+            nu_n[n], dt_n[n], int(counts[n]), inv_dx, walls, inverse.pivots, inverse.dx, *solver, immersion.tol,
+            immersion.max_iter, need_nu, *(m[n] for m in gmasks))
+    return out, gmasks, g_nu
+
+
 def _joined(parts: list):
     """The chunks' results put back together along the samples: arrays concatenated, lists and
     tuples element-wise; one chunk's as it is."""
@@ -693,31 +914,37 @@ def _joined(parts: list):
 
 
 class SplitStep(torch.autograd.Function):
-    """The sub-steps of one split-scheme step (``NumericalFluid``'s loop over ``_substep`` with
-    ``_constrain``'s K passes), compiled loops with hand-written adjoints, in one call: per
-    sub-step v1 = C(P(v)), v' = C((v + P(v1)) / 2), P the predictor (``Predict``'s loops), C the
-    penalise -> project passes; sample b keeps its state after its own n_b sub-steps.
+    """The sub-steps of one step (``NumericalFluid``'s loop over ``_substep`` and ``_constrain``),
+    compiled loops with hand-written adjoints, in one call: per sub-step v1 = C(P(v)), v' = C((v +
+    P(v1)) / 2), P the predictor (``Predict``'s loops), C the stage: the split scheme's K penalise
+    -> project passes (``stage`` = K, an int), or the joint penalisation + projection solve
+    (``stage`` an ``Immersion``; ``numerical.immerse``); sample b keeps its state after its own n_b
+    sub-steps.
 
-    Inputs: v = (v_x [B, C, H, W+1], v_y [B, C, H+1, W]) in m/s, the face masks b and body
-    velocities v_d (broadcast to v's shapes), nu [m^2/s] and dt [s] (scalars or [B, 1, 1, 1]; dt
-    is not differentiated), n [B] (int64 tensor), inverse (``dct.neumann_inverse``, v's dtype),
-    dx [m], walls (grid.WallBC), passes K. Returns (v'_x, v'_y, sum over the sub-steps of phi1/2 +
-    phi2 [m^2/s], of the penalisation's increments pen1/2 + pen2 (x, y) [m/s]). CPU tensors;
-    differentiable in v, b, v_d and nu. When a gradient is wanted the forward keeps what the
-    adjoints read (each sub-step's v and v1 and the passes' inputs: 4 + 4 K fields a sub-step),
-    in place of the ~100 taped ops and autograd nodes a step costs the torch loop."""
+    Inputs: v = (v_x [B, C, H, W+1], v_y [B, C, H+1, W]) in m/s, the face masks b (the joint
+    stage's weight s) and body velocities v_d (broadcast to v's shapes), nu [m^2/s] and dt [s]
+    (scalars or [B, 1, 1, 1]; dt is not differentiated), n [B] (int64 tensor), inverse
+    (``dct.neumann_inverse``, v's dtype), dx [m], walls (grid.WallBC), stage. Returns (v'_x, v'_y,
+    sum over the sub-steps of phi1/2 + phi2 [m^2/s], of the penalisation's increments pen1/2 +
+    pen2 (x, y) [m/s]). CPU tensors; differentiable in v, b, v_d and nu. When a gradient is wanted
+    the forward keeps what the adjoints read (each sub-step's v and v1 and the stages' inputs: 4 +
+    4 K fields a sub-step with the passes, 8 and the two potentials with the joint stage, whose
+    preconditioner factors serve the backward's solves too), in place of the ~100 taped ops and
+    autograd nodes a step costs the torch loop."""
 
     @staticmethod
-    def forward(ctx, vx, vy, bx, by, dx_, dy_, nu, dt, n, inverse, dx: float, walls, passes: int):
+    def forward(ctx, vx, vy, bx, by, dx_, dy_, nu, dt, n, inverse, dx: float, walls, stage):
         shapes = (vx.shape, vy.shape)
         wall_args = (bool(walls.slip), float(walls.u_bottom), float(walls.u_top), float(walls.v_left),
                      float(walls.v_right))
         masks = tuple(_flat(t.expand_as(w)) for t, w in ((bx, vx), (by, vy), (dx_, vx), (dy_, vy)))
         nu_n, dt_n = _per_sample(nu, vx), _per_sample(dt, vx)
         counts = np.repeat(n.numpy(), vx.shape[1])                       # per flattened sample
-        args = (1.0 / dx, wall_args, inverse, passes)
+        args = (1.0 / dx, wall_args, inverse, stage)
         chunks = sample_chunks(len(counts))
-        out = in_sample_chunks(_steps, chunks, (_flat(vx), _flat(vy)), masks, nu_n, dt_n, counts, *args,
+        steps, ctx.adjoint = (_steps, _steps_adjoint) if isinstance(stage, int) else \
+            (_immersed_steps, _immersed_steps_adjoint)
+        out = in_sample_chunks(steps, chunks, (_flat(vx), _flat(vy)), masks, nu_n, dt_n, counts, *args,
                                any(ctx.needs_input_grad))
         v, phi_sum, pen_sum = (_joined([o[k] for o in out]) for k in range(3))
         ctx.save_for_backward(vx, vy, bx, by, dx_, dy_)
@@ -734,7 +961,7 @@ class SplitStep(torch.autograd.Function):
     def backward(ctx, gvx, gvy, gphi, gpx, gpy):
         vx, vy, *inputs = ctx.saved_tensors
         masks = tuple(_flat(t.expand_as(w)) for t, w in zip(inputs, (vx, vy, vx, vy)))
-        out = in_sample_chunks(_steps_adjoint, ctx.chunks, [_flat(g) for g in (gvx, gvy)], _flat(gphi),
+        out = in_sample_chunks(ctx.adjoint, ctx.chunks, [_flat(g) for g in (gvx, gvy)], _flat(gphi),
                                (_flat(gpx), _flat(gpy)), masks, ctx.counts, *ctx.args,
                                bool(ctx.needs_input_grad[6]), each=ctx.tapes)
         gv, gmasks, g_nu = (_joined([o[k] for o in out]) for k in range(3))

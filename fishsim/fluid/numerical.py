@@ -71,8 +71,7 @@ PDE. It converges in sub-steps at once, thin bodies included: the 6 x 0.8 cm ell
 reach 1.362 / 1.369 only at K = 81, n = 8 / 32 (the default 8 x 3: 1.200); the paper's fish (120
 frames, 3 / 5 / 7 Hz) swims 44.26 / 125.99 / 234.94 mm at n = 4, within 0.3 / 0.2 / 0.5 % of the
 passes at 16 x 9. Its cost is a PCG solve a stage (~8 iterations to a relative residual of 1e-6 with
-the Schwarz preconditioner; compiled on the CPU, the rest of the stage in torch formulas): ~9x
-the compiled passes' time at n = 8.
+the Schwarz preconditioner), compiled on the CPU with its adjoint (``kernels.SplitStep``).
 
 Sub-steps are per sample and fixed: n_b = max(r * substeps, the count that keeps sample b's
 advective Courant number max|v| dt / dx <= ``cfl`` and its diffusion number nu dt / dx^2 <=
@@ -124,7 +123,7 @@ from fishsim.fluid.grid import (
     vector_to_faces,
     zero_walls,
 )
-from fishsim.fluid.kernels import Predict, SplitStep, face_speed
+from fishsim.fluid.kernels import Immersion, Predict, SplitStep, face_speed
 from fishsim.fluid.pressure import SchwarzPreconditioner, WeightedPoisson
 from fishsim.fluid.residual import per_sample
 from fishsim.linalg.dct import neumann_inverse, solve_neumann_poisson
@@ -378,8 +377,7 @@ class NumericalFluid:
         0.01 s); None: beta_f = b_f at any dt (the band stiffens with K n).
     implicit: solve each stage's relaxation at ``penalization_rate`` and its projection jointly
         (``immerse`` with the weight ``rate_weight``): the passes' limit K -> infinity, converged
-        in sub-steps from n = 4, thin bodies included (module docstring); torch formulas and a PCG
-        solve a stage, so several times slower than the compiled passes.
+        in sub-steps from n = 2, thin bodies included (module docstring); a PCG solve a stage.
     """
 
     exerts_force = True
@@ -448,10 +446,6 @@ class NumericalFluid:
         v = v_start = curl(self._fine_potential(state), dx)
         fine = (self.fine.H, self.fine.W)
         b = face_masks(_on_grid(boundary.mask, fine, r))
-        if self.brinkman is not None:
-            b = tuple(penalised_fraction(x) for x in b)
-        elif self.implicit:
-            b = rate_weight(b)
         v_d = vector_to_faces(_on_grid(boundary.velocity, fine, r))
         rho, mu = per_sample(params.rho, v[0]), per_sample(params.mu, v[0])
         nu = mu / rho
@@ -459,8 +453,10 @@ class NumericalFluid:
         dt = (h / n.to(v[0])).view(-1, 1, 1, 1)
         beta = self._blend_weight(b, h, n)
         if self._compiled(v[0]):                      # the same sub-steps in one compiled call
+            stage = self.penalization_iterations if self.stiffness is None else \
+                Immersion(self.stiffness, IMMERSE_TOL, IMMERSE_MAX_ITER)
             vx, vy, p_sum, *pen_sum = SplitStep.apply(*v, *beta, *v_d, nu, dt, n, self._inverse(v[0]), dx,
-                                                      self.walls, self.penalization_iterations)
+                                                      self.walls, stage)
             v = (vx, vy)
         else:
             v, p_sum, pen_sum = self._substeps(v, beta, v_d, nu, dt, n)
@@ -478,8 +474,12 @@ class NumericalFluid:
         """The split scheme's blend weight of a pass, beta_f = 1 - (1 - b_f)^e with e = lambda_p h /
         (n K) per sample (module docstring): b_f itself, bit for bit, in every sample whose e = 1
         (the defaults; whatever its batch mates' e) and with ``penalization_rate`` None; the joint
-        solve's weight (chi(b) or ``rate_weight``) as it is. Differentiable in b."""
-        if self.stiffness is not None or self.penalization_rate is None:
+        solve's weight: chi(b) (``brinkman``) or ``rate_weight`` (``implicit``). Differentiable in b."""
+        if self.brinkman is not None:
+            return tuple(penalised_fraction(x) for x in b)
+        if self.implicit:
+            return rate_weight(b)
+        if self.penalization_rate is None:
             return b
         e = self.penalization_rate * h / (n.numpy() * self.penalization_iterations)    # [B] float64
         exact = np.abs(e - 1) < 1e-12
@@ -556,10 +556,10 @@ class NumericalFluid:
         return self.fine
 
     def _compiled(self, like: Tensor) -> bool:
-        """Whether the step's sub-steps run as ``kernels.SplitStep`` (the split scheme with Koren
-        advection on the CPU) rather than the torch formulas (other devices and schemes, the rate
-        penalisation; the reference the compiled loops are tested against)."""
-        return COMPILED and like.device.type == "cpu" and self.stiffness is None and self.scheme == "koren"
+        """Whether the step's sub-steps run as ``kernels.SplitStep`` (Koren advection on the CPU,
+        the passes or a joint solve) rather than the torch formulas (other devices and schemes; the
+        reference the compiled loops are tested against)."""
+        return COMPILED and like.device.type == "cpu" and self.scheme == "koren"
 
     @property
     def stiffness(self) -> float | None:
@@ -574,7 +574,10 @@ class NumericalFluid:
 
     def _count_substeps(self, v: Faces, b: Faces, v_d: Faces, nu: Tensor, h: float) -> Tensor:
         """n_b [B] (int64, on the CPU): the largest of r * substeps and the counts that keep sample
-        b's max|v| (h/n) / dx <= cfl and nu (h/n) / dx^2 <= diffusion."""
+        b's max|v| (h/n) / dx <= cfl and nu (h/n) / dx^2 <= diffusion, the speed the larger of the
+        fluid's and the bodies' b_f |v_d| (b the face masks, not a joint solve's weight: counted
+        with ``rate_weight``, up to 13.8, the implicit option took 4-10 sub-steps where 4 hold the
+        CFL bound)."""
         dx = self.fine.dx
         with torch.no_grad():
             if self._compiled(v[0]):

@@ -137,37 +137,53 @@ class SchwarzPreconditioner:
         return z
 
     def _factor(self, b: int) -> tuple[Tensor, object]:
-        """(flat indices of S [n], banded Cholesky factor of A_S) for sample b; the factor is None
-        when S is empty (then only the DCT part acts)."""
-        wx = self.weights[0][b, 0].to("cpu", torch.float64).numpy()
-        wy = self.weights[1][b, 0].to("cpu", torch.float64).numpy()
-        ex = np.pad(wx[:, 1:-1], ((0, 0), (1, 1)))            # interior faces; box faces: 0
-        ey = np.pad(wy[1:-1, :], ((1, 1), (0, 0)))
-        H, W = ex.shape[0], ey.shape[1]
-        west, east, south, north = ex[:, :-1], ex[:, 1:], ey[:-1, :], ey[1:, :]
-        inside = np.maximum.reduce([west, east, south, north]) < self.threshold
-        if self.overlap and inside.any():
-            parts, _ = label(inside)
-            edge = np.unique(np.concatenate([parts[0], parts[-1], parts[:, 0], parts[:, -1]]))
-            walls = np.isin(parts, edge[edge > 0])
-            inside = walls | binary_dilation(inside & ~walls, iterations=self.overlap)
-        index = np.full((H, W), -1)
-        cells = np.flatnonzero(inside)
-        index.flat[cells] = np.arange(len(cells))
-        rows, cols, vals = [index[inside]], [index[inside]], [(west + east + south + north)[inside]]
-        for a, c, w in ((index[:, :-1], index[:, 1:], ex[:, 1:-1]), (index[:-1, :], index[1:, :], ey[1:-1, :])):
-            pair = (a >= 0) & (c >= 0)
-            rows += [a[pair], c[pair]]
-            cols += [c[pair], a[pair]]
-            vals += [-w[pair], -w[pair]]
-        n = len(cells)
-        if n == 0:
-            return torch.as_tensor(cells, device=self.weights[0].device), None
-        A_S = sp.csc_matrix((np.concatenate(vals) / self.dx**2, (np.concatenate(rows), np.concatenate(cols))),
-                            shape=(n, n))
-        A_S.sum_duplicates()
-        layout = BandLayout(A_S.indptr, A_S.indices)          # a new pattern every frame: not cached
-        return torch.as_tensor(cells, device=self.weights[0].device), BandedCholesky.with_layout(layout, A_S.data)
+        """(flat indices of S [n], banded Cholesky factor of A_S) for sample b (``subdomain``)."""
+        wx, wy = (w[b, 0].to("cpu", torch.float64).numpy() for w in self.weights)
+        cells, factor = subdomain(wx, wy, self.dx, self.threshold, self.overlap)
+        return torch.as_tensor(cells, device=self.weights[0].device), factor
+
+
+def subdomain(wx: np.ndarray, wy: np.ndarray, dx: float, threshold: float = 0.99,
+              overlap: int = 4) -> tuple[np.ndarray, BandedCholesky | None]:
+    """(flat indices of S [n], banded Cholesky factor of A_S) of one sample's face weights wx [H,
+    W+1], wy [H+1, W] (float64; ``SchwarzPreconditioner``); the factor is None when S is empty
+    (then only the DCT part acts)."""
+    ex = np.pad(wx[:, 1:-1], ((0, 0), (1, 1)))            # interior faces; box faces: 0
+    ey = np.pad(wy[1:-1, :], ((1, 1), (0, 0)))
+    H, W = ex.shape[0], ey.shape[1]
+    west, east, south, north = ex[:, :-1], ex[:, 1:], ey[:-1, :], ey[1:, :]
+    inside = np.maximum.reduce([west, east, south, north]) < threshold
+    if overlap and inside.any():
+        parts, _ = label(inside)
+        edge = np.unique(np.concatenate([parts[0], parts[-1], parts[:, 0], parts[:, -1]]))
+        walls = np.isin(parts, edge[edge > 0])
+        inside = walls | binary_dilation(inside & ~walls, iterations=overlap)
+    index = np.full((H, W), -1)
+    cells = np.flatnonzero(inside)
+    index.flat[cells] = np.arange(len(cells))
+    rows, cols, vals = [index[inside]], [index[inside]], [(west + east + south + north)[inside]]
+    for a, c, w in ((index[:, :-1], index[:, 1:], ex[:, 1:-1]), (index[:-1, :], index[1:, :], ey[1:-1, :])):
+        pair = (a >= 0) & (c >= 0)
+        rows += [a[pair], c[pair]]
+        cols += [c[pair], a[pair]]
+        vals += [-w[pair], -w[pair]]
+    n = len(cells)
+    if n == 0:
+        return cells, None
+    A_S = sp.csc_matrix((np.concatenate(vals) / dx**2, (np.concatenate(rows), np.concatenate(cols))), shape=(n, n))
+    A_S.sum_duplicates()
+    layout = BandLayout(A_S.indptr, A_S.indices)          # a new pattern every frame: not cached
+    return cells, BandedCholesky.with_layout(layout, A_S.data)
+
+
+def local_solver(cells: np.ndarray, factor: BandedCholesky | None) -> tuple:
+    """The arguments (cells, band, width, perm, inverse, local) of the compiled preconditioner
+    (``_precondition_sample``) for ``subdomain``'s result; placeholders and local False when the
+    factor is None."""
+    if factor is None:
+        return (np.zeros(0, np.int64), np.zeros((1, 1)), 0, np.zeros(0, np.int64), np.zeros(0, np.int64), False)
+    lay = factor.layout
+    return (np.asarray(cells, np.int64), factor.factor, lay.width, lay.perm, lay.inverse, True)
 
 
 # --------------------------------------------------------------------------------------------
@@ -292,12 +308,9 @@ def _solve_cpu(weights: Faces, f: Tensor, dx: float, tol: float, max_iter: int, 
     x = np.zeros_like(rhs) if start is None else start.numpy().copy()
     inverse, iterations = precondition.inverse, 0
     for b, (cells, factor) in enumerate(subdomains):
-        local = factor is not None
-        lay = factor.layout if local else None
-        args = ((cells.numpy(), factor.factor, lay.width, lay.perm, lay.inverse) if local else
-                (np.zeros(0, np.int64), np.zeros((1, 1)), 0, np.zeros(0, np.int64), np.zeros(0, np.int64)))
         its = _pcg_sample(wx[b, 0].astype(rhs.dtype), wy[b, 0].astype(rhs.dtype), rhs[b, 0], x[b, 0],
-                          rhs.dtype.type(1 / dx**2), inverse.pivots, inverse.dx, *args, local, tol, max_iter)
+                          rhs.dtype.type(1 / dx**2), inverse.pivots, inverse.dx, *local_solver(cells.numpy(), factor),
+                          tol, max_iter)
         iterations = max(iterations, its)
     return _mean_free(torch.from_numpy(x)), iterations
 
