@@ -222,8 +222,9 @@ class NumericalConfig(WaterConfig):
     brinkman: lambda (1/s) of the rate penalisation solved jointly with the projection, which
         converges in sub-steps (fishsim/fluid/numerical.py); null: the split scheme.
     implicit: solve each stage's penalisation at penalization_rate and its projection jointly,
-        the passes' limit (K -> infinity; converged in sub-steps, thin bodies included), by PCG
-        (~9x slower than the compiled passes); false: penalization_iterations passes.
+        the passes' limit (K -> infinity; converged in sub-steps from n = 1, thin bodies
+        included), by a PCG solve a stage (with fluid.substeps=2: ~1.5x the passes' time on the
+        frequency study); false: penalization_iterations passes.
     scheme: advection interpolation, "koren" (third order, TVD limited by min/max: a
         piecewise-smooth frame map) | "albada" (second order, van Albada limiter and upwinding
         written as smooth functions: smoother gradients; fishsim.fluid.grid.albada).

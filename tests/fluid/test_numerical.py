@@ -253,8 +253,8 @@ def test_the_blend_as_a_rate_converges_in_sub_steps_once_the_passes_do():
     converge its core's slip: its added mass grows with n at K = 3 (1.200 / 1.265 / 1.311 at n = 8
     / 16 / 32). With the passes converged (K = 81) the rate converges in n (1.3615 / 1.3661 /
     1.3685 at n = 8 / 16 / 32: first order): < 1 % from 8 to 16 sub-steps, to the answer of the
-    implicit joint solve (``implicit``: 1.3679 / 1.3692 at n = 4 / 8), which is converged in n at
-    once. The checks can fail: blending by b at every pass creeps into the mask's tail, 1.420 ->
+    implicit joint solve (``implicit``: 1.3645 / 1.3677 / 1.3692 at n = 2 / 4 / 8), which is
+    converged in n at once. The checks can fail: blending by b at every pass creeps into the mask's tail, 1.420 ->
     1.533 (+7.9 %); the default 8 x 3 lies 12 % below the limit."""
     g = Grid(40, 80, 2.5e-3)
 
@@ -265,9 +265,9 @@ def test_the_blend_as_a_rate_converges_in_sub_steps_once_the_passes_do():
     m8, m16 = passes(8, 2400.0), passes(16, 2400.0)
     assert abs(m16 / m8 - 1) < 0.01
     assert abs(passes(16, None) / passes(8, None) - 1) > 0.04
-    implicit = [_thin_ellipse_added_mass(NumericalFluid(g, substeps=n, implicit=True), g) for n in (4, 8)]
-    assert abs(implicit[1] / implicit[0] - 1) < 3e-3, implicit
-    assert abs(implicit[0] / m16 - 1) < 0.01, (implicit, m16)
+    implicit = [_thin_ellipse_added_mass(NumericalFluid(g, substeps=n, implicit=True), g) for n in (2, 4, 8)]
+    assert abs(implicit[0] / implicit[2] - 1) < 5e-3 and abs(implicit[1] / implicit[2] - 1) < 3e-3, implicit
+    assert abs(implicit[1] / m16 - 1) < 0.01, (implicit, m16)
 
 
 def _thin_ellipse_added_mass(model: NumericalFluid, g: Grid, a=0.03, b=0.004, amplitude=3e-3,
