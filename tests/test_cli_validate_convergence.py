@@ -40,11 +40,13 @@ def test_validate_convergence_small(tmp_path):
     cfg.convergence.knobs = {"substeps": Knob("fluid.substeps", [2, 4, 8], 4),
                              "penalization": Knob("fluid.penalization_iterations", [1, 3], 3, frames=4,
                                                   limit=["fluid.implicit=true"]),
-                             "grid": Knob("fluid.refinement", [1, 2], 1, frames=4)}
+                             "grid": Knob("fluid.refinement", [1, 2], 1, frames=4),
+                             "frame_step": Knob("h", [0.01, 0.005], 0.01, finer="down", frames=4)}
     run(cfg)
     m = json.loads((tmp_path / "metrics.json").read_text())["knobs"]
     assert np.asarray(m["substeps"]["displacement_mm"]).shape == (3, 1)
     assert len(m["substeps"]["default_error_vs_finest"]) == 1 and m["grid"]["frames"] == 4
+    assert m["frame_step"]["episode_frames"] == [4, 8] and m["grid"]["episode_frames"] == [4, 4]   # the same 0.04 s
     limit = m["penalization"]["limit"]
     error = (m["penalization"]["displacement_mm"][1][0] - limit["displacement_mm"][0]) / abs(limit["displacement_mm"][0])
     assert m["penalization"]["default_error_vs_limit"][0] == pytest.approx(error) and "limit" not in m["grid"]

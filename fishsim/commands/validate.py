@@ -20,7 +20,8 @@ argmax, mean mismatch (mm and cells) and runtimes; metrics.json, a printed table
 displacement against frequency (swim.png/.svg).
 
 suite=convergence: the same study against each numerical knob of the reference (sub-steps,
-penalisation iterations, the IBM kernel, the grid; ``fishsim.swim_study.convergence_study``):
+penalisation iterations, the IBM kernel, the grid, the frame step h over the same duration;
+``fishsim.swim_study.convergence_study``):
 displacement and mean thrust per setting, observed orders, Richardson estimates and the
 defaults' errors; metrics.json, a table and convergence.png/.svg.
 """
@@ -73,6 +74,8 @@ def run_convergence(cfg: ValidateConfig) -> dict:
     for name, r in results.items():
         for i, v in enumerate(r["values"]):
             mark = " (default)" if v == r["default"] else ""
+            if r["episode_frames"][i] != r["frames"]:
+                mark += f" ({r['episode_frames'][i]} frames)"
             table.add_row(name if i == 0 else "", f"{r['key']}={v:g}{mark}", fmt(r["displacement_mm"][i]),
                           fmt(r["mean_thrust_mN"][i]), f"{r['wall_s'][i]:.0f}")
         o = r["displacement"]
