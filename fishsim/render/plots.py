@@ -188,7 +188,8 @@ def plot_convergence(results: Mapping[str, Mapping], frequencies: Sequence[float
                            label=f"limit: {' '.join(r['limit']['overrides'])}" if j == 0 else None)
         ax.axvline(r["default"], color="0.5", linestyle=":", label="default")
         ax.set_xscale("log")
-        ax.set_xlabel(f"{r['key']} ({r['frames']} frames)")
+        same = len(set(r.get("episode_frames", [r["frames"]]))) == 1
+        ax.set_xlabel(f"{r['key']} ({r['frames']} frames{'' if same else ' at the default: the same duration'})")
         ax.set_ylabel("head x displacement vs default [%]")
         ax.set_title(name)
         ax.grid(alpha=0.3)
