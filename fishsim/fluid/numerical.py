@@ -68,9 +68,9 @@ the limit K -> infinity of the passes (each of which relaxes exactly at that rat
 taken by implicit Euler instead of alternation, a discretisation of the same Brinkman-penalised
 PDE. It converges in sub-steps at once, thin bodies included: the 6 x 0.8 cm ellipse's added mass
 (sampled pressure) is 1.3679 / 1.3692 / 1.3699 / 1.3703 at n = 4 / 8 / 16 / 32, where the passes
-reach 1.362 / 1.369 only at K = 81, n = 8 / 32 (the default 8 x 3: 1.200); the paper's fish (120
-frames, 3 / 5 / 7 Hz) swims 44.26 / 125.99 / 234.94 mm at n = 4, within 0.3 / 0.2 / 0.5 % of the
-passes at 16 x 9. Its cost is a PCG solve a stage (~8 iterations to a relative residual of 1e-6 with
+reach 1.362 / 1.369 only at K = 81, n = 8 / 32 (the default 8 x 3: 1.200), and 1.3645 at n = 2;
+the paper's fish (120 frames, 3 / 5 / 7 Hz) swims 44.36 / 126.00 / 237.19 mm at n = 2, within 0.2 %
+of n = 1, 3, 4 and 8 and 0.5 / 0.2 / 1.5 % of the passes at 16 x 9. Its cost is a PCG solve a stage (~8 iterations to a relative residual of 1e-6 with
 the Schwarz preconditioner), compiled on the CPU with its adjoint (``kernels.SplitStep``).
 
 Sub-steps are per sample and fixed: n_b = max(r * substeps, the count that keeps sample b's
