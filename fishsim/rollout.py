@@ -319,6 +319,11 @@ class Swimmer:
             None if state.qdot_prev is None else predicted_start(state.q, state.qdot, state.qdot_prev, self.h))
         q, qdot = pd_step(self.solid, state.q, state.qdot, contraction, f_ext + self.added_mass_force(state),
                           params.E, start=solid_start, muscle_weight=weight, cache=cache)
+        for _ in range(1, self.coupling.subiterations if self.fluid.exerts_force else 1):
+            clock.add("solid", t0, dev)
+            fluid, f_ext, boundary, q, qdot = self.subiterate(state, q, qdot, params, t, contraction, weight, mass,
+                                                              cache, clock)
+            t0 = time.perf_counter()
         if self.fluid.exerts_force and self.coupling.force_mode == AVERAGE and state.qdot_prev is not None:
             free = (not self.hold[0], not self.hold[1])
             q, qdot = stabilise_translation(q, qdot, state.qdot, state.qdot_prev, mass,
@@ -332,6 +337,28 @@ class Swimmer:
             require_bounded_force(f_ext, params.fluid.rho, self.solid.mesh.length)
         clock.add("solid", t0, dev)
         return SwimState(q, qdot, fluid, state.qdot, tunnel), FrameOutput(f_ext, contraction, boundary)
+
+    def subiterate(self, state: SwimState, q: Tensor, qdot: Tensor, params: SwimParams, t: int,
+                   contraction: Tensor, weight: Tensor | None, mass: Tensor, cache: SolverCache | None,
+                   clock: PhaseTimer) -> tuple[FluidState, Tensor, Boundary, Tensor, Tensor]:
+        """One more pass of the frame's exchange (``coupling.subiterations``): the fluid stepped
+        again from frame t with the body at the estimate (q, qdot) of frame t+1, then the solid
+        from frame t with that force F_k and the stabilisation's M^ (qdot - qdot_t) / h:
+
+            (M + M^) a_k+1 = F(body_k) + M^ a_k,    a_k = (qdot_k - qdot_t) / h,
+
+        whose fixed point M a = F(body_t+1) does not contain M^ (per mode the passes contract by
+        |M^ - M_a| / (M + M^)). Returns (fluid state, F_k [B, N, 2], the boundary it saw, q,
+        qdot)."""
+        estimate = SwimState(q, qdot, state.fluid, state.qdot, state.tunnel)
+        fish, boundary = self.fish_and_boundary(estimate, alone=self.coupling.force == "exchange")
+        fluid, f_ext = self.fluid_step(estimate, fish, boundary, params, t, None, mass, clock)
+        t0, dev = time.perf_counter(), q.device
+        stabilising = stabilising_force(self.added_mass.to(q), qdot, state.qdot, self.h)
+        q, qdot = pd_step(self.solid, state.q, state.qdot, contraction, f_ext + stabilising, params.E, start=q,
+                          muscle_weight=weight, cache=cache)
+        clock.add("solid", t0, dev)
+        return fluid, f_ext, boundary, q, qdot
 
 
 def hold_centroid(q: Tensor, qdot: Tensor, q_prev: Tensor, mass: Tensor, axes: tuple[bool, bool]) -> Tensor:
