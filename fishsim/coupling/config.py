@@ -65,7 +65,9 @@ class CouplingConfig:
         (fishsim.rollout.Swimmer.subiterate): the fixed point M a = F(body_t+1) no longer
         contains M^, whose lag moves the explicit coupling's 7 Hz fish by ~1.2 % per unit of
         the ratio (docs/validation.md, "The frame step"). Each pass costs a fluid step and a
-        solid step; per-node forces and added_mass_ratio > 0 only.
+        solid step; the passes converge slowly (on the frequency study at ratio 7, 2-4 passes
+        are worse than 1 and 8 still move by ~2 % from 6); per-node forces and
+        added_mass_ratio > 0 only.
     k_nearest: surface elements kept per cell (their soft-min is tapered to zero at the
         (K + 1)-th, fishsim.coupling.mask.softmin_weights). On the default graded fish (292
         surface segments, 0.35 mm at the tail tip) after 30 frames at 5 Hz, against all segments:
