@@ -18,7 +18,7 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
-from fishsim.swim_study_config import FLUIDS, ConvergenceStudyConfig, Knob, SwimStudyConfig
+from fishsim.swim_study_config import FLUIDS, ConvergenceStudyConfig, SwimStudyConfig
 
 # The paper's Table 1 (300 frames, their hardware) and Fig. 4 (mean mismatch, argmax).
 PAPER = {"hydronet_forward_s_per_frame": 213.0 / 300, "comsol_s_per_frame": (5 * 3600 + 16 * 60 + 39) / 300,
@@ -136,12 +136,6 @@ def observed_order(values, d) -> dict:
     return out
 
 
-def _episode_frames(knob: Knob, value: float, frames: int) -> int:
-    """The episode length of a knob's setting: ``frames`` at the default's frame step; the frame
-    step's own knob (key ``h``) keeps the episode's duration, frames x default / h."""
-    return round(frames * knob.default / value) if knob.key == "h" else frames
-
-
 def convergence_study(cfg: ConvergenceStudyConfig, device: str = "cpu",
                       progress: Callable[[str], None] | None = None) -> dict:
     """Each knob's settings run as one batched episode (identical runs shared); per knob the
@@ -153,14 +147,13 @@ def convergence_study(cfg: ConvergenceStudyConfig, device: str = "cpu",
     results = {}
     for name, knob in cfg.knobs.items():
         frames = knob.frames or cfg.frames
-        runs, lengths = [], [_episode_frames(knob, v, frames) for v in knob.values]
+        runs, lengths = [], [knob.episode_frames(v, frames) for v in knob.values]
         for v, n in zip(knob.values, lengths):
             key = (knob.key, float(v), n)
             if key not in cache:
                 if progress:
-                    progress(f"{name} {knob.key}={v:g}")
-                overrides = [*cfg.overrides, f"{knob.key}={v:g}" if knob.key != "fluid.refinement" else f"{knob.key}={int(v)}"]
-                cache[key] = episode(overrides, cfg.frequencies, n, device)
+                    progress(f"{name} {knob.override(v)}")
+                cache[key] = episode([*cfg.overrides, knob.override(v)], cfg.frequencies, n, device)
             runs.append(cache[key])
         d = np.array([r["displacement_mm"] for r in runs])
         f = np.array([r["mean_thrust_mN"] for r in runs])
@@ -169,8 +162,8 @@ def convergence_study(cfg: ConvergenceStudyConfig, device: str = "cpu",
                  "displacement_mm": d.tolist(), "mean_thrust_mN": f.tolist(),
                  "wall_s": [r["wall_s"] for r in runs], "failures": [r["failures"] for r in runs],
                  "displacement": observed_order(knob.values, d), "thrust": observed_order(knob.values, f)}
-        if knob.default in knob.values:
-            i = list(knob.values).index(knob.default)
+        i = list(knob.values).index(knob.default) if knob.default in knob.values else None
+        if i is not None:
             rich = np.asarray(entry["displacement"]["richardson"])
             entry["default_error_vs_finest"] = ((d[i] - d[-1]) / np.abs(d[-1])).tolist()
             entry["default_error_vs_richardson"] = ((d[i] - rich) / np.abs(rich)).tolist()
@@ -184,7 +177,7 @@ def convergence_study(cfg: ConvergenceStudyConfig, device: str = "cpu",
             entry["limit"] = {"overrides": list(knob.limit), "displacement_mm": lim["displacement_mm"],
                               "mean_thrust_mN": lim["mean_thrust_mN"], "wall_s": lim["wall_s"],
                               "failures": lim["failures"]}
-            if knob.default in knob.values:
+            if i is not None:
                 d_lim = np.asarray(lim["displacement_mm"])
                 entry["default_error_vs_limit"] = ((d[i] - d_lim) / np.abs(d_lim)).tolist()
         results[name] = entry

@@ -62,6 +62,15 @@ class Knob:
     frames: int | None = None
     limit: list[str] = field(default_factory=list)
 
+    def override(self, value: float) -> str:
+        """The `fishsim simulate` override of one setting (an integer for the grid's refinement)."""
+        return f"{self.key}={int(value)}" if self.key == "fluid.refinement" else f"{self.key}={value:g}"
+
+    def episode_frames(self, value: float, frames: int) -> int:
+        """The episode length of one setting: ``frames`` at the default's frame step; the frame
+        step's own knob (key ``h``) keeps the episode's duration, frames x default / h."""
+        return round(frames * self.default / value) if self.key == "h" else frames
+
     def check(self, name: str) -> None:
         v = self.values
         if len(v) < 2 or self.finer not in ("up", "down"):
