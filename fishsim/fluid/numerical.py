@@ -70,8 +70,9 @@ PDE. It converges in sub-steps at once, thin bodies included: the 6 x 0.8 cm ell
 (sampled pressure) is 1.3679 / 1.3692 / 1.3699 / 1.3703 at n = 4 / 8 / 16 / 32, where the passes
 reach 1.362 / 1.369 only at K = 81, n = 8 / 32 (the default 8 x 3: 1.200), and 1.3645 at n = 2;
 the paper's fish (120 frames, 3 / 5 / 7 Hz) swims 44.36 / 126.00 / 237.19 mm at n = 2, within 0.2 %
-of n = 1, 3, 4 and 8 and 0.5 / 0.2 / 1.5 % of the passes at 16 x 9. Its cost is a PCG solve a stage (~8 iterations to a relative residual of 1e-6 with
-the Schwarz preconditioner), compiled on the CPU with its adjoint (``kernels.SplitStep``).
+of n = 1, 3, 4 and 8 and 0.5 / 0.2 / 1.5 % of the passes at 16 x 9. Its cost is a PCG solve a
+stage (~8 iterations to a relative residual of 1e-6 with the Schwarz preconditioner), compiled on
+the CPU with its adjoint (``kernels.SplitStep``).
 
 Sub-steps are per sample and fixed: n_b = max(r * substeps, the count that keeps sample b's
 advective Courant number max|v| dt / dx <= ``cfl`` and its diffusion number nu dt / dx^2 <=
@@ -274,11 +275,16 @@ def penalize(w: Faces, b: Faces, v_d: Faces, lam_dt: Tensor | float | None = Non
             return wc + bc * (vc - wc)
         return (wc + lam_dt * bc * vc) / (1 + lam_dt * bc)
 
-    ux, uy = (one(*t) for t in zip(w, b, v_d))
-    wall_x, wall_y = b[0] * v_d[0], b[1] * v_d[1]
-    ux = torch.cat([wall_x[..., :1], ux[..., 1:-1], wall_x[..., -1:]], -1)
-    uy = torch.cat([wall_y[..., :1, :], uy[..., 1:-1, :], wall_y[..., -1:, :]], -2)
+    ux, uy = _box_faces_from(tuple(one(*t) for t in zip(w, b, v_d)), (b[0] * v_d[0], b[1] * v_d[1]))
     return (ux, uy), (ux - w[0], uy - w[1])
+
+
+def _box_faces_from(inner: Faces, box: Faces) -> Faces:
+    """``inner``'s interior faces with ``box``'s four box-wall faces (the x faces' first and last
+    columns, the y faces' first and last rows)."""
+    (ix, iy), (bx, by) = inner, box
+    return (torch.cat([bx[..., :1], ix[..., 1:-1], bx[..., -1:]], -1),
+            torch.cat([by[..., :1, :], iy[..., 1:-1, :], by[..., -1:, :]], -2))
 
 
 def project(u: Faces, dx: float, inverse: Tensor | None = None) -> tuple[Faces, Tensor]:
@@ -314,10 +320,7 @@ def rate_weight(b: Faces) -> Faces:
     """s_f = -ln(1 - b_f) (b_f capped at ``RATE_CAP``), the split blend's relaxation rate per unit
     lambda_p (module docstring): the weight of ``NumericalFluid(implicit=True)``'s joint solve.
     The box-wall faces keep b_f (their normal velocity is b_f v_d in ``penalize``)."""
-    sx, sy = (-torch.log1p(-c.clamp(max=RATE_CAP)) for c in b)
-    sx = torch.cat([b[0][..., :1], sx[..., 1:-1], b[0][..., -1:]], -1)
-    sy = torch.cat([b[1][..., :1, :], sy[..., 1:-1, :], b[1][..., -1:, :]], -2)
-    return sx, sy
+    return _box_faces_from(tuple(-torch.log1p(-c.clamp(max=RATE_CAP)) for c in b), b)
 
 
 IMMERSE_TOL = 1e-6      # PCG relative residual of ``immerse``: div v ~ 1e-6 of div u
