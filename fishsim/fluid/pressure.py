@@ -303,14 +303,13 @@ def _solve_cpu(weights: Faces, f: Tensor, dx: float, tol: float, max_iter: int, 
     """``solve_weighted_poisson`` on the CPU: ``_pcg_sample`` per sample (f mean free, start mean
     free or None)."""
     subdomains = precondition.factored(f.shape[0])
-    wx, wy = (w.detach().expand(f.shape[0], 1, *w.shape[-2:]).numpy() for w in weights)
     rhs = f.detach().numpy()
+    wx, wy = (w.detach().to(f.dtype).expand(f.shape[0], 1, *w.shape[-2:]).numpy() for w in weights)
     x = np.zeros_like(rhs) if start is None else start.numpy().copy()
     inverse, iterations = precondition.inverse, 0
     for b, (cells, factor) in enumerate(subdomains):
-        its = _pcg_sample(wx[b, 0].astype(rhs.dtype), wy[b, 0].astype(rhs.dtype), rhs[b, 0], x[b, 0],
-                          rhs.dtype.type(1 / dx**2), inverse.pivots, inverse.dx, *local_solver(cells.numpy(), factor),
-                          tol, max_iter)
+        its = _pcg_sample(wx[b, 0], wy[b, 0], rhs[b, 0], x[b, 0], rhs.dtype.type(1 / dx**2), inverse.pivots,
+                          inverse.dx, *local_solver(cells.numpy(), factor), tol, max_iter)
         iterations = max(iterations, its)
     return _mean_free(torch.from_numpy(x)), iterations
 
