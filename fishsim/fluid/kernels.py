@@ -865,17 +865,24 @@ def _sample_immersed_steps_adjoint(tx, ty, tphi, gvx, gvy, gphi, gpx, gpy, sx, s
     return gvx, gvy, g_nu
 
 
+def _immersion_weights(masks, n: int, immersion: Immersion, dt_n) -> tuple:
+    """(a, c) of sample n: a = lambda dt and the face weights c = 1 / (1 + a s) in the masks'
+    dtype (s = masks[0:2])."""
+    a = immersion.stiffness * dt_n[n]
+    return a, tuple(1 / (1 + s.dtype.type(a) * s[n]) for s in masks[:2])
+
+
 def _immersed_steps(v, masks, nu_n, dt_n, counts, inv_dx, walls, inverse, immersion, keep):
-    """``_steps`` with the joint stage (``Immersion``): per sample c = 1 / (1 + lambda dt s), the
-    Schwarz preconditioner's subdomain factor of c (``fluid.pressure.subdomain``, once a step),
-    then ``_sample_immersed_steps``. The tapes hold (tape, c, a, the factor's arrays) a sample."""
+    """``_steps`` with the joint stage (``Immersion``): per sample the weights c
+    (``_immersion_weights``), the Schwarz preconditioner's subdomain factor of c
+    (``fluid.pressure.subdomain``, once a step), then ``_sample_immersed_steps``. The tapes hold
+    (tape, the factor's arrays) a sample."""
     N, H, W = v[1].shape[0], v[0].shape[1], v[1].shape[2]
     out = (np.empty_like(v[0]), np.empty_like(v[1]))
     phi_sum, pen = np.zeros((N, H, W), v[0].dtype), (np.zeros_like(v[0]), np.zeros_like(v[1]))
     tapes = []
     for n in range(N):
-        a = immersion.stiffness * dt_n[n]
-        c = tuple(1 / (1 + v[0].dtype.type(a) * s[n]) for s in masks[:2])
+        a, c = _immersion_weights(masks, n, immersion, dt_n)
         solver = local_solver(*subdomain(*(w.astype(np.float64) for w in c), 1 / inv_dx))
         size = int(counts[n]) if keep else 0
         tape = (np.empty((4 * size, H, W + 1), v[0].dtype), np.empty((4 * size, H + 1, W), v[0].dtype),
@@ -885,7 +892,7 @@ def _immersed_steps(v, masks, nu_n, dt_n, counts, inv_dx, walls, inverse, immers
             inverse.pivots, inverse.dx, *solver, immersion.tol, immersion.max_iter, keep, *tape, phi_sum[n],
             pen[0][n], pen[1][n])
         if keep:
-            tapes.append((tape, c, a, solver))
+            tapes.append((tape, solver))
     return out, phi_sum, pen, tapes
 
 
@@ -895,7 +902,8 @@ def _immersed_steps_adjoint(tapes, gv, gphi_all, gpen_all, masks, counts, nu_n, 
     gmasks = tuple(np.zeros_like(m) for m in masks)
     g_nu = np.zeros(len(nu_n))
     out = (np.empty_like(gv[0]), np.empty_like(gv[1]))
-    for n, (tape, c, a, solver) in enumerate(tapes):
+    for n, (tape, solver) in enumerate(tapes):
+        a, c = _immersion_weights(masks, n, immersion, dt_n)
         out[0][n], out[1][n], g_nu[n] = _sample_immersed_steps_adjoint(
             *tape, gv[0][n], gv[1][n], gphi_all[n], gpen_all[0][n], gpen_all[1][n], *(m[n] for m in masks), *c, a,
             nu_n[n], dt_n[n], int(counts[n]), inv_dx, walls, inverse.pivots, inverse.dx, *solver, immersion.tol,
