@@ -149,15 +149,16 @@ def convergence_study(cfg: ConvergenceStudyConfig, device: str = "cpu",
         frames = knob.frames or cfg.frames
         runs, lengths = [], [knob.episode_frames(v, frames) for v in knob.values]
         for v, n in zip(knob.values, lengths):
-            key = (knob.key, float(v), n)
+            key = (knob.key, float(v), n, tuple(knob.base))
             if key not in cache:
                 if progress:
                     progress(f"{name} {knob.override(v)}")
-                cache[key] = episode([*cfg.overrides, knob.override(v)], cfg.frequencies, n, device)
+                cache[key] = episode([*cfg.overrides, *knob.base, knob.override(v)], cfg.frequencies, n, device)
             runs.append(cache[key])
         d = np.array([r["displacement_mm"] for r in runs])
         f = np.array([r["mean_thrust_mN"] for r in runs])
-        entry = {"key": knob.key, "values": list(knob.values), "default": knob.default, "frames": frames,
+        entry = {"key": knob.key, "values": list(knob.values), "default": knob.default, "base": list(knob.base),
+                 "frames": frames,
                  "episode_frames": lengths,
                  "displacement_mm": d.tolist(), "mean_thrust_mN": f.tolist(),
                  "wall_s": [r["wall_s"] for r in runs], "failures": [r["failures"] for r in runs],
@@ -168,13 +169,14 @@ def convergence_study(cfg: ConvergenceStudyConfig, device: str = "cpu",
             entry["default_error_vs_finest"] = ((d[i] - d[-1]) / np.abs(d[-1])).tolist()
             entry["default_error_vs_richardson"] = ((d[i] - rich) / np.abs(rich)).tolist()
         if knob.limit:
-            key = (tuple(knob.limit), frames)
+            limit = [*knob.base, *knob.limit]
+            key = (tuple(limit), frames)
             if key not in cache:
                 if progress:
-                    progress(f"{name} limit {' '.join(knob.limit)}")
-                cache[key] = episode([*cfg.overrides, *knob.limit], cfg.frequencies, frames, device)
+                    progress(f"{name} limit {' '.join(limit)}")
+                cache[key] = episode([*cfg.overrides, *limit], cfg.frequencies, frames, device)
             lim = cache[key]
-            entry["limit"] = {"overrides": list(knob.limit), "displacement_mm": lim["displacement_mm"],
+            entry["limit"] = {"overrides": limit, "displacement_mm": lim["displacement_mm"],
                               "mean_thrust_mN": lim["mean_thrust_mN"], "wall_s": lim["wall_s"],
                               "failures": lim["failures"]}
             if i is not None:

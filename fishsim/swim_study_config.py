@@ -50,16 +50,19 @@ class SwimStudyConfig:
 class Knob:
     """One numerical setting of the study: the `fishsim simulate` key, its values from coarse to
     fine (``finer``: "up" when a larger value is finer, "down" when smaller is, e.g. a kernel
-    width), the shipped default (its error is reported), an optional episode length of its own
-    (a shorter episode for an expensive refinement), and optionally the overrides that run the
+    width), the shipped default (its error is reported; None: a setting of another scheme than
+    the default's, run with ``base``), an optional episode length of its own (a shorter episode
+    for an expensive refinement), the overrides every setting and the limit run with (``base``:
+    e.g. the split passes, ``fluid.implicit=false``), and optionally the overrides that run the
     knob's limit directly (``limit``: e.g. infinitely many passes, ``fluid.implicit=true``), the
     default's error against which is reported too."""
 
     key: str
     values: list[float]
-    default: float
+    default: float | None
     finer: str = "up"
     frames: int | None = None
+    base: list[str] = field(default_factory=list)
     limit: list[str] = field(default_factory=list)
 
     def override(self, value: float) -> str:
@@ -83,8 +86,10 @@ class Knob:
 
 
 def _knobs() -> dict[str, Knob]:
-    return {"substeps": Knob("fluid.substeps", [4, 8, 16], 8),
-            "penalization": Knob("fluid.penalization_iterations", [1, 3, 9], 3, limit=["fluid.implicit=true"]),
+    split = ["fluid.implicit=false", "fluid.substeps=8"]
+    return {"substeps": Knob("fluid.substeps", [2, 4, 8], 4),
+            "penalization": Knob("fluid.penalization_iterations", [1, 3, 9], None, base=split,
+                                 limit=["fluid.implicit=true"]),
             "kernel": Knob("coupling.sigma_prime", [2.5e-5, 1.25e-5, 6.25e-6], 6.25e-6, finer="down"),
             "grid": Knob("fluid.refinement", [1, 2], 1),
             "grid_short": Knob("fluid.refinement", [1, 2, 4], 1, frames=30),

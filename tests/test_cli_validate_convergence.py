@@ -37,9 +37,9 @@ def test_validate_convergence_small(tmp_path):
     cfg = load_config("validate", ["suite=convergence", "convergence.frequencies=[6]", "convergence.frames=6",
                                    f"out_dir={tmp_path}"])
     cfg.convergence.overrides = SMALL
-    cfg.convergence.knobs = {"substeps": Knob("fluid.substeps", [2, 4, 8], 4),
-                             "penalization": Knob("fluid.penalization_iterations", [1, 3], 3, frames=4,
-                                                  limit=["fluid.implicit=true"]),
+    cfg.convergence.knobs = {"substeps": Knob("fluid.substeps", [2, 4, 8], 4, limit=["fluid.substeps=16"]),
+                             "penalization": Knob("fluid.penalization_iterations", [1, 3], None, frames=4,
+                                                  base=["fluid.implicit=false"], limit=["fluid.implicit=true"]),
                              "grid": Knob("fluid.refinement", [1, 2], 1, frames=4),
                              "frame_step": Knob("h", [0.01, 0.005], 0.01, finer="down", frames=4)}
     run(cfg)
@@ -47,9 +47,13 @@ def test_validate_convergence_small(tmp_path):
     assert np.asarray(m["substeps"]["displacement_mm"]).shape == (3, 1)
     assert len(m["substeps"]["default_error_vs_finest"]) == 1 and m["grid"]["frames"] == 4
     assert m["frame_step"]["episode_frames"] == [4, 8] and m["grid"]["episode_frames"] == [4, 4]   # the same 0.04 s
-    limit = m["penalization"]["limit"]
-    error = (m["penalization"]["displacement_mm"][1][0] - limit["displacement_mm"][0]) / abs(limit["displacement_mm"][0])
-    assert m["penalization"]["default_error_vs_limit"][0] == pytest.approx(error) and "limit" not in m["grid"]
+    limit = m["substeps"]["limit"]
+    error = (m["substeps"]["displacement_mm"][1][0] - limit["displacement_mm"][0]) / abs(limit["displacement_mm"][0])
+    assert m["substeps"]["default_error_vs_limit"][0] == pytest.approx(error) and "limit" not in m["grid"]
+    passes = m["penalization"]            # the split passes (base) against the default joint stage (limit)
+    assert passes["limit"]["overrides"] == ["fluid.implicit=false", "fluid.implicit=true"]
+    assert passes["displacement_mm"][1] != passes["limit"]["displacement_mm"]
+    assert "default_error_vs_finest" not in passes and "default_error_vs_limit" not in passes
     assert (tmp_path / "convergence.png").exists()
 
 

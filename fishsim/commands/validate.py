@@ -72,11 +72,13 @@ def run_convergence(cfg: ValidateConfig) -> dict:
         table.add_column(escape(label), justify="left" if label == "knob" else "right")
     fmt = lambda row: " / ".join(f"{v:.1f}" for v in row)
     for name, r in results.items():
+        if r["base"]:
+            table.add_row(name, "with " + " ".join(r["base"]), "", "", "")
         for i, v in enumerate(r["values"]):
             mark = " (default)" if v == r["default"] else ""
             if r["episode_frames"][i] != r["frames"]:
                 mark += f" ({r['episode_frames'][i]} frames)"
-            table.add_row(name if i == 0 else "", f"{r['key']}={v:g}{mark}", fmt(r["displacement_mm"][i]),
+            table.add_row(name if i == 0 and not r["base"] else "", f"{r['key']}={v:g}{mark}", fmt(r["displacement_mm"][i]),
                           fmt(r["mean_thrust_mN"][i]), f"{r['wall_s'][i]:.0f}")
         o = r["displacement"]
         table.add_row("", "observed order p", " / ".join(f"{p:.2f}" for p in o["order"]), "", "")

@@ -186,10 +186,12 @@ def plot_convergence(results: Mapping[str, Mapping], frequencies: Sequence[float
                 ax.axhline(100 * (r["limit"]["displacement_mm"][j] / base[j] - 1), color=line.get_color(),
                            linestyle="-.", linewidth=0.8,
                            label=f"limit: {' '.join(r['limit']['overrides'])}" if j == 0 else None)
-        ax.axvline(r["default"], color="0.5", linestyle=":", label="default")
+        if r["default"] is not None:
+            ax.axvline(r["default"], color="0.5", linestyle=":", label="default")
         ax.set_xscale("log")
         same = len(set(r.get("episode_frames", [r["frames"]]))) == 1
-        ax.set_xlabel(f"{r['key']} ({r['frames']} frames{'' if same else ' at the default: the same duration'})")
+        runs_with = f", {' '.join(r['base'])}" if r.get("base") else ""
+        ax.set_xlabel(f"{r['key']} ({r['frames']} frames{runs_with}{'' if same else ' at the default: the same duration'})")
         ax.set_ylabel("head x displacement vs default [%]")
         ax.set_title(name)
         ax.grid(alpha=0.3)
