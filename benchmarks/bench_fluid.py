@@ -9,9 +9,10 @@ with wall bands; rho = 50, mu = 0.125 mPa s.  The flow is warmed up for ``warmup
 threads as torch is configured.  Backward: gradient of the final kinetic energy w.r.t. the wave
 amplitude (through mask velocity) after one step.
 
-``kernel_parts()`` (part of ``run()``) times the compiled step's parts per call at B = 1 (the
-per-phase split of a numerical step: a frame at 8 sub-steps x 3 passes makes 16 predictor calls
-and 48 of each pass part). ``validation()`` (part of ``run()``, also callable alone) re-measures the validation figures of
+``bench_case`` times `fishsim simulate`'s numerical fluid (the joint stage at 4 sub-steps).
+``kernel_parts()`` (part of ``run()``) times the compiled split passes' parts per call at B = 1
+(``fluid.implicit=false``: a frame at 8 sub-steps x 3 passes makes 16 predictor calls and 48 of
+each pass part). ``validation()`` (part of ``run()``, also callable alone) re-measures the validation figures of
 tests/fluid (fishsim.fluid.cases) at stated resolutions, with their wall times: the Taylor-Green
 decay-rate error, the lid-driven cavity vs Ghia et al. (64 x 64), and the Re = 100 cylinder
 (Strouhal number, mean C_D, C_L amplitude) at the CI-reduced size and at a larger one, and on the
@@ -29,11 +30,14 @@ from functools import partial
 
 import torch
 
+from fishsim.config import NumericalConfig
 from fishsim.coupling.ibm import ibm_force
 from fishsim.fields import Boundary, FluidParams, FluidState, Grid
 from fishsim.fluid import cases
 from fishsim.fluid import grid as G
+from fishsim.fluid.factory import make_fluid, numerical_stepping
 from fishsim.fluid.numerical import NumericalFluid
+from fishsim.fluid.tank import TankConfig
 
 GRID = Grid(100, 300, 2.5e-3)
 LENGTH, FREQ, TAIL_SPEED = 0.1, 5.0, 0.5
@@ -81,7 +85,9 @@ def _developed(model: NumericalFluid, warmup: int) -> tuple[FluidState, torch.Te
 
 
 def bench_case(refinement: int, batch: int, warmup: int = 30, repeats: int = 3) -> dict:
-    model = NumericalFluid(GRID, refinement=refinement)
+    """ms per step of `fishsim simulate`'s numerical fluid (its config's defaults: the joint stage
+    at 4 sub-steps) at refinement r and batch B on the warmed-up fish flow."""
+    model = make_fluid(NumericalConfig(refinement=refinement), TankConfig(H=GRID.H, W=GRID.W, dx=GRID.dx))
     state, amp0 = _developed(model, warmup)
     state = type(state)(**{k: (v.expand(batch, *v.shape[1:]).contiguous() if torch.is_tensor(v) else v)
                           for k, v in vars(state).items()})
@@ -128,13 +134,15 @@ CYLINDER_LARGE = {"cells_per_d": 20, "length": 24.0, "width": 32.0, "x_centre": 
 
 
 # The same cylinder on the fish's grid and stepping: D = 2 cm in 2.5 mm cells (8 cells per D), h = 0.01 s at
-# U = 0.1 m/s (0.05 D/U), the fish's sub-steps and passes (NumericalFluid's defaults), float64.
+# U = 0.1 m/s (0.05 D/U), the fish's stepping (FISH_STEPPING, its rate in units of D / U), float64.
+FISH_STEPPING = numerical_stepping(NumericalConfig())
+"""``NumericalFluid`` keywords of `fishsim simulate`'s numerical fluid: the fish's stepping."""
 FISH_TIME_UNIT = 0.2
 """D / U [s] of the fish-grid cylinder (D = 2 cm, U = 0.1 m/s), whose case runs in units of D / U:
 the fish's penalisation rate (1/s) times this is the same rate in the case's time unit."""
 CYLINDER_FISH_GRID = {"cells_per_d": 8, "length": 24.0, "width": 32.0, "x_centre": 6.0, "t_end": 120.0, "window": 40.0,
                       "h": 0.05, "dtype": torch.float64,
-                      "stepping": {"penalization_rate": 2400.0 * FISH_TIME_UNIT}}   # the fish's 8 x 3 blend
+                      "stepping": {**FISH_STEPPING, "penalization_rate": FISH_STEPPING["penalization_rate"] * FISH_TIME_UNIT}}
 CYLINDER_FISH_GRID_16 = {**CYLINDER_FISH_GRID, "cells_per_d": 16}   # a 4 cm cylinder in the fish's 2.5 mm cells
 
 
@@ -173,7 +181,7 @@ def _oscillating(radius_cells: int) -> dict:
     t0 = time.perf_counter()
     kw = OSCILLATING_FISH_GRID
     probe = partial(coupling_heave, radius=radius_cells * kw["dx"], mu=kw["mu"])
-    res = cases.oscillating_cylinder(radius_cells, **kw, probe=probe)
+    res = cases.oscillating_cylinder(radius_cells, **kw, probe=probe, stepping=FISH_STEPPING)
     reference = res.stokes_wang * res.confinement
     return {"resolution": f"{2 * radius_cells} cells per D, {kw['box_cells']}^2 cells of {kw['dx']:g} m, fish stepping",
             "beta": res.beta, "stokes_wang_times_confinement": reference,

@@ -205,15 +205,16 @@ class NumericalConfig(WaterConfig):
 
     refinement: internal grid dx / r and sub-steps h / r (1, 2 or 4).
     substeps: sub-steps per frame on the r = 1 grid (r times more on the refined one); a floor
-        that the CFL safety net raises per fish only for runaway speeds.
+        that the CFL safety net raises per fish. 4 with the joint stage (``implicit``): converged,
+        the gradient included (4 / 8 within 0.5 %; at 2 the displacement is, the gradient 27 %
+        off: fishsim/fluid/numerical.py). The split passes need 8 (``implicit=false``).
     cfl: the safety net's largest advective Courant number max|v| dt / dx per sub-step. 0.8 keeps
-        8 sub-steps up to 1.6 m/s on the 2.5 mm grid: the frequency study's 7 Hz fish peaks at
-        1.14 m/s, which at 0.5 raised it to 9 sub-steps on 20 of 100 frames, each change a jump of
-        the frame map; the scheme stays stable beyond it (that fish ran 120 frames at 4 sub-steps,
-        Courant number 1.04).
-    penalization_iterations: penalize -> project passes per stage (K) of the split scheme. 3 with
-        8 sub-steps: within 0.2 % of 9 passes and 0.3 % of 16 sub-steps on the frequency study, for
-        ~1.2x a coupled frame's forward time of 2 passes (1.3-1.4x the fluid step's).
+        4 sub-steps up to 0.8 m/s on the 2.5 mm grid and 8 up to 1.6 m/s: the frequency study's
+        7 Hz fish peaks at 1.14 m/s and runs 4-6 sub-steps (per fish; one more or less moves it by
+        <= 0.2 % with the joint stage); the scheme stays stable to a Courant number ~1.
+    penalization_iterations: penalize -> project passes per stage (K) of the split scheme
+        (``implicit=false``). 3 with 8 sub-steps: within 0.2 % of 9 passes and 0.3 % of 16
+        sub-steps on the frequency study, 12 % short on a body three cells thick.
     penalization_rate: lambda_p (1/s) of the split scheme's blend, 1 - (1 - b)^(lambda_p dt / K) a
         pass: a band cell relaxes to the body at a rate independent of the sub-steps and grid, and
         the fish converges in both (2400: the blend is b itself at 8 x 3 of a 0.01 s frame; a body
@@ -221,10 +222,10 @@ class NumericalConfig(WaterConfig):
         any dt (the default until 2026-11-29), the band stiffening with K n.
     brinkman: lambda (1/s) of the rate penalisation solved jointly with the projection, which
         converges in sub-steps (fishsim/fluid/numerical.py); null: the split scheme.
-    implicit: solve each stage's penalisation at penalization_rate and its projection jointly,
-        the passes' limit (K -> infinity; converged in sub-steps from n = 1, thin bodies
-        included), by a PCG solve a stage (with fluid.substeps=2: ~1.5x the passes' time on the
-        frequency study); false: penalization_iterations passes.
+    implicit: solve each stage's penalisation at penalization_rate and its projection jointly
+        (the default), the passes' limit (K -> infinity; converged in sub-steps, thin bodies
+        included), by a PCG solve a stage (at 4 sub-steps ~1.6-1.9x the 8 x 3 passes' time on
+        the frequency study); false: penalization_iterations split passes.
     scheme: advection interpolation, "koren" (third order, TVD limited by min/max: a
         piecewise-smooth frame map) | "albada" (second order, van Albada limiter and upwinding
         written as smooth functions: smoother gradients; fishsim.fluid.grid.albada).
@@ -232,12 +233,12 @@ class NumericalConfig(WaterConfig):
 
     model: str = "numerical"
     refinement: int = 1
-    substeps: int = 8
+    substeps: int = 4
     cfl: float = 0.8
     penalization_iterations: int = 3
     penalization_rate: float | None = 2400.0
     brinkman: float | None = None
-    implicit: bool = False
+    implicit: bool = True
     scheme: str = "koren"
 
     def validate(self, key: str = "fluid") -> None:
@@ -253,8 +254,8 @@ class NumericalConfig(WaterConfig):
         _require(self.brinkman is None or self.brinkman > 0,
                  f"{key}.brinkman must be > 0 (1/s) or null (got {self.brinkman})")
         _require(not self.implicit or (self.penalization_rate is not None and self.brinkman is None),
-                 f"{key}.implicit=true solves for {key}.penalization_rate: set it (not null) and leave "
-                 f"{key}.brinkman null")
+                 f"{key}.implicit=true (the default) solves for {key}.penalization_rate: set it (not null) "
+                 f"and leave {key}.brinkman null, or add {key}.implicit=false for the split schemes")
 
 
 @dataclass

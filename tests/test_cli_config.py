@@ -93,20 +93,22 @@ def test_config_files_of_either_layout_and_any_fluid_load(tmp_path):
 
 def test_penalization_rate_is_positive_or_null():
     assert load_config("simulate", []).fluid.penalization_rate == 2400
-    assert load_config("simulate", ["fluid.penalization_rate=null"]).fluid.penalization_rate is None
+    split = ["fluid.implicit=false"]
+    assert load_config("simulate", [*split, "fluid.penalization_rate=null"]).fluid.penalization_rate is None
     with pytest.raises(ConfigError, match=r"fluid.penalization_rate must be > 0 \(1/s\) or null"):
         load_config("simulate", ["fluid.penalization_rate=0"])
 
 
 def test_implicit_needs_the_rate_and_no_brinkman():
-    assert load_config("simulate", ["fluid.implicit=true"]).fluid.implicit is True
+    assert load_config("simulate", []).fluid.implicit is True
     for bad in ("fluid.penalization_rate=null", "fluid.brinkman=1e4"):
-        with pytest.raises(ConfigError, match=r"fluid.implicit=true solves for fluid.penalization_rate"):
-            load_config("simulate", ["fluid.implicit=true", bad])
+        with pytest.raises(ConfigError, match=r"fluid.implicit=true \(the default\) solves for "
+                                              r"fluid.penalization_rate.*add fluid.implicit=false"):
+            load_config("simulate", [bad])
 
 
 def test_brinkman_is_positive_or_null():
-    assert load_config("simulate", ["fluid.brinkman=1e4"]).fluid.brinkman == 1e4
+    assert load_config("simulate", ["fluid.implicit=false", "fluid.brinkman=1e4"]).fluid.brinkman == 1e4
     with pytest.raises(ConfigError, match=r"fluid.brinkman must be > 0 \(1/s\) or null"):
         load_config("simulate", ["fluid.brinkman=-5"])
 

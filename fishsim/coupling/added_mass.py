@@ -31,14 +31,18 @@ an M^ far above M + M_a (e.g. lumped on the light surface nodes, where tangentia
 added mass) acts as negative damping.
 
 M^ = ratio * M node by node (``SolidModel(..., added_mass_ratio=)``; isotropic, so the PD
-matrices keep their per-axis structure and are still factorised once).  Default ratio = 5:
-inside both fluids' heave windows (numerical 3.2 <= M^/M <= 8.4, HydroNet 2.35 <= M^/M <= 6.7).
-It is above the surge window's mass-spring bound (M^/M <= 1.08), but a free surge mode (no
-spring) only relaxes: a_t+1 = (M^ - M_a)/(M + M^) a_t + f/(M + M^), a low-pass of the thrust's
-2f oscillation that keeps its mean.  The ratio is not a free knob: the lag it leaves,
-(M^ - M_a)(a_t - a_t+1), is O(h) but not small at 5-7 Hz (omega h = 0.3-0.44); on the
-numerical fluid's 120-frame frequency study (3 / 5 / 7 Hz) ratios 2.5 / 3.5 / 5 / 6.5 give
-25.9-25.3 / 73.0-73.6 / 134-149 mm: within 2.5 % at 3 and 5 Hz, 11 % at 7 Hz (README).
+matrices keep their per-axis structure and are still factorised once).  Default ratio = 7: the
+fish's heave added mass is 9.2 M with the numerical fluid's joint stage (9.0 M with the former
+8 x 3 passes, 10.2 M with HydroNet), a window of 4.1 <= M^/M <= 10.2 by the bound above, but the
+light tail sits nearer its edge: the 7 Hz fish's lateral force carries 44 / 9.6 / 4.6 % of its
+energy above 35 Hz at ratios 5 / 6 / 7 (frames 30-80; 7.6 % at 8, 3.8 % at 9), HydroNet's 0.2 /
+0.5 / 1.0 % at 5 / 7 / 9 (tests/test_rollout.py). It is above the surge window's mass-spring
+bound (M^/M <= 1.08), but a free surge mode (no spring) only relaxes: a_t+1 = (M^ - M_a)/(M + M^)
+a_t + f/(M + M^), a low-pass of the thrust's 2f oscillation that keeps its mean.  The ratio is not
+a free knob: the lag it leaves, (M^ - M_a)(a_t - a_t+1), is O(h) but not small at 5-7 Hz (omega h
+= 0.3-0.44); on the numerical fluid's 120-frame frequency study (3 / 5 / 7 Hz, joint stage at 2
+sub-steps) ratios 5 / 6 / 7 / 8 / 10 move the 7 Hz fish 237.2 / 242.8 / 245.5 / 252.6 / 263.5 mm
+and the 3 and 5 Hz ones by < 1 %. ``coupling.subiterations`` converges it away (fishsim.rollout).
 """
 
 from __future__ import annotations

@@ -57,7 +57,9 @@ class CouplingConfig:
         steps = 0.2 s, the controller's activation ramp t_a.
     added_mass_ratio: the added-mass stabilisation's M^ / M (fishsim.coupling.added_mass);
         0 switches it off (plain explicit coupling, unstable for this light fish at the
-        calibrated stroke).  Stable for (M_a - M) / 2 <= M^ <= M + M_a in every mode.
+        calibrated stroke).  Stable for (M_a - M) / 2 <= M^ <= M + M_a in every mode. Default 7:
+        the least at which the 7 Hz fish's lateral force is clean with the numerical fluid's
+        joint stage (fishsim/coupling/added_mass.py).
         Per node with per-node forces; on the translation with averaged ones.
     subiterations: passes of the fluid-solid exchange a frame (1: the explicit coupling). Each
         further pass re-steps the fluid from frame t with the body at the solid's estimate of
@@ -65,9 +67,11 @@ class CouplingConfig:
         (fishsim.rollout.Swimmer.subiterate): the fixed point M a = F(body_t+1) no longer
         contains M^, whose lag moves the explicit coupling's 7 Hz fish by ~1.2 % per unit of
         the ratio (docs/validation.md, "The frame step"). Each pass costs a fluid step and a
-        solid step; the passes converge slowly (on the frequency study at ratio 7, 2-4 passes
-        are worse than 1 and 8 still move by ~2 % from 6); per-node forces and
-        added_mass_ratio > 0 only.
+        solid step; with the split passes (fluid.implicit=false) they converge slowly (on the
+        frequency study at ratio 7, 2-4 passes are worse than 1 and 8 still move by ~2 % from
+        6), with the default joint stage they do not settle within 16 (the 7 Hz fish, 60
+        frames, ratios 6 / 8: 0.42 % apart explicit, 0.40 % at 8 passes, 0.56 % at 16);
+        per-node forces and added_mass_ratio > 0 only.
     k_nearest: surface elements kept per cell (their soft-min is tapered to zero at the
         (K + 1)-th, fishsim.coupling.mask.softmin_weights). On the default graded fish (292
         surface segments, 0.35 mm at the tail tip) after 30 frames at 5 Hz, against all segments:
@@ -90,7 +94,7 @@ class CouplingConfig:
     force_mode: str = PER_NODE
     fix_lateral: bool = False
     n_burn_in: int = 20
-    added_mass_ratio: float = 5.0
+    added_mass_ratio: float = 7.0
     subiterations: int = 1
     k_nearest: int = 24
 

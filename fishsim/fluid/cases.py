@@ -265,8 +265,9 @@ def oscillating_cylinder(
     probe: Callable[[Grid, FluidState, Boundary, tuple[float, float], tuple[float, float]], Tensor] | None = None,
 ) -> OscillatingCylinder:
     """A rigid cylinder oscillating across still fluid, y(t) = y0 - A cos(w t), from rest, in a
-    closed square box of ``box_cells``^2 cells of ``dx`` [m] (walls two cells thick), on the fish's
-    stepping by default (``NumericalFluid``'s defaults; h [s] a frame).
+    closed square box of ``box_cells``^2 cells of ``dx`` [m] (walls two cells thick), stepped
+    with ``stepping`` (``NumericalFluid`` keywords; default its own defaults; h [s] a frame; the
+    fish's: ``fishsim.fluid.factory.numerical_stepping`` of the numerical fluid's config).
 
     The hydrodynamic force on the body is the penalisation force within 2 R of the centre plus
     rho V dv_d/dt, the momentum put into the fluid inside the disc.  Its part in phase with the

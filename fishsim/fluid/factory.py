@@ -17,6 +17,15 @@ def fluid_dtype(cfg) -> torch.dtype:
     return getattr(torch, cfg.dtype)
 
 
+def numerical_stepping(cfg) -> dict:
+    """The ``NumericalFluid`` keywords of a numerical fluid config (``NumericalConfig``) that set
+    its time stepping and penalisation: `fishsim simulate`'s stepping, also for the validation
+    cases run "on the fish's stepping" (fishsim.fluid.cases)."""
+    return {"substeps": cfg.substeps, "cfl": cfg.cfl, "penalization_iterations": cfg.penalization_iterations,
+            "scheme": cfg.scheme, "penalization_rate": cfg.penalization_rate, "brinkman": cfg.brinkman,
+            "implicit": cfg.implicit}
+
+
 def make_fluid(cfg, tank, device=None) -> FluidModel:
     """The ``FluidModel`` of a fluid config (fishsim.config.FLUID_MODELS; ``model=none``: the
     Vacuum) in the tank of a ``TankConfig``, on ``device``.
@@ -30,10 +39,7 @@ def make_fluid(cfg, tank, device=None) -> FluidModel:
     if cfg.model == "numerical":
         from fishsim.fluid.numerical import NumericalFluid
 
-        return NumericalFluid(tank.grid, refinement=cfg.refinement, substeps=cfg.substeps, cfl=cfg.cfl,
-                              penalization_iterations=cfg.penalization_iterations, scheme=cfg.scheme,
-                              penalization_rate=cfg.penalization_rate, brinkman=cfg.brinkman,
-                              implicit=cfg.implicit)
+        return NumericalFluid(tank.grid, refinement=cfg.refinement, **numerical_stepping(cfg))
     if cfg.model == "hydronet":
         from fishsim.fluid.hydronet import HydroNetFluid, load_hydronet
         from fishsim.fluid.pressure import RecoveryConfig

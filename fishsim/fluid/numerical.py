@@ -22,8 +22,9 @@ pass blends by
 the exact relaxation of dv/dt = -lambda_p ln(1 - b_f) (v_d - v) over dt / K, so that a band cell
 relaxes towards the body at a rate that does not depend on how the frame is cut into sub-steps and
 passes, nor on the grid's sub-steps (the core, b = 1, is set to v_d by every pass). The default
-lambda_p = 2400 1/s gives beta_f = b_f, bit for bit, at the default K = 3, n = 8 of a 0.01 s frame
-(``penalization_iterations``, ``substeps``). In the limit it is Brinkman-penalised Navier-Stokes
+lambda_p = 2400 1/s gives beta_f = b_f, bit for bit, at K = 3, n = 8 of a 0.01 s frame
+(``penalization_iterations``, ``substeps``; the split passes' settings, `fishsim simulate`'s
+default until the joint stage below replaced them on 2026-11-29). In the limit it is Brinkman-penalised Navier-Stokes
 with permeability 1 / (lambda_p ln(1 / (1 - b))); one pass leaves a slip inside the body (the
 projection's pressure gradient acts there too), which the next removes, and the answer converges
 once the passes do. On the paper's fish (120 frames) 4 / 8 / 16 sub-steps give 123.0 / 125.3 /
@@ -68,19 +69,23 @@ the limit K -> infinity of the passes (each of which relaxes exactly at that rat
 taken by implicit Euler instead of alternation, a discretisation of the same Brinkman-penalised
 PDE. It converges in sub-steps at once, thin bodies included: the 6 x 0.8 cm ellipse's added mass
 (sampled pressure) is 1.3679 / 1.3692 / 1.3699 / 1.3703 at n = 4 / 8 / 16 / 32, where the passes
-reach 1.362 / 1.369 only at K = 81, n = 8 / 32 (the default 8 x 3: 1.200), and 1.3645 at n = 2;
-the paper's fish (120 frames, 3 / 5 / 7 Hz) swims 44.36 / 126.00 / 237.19 mm at n = 2, within 0.2 %
-of n = 1, 3, 4 and 8 and 0.5 / 0.2 / 1.5 % of the passes at 16 x 9. Its cost is a PCG solve a
-stage (~8 iterations to a relative residual of 1e-6 with the Schwarz preconditioner), compiled on
-the CPU with its adjoint (``kernels.SplitStep``).
+reach 1.362 / 1.369 only at K = 81, n = 8 / 32 (8 x 3: 1.200), and 1.3645 at n = 2; the
+paper's fish (120 frames, 3 / 5 / 7 Hz, added-mass ratio 5) swims 44.36 / 126.00 / 237.19 mm at
+n = 2, within 0.2 % of n = 1, 3, 4 and 8 and 0.5 / 0.2 / 1.5 % of the passes at 16 x 9. Its
+gradient needs n = 4: on a 60-frame fish d(head x)/d(f) is 1.3564 / 1.0838 / 1.0733 / 1.0721 e-2
+at n = 2 / 3 / 4 / 8 (the head x within 0.15 % at every n). `fishsim simulate` runs it at n = 4
+(``fluid.implicit``, ``fluid.substeps``). Its cost is a PCG solve a stage (~8 iterations to a
+relative residual of 1e-6 with the Schwarz preconditioner), compiled on the CPU with its adjoint
+(``kernels.SplitStep``).
 
 Sub-steps are per sample and fixed: n_b = max(r * substeps, the count that keeps sample b's
 advective Courant number max|v| dt / dx <= ``cfl`` and its diffusion number nu dt / dx^2 <=
-``diffusion``).  The Courant and diffusion bounds are a stability safety net that a normal
-swimming episode should never reach (the floor is the larger; `fishsim simulate` sets cfl = 0.8,
-which keeps 8 sub-steps up to 1.6 m/s on the 2.5 mm grid), so the frame map is a smooth function
-of the state (a count that changes with the parameters is a jump) and each sample's result is
-independent of its batch mates (a batch runs max n_b
+``diffusion``).  The Courant and diffusion bounds are a stability safety net (`fishsim simulate`
+sets cfl = 0.8: its 4 sub-steps hold up to 0.8 m/s on the 2.5 mm grid, and the frequency study's
+7 Hz fish, peaking at 1.14 m/s, runs 4-6). A count that changes with the parameters is a jump of
+the frame map, small where the stage is converged in the sub-steps (the joint stage: one more
+moves the fish by <= 0.2 %; the split passes' counts were kept fixed for this reason), and each
+sample's result is independent of its batch mates (a batch runs max n_b
 sub-steps; a sample that needs fewer keeps its state after its own n_b).
 The returned pressure is the one whose gradient the step applied, p = rho (phi1/2 + phi2) / dt
 averaged over the sub-steps (mean free), so (v, v', p) satisfy the IMEX momentum residual
