@@ -428,10 +428,10 @@ def require_sound(q: Tensor, qdot: Tensor, triangles: Tensor | None = None, grid
                                f"{x_hi:.3g}], y in [{y_lo:.3g}, {y_hi:.3g}] m): it "
                                "swam through a wall (the solid does not collide with the walls: start it farther "
                                "away with origin=..., or run fewer frames) or the coupling ran away (check "
-                               "coupling.added_mass_ratio, e.g. the default 7)")
+                               "coupling.added_mass_ratio, e.g. the default 6.5)")
     if speed > MAX_SPEED:
         raise SimulationBlowUp(f"a node moves at {speed:.3g} m/s (> {MAX_SPEED:g} m/s): the coupling ran away "
-                               "(check coupling.added_mass_ratio, e.g. the default 7)")
+                               "(check coupling.added_mass_ratio, e.g. the default 6.5)")
 
 
 def _frame_checks(q: Tensor, qdot: Tensor, triangles: Tensor | None = None) -> tuple:
@@ -466,7 +466,7 @@ def require_bounded_force(f_ext: Tensor, rho, length: float) -> None:
         b = int(torch.argmax(force / bound))
         raise SimulationBlowUp(f"the fluid pushes fish {b} with {float(force[b]):.3g} N/m (> rho U^2 L = "
                                f"{float(bound[min(b, len(bound) - 1)]):.3g} N/m at U = {MAX_SPEED:g} m/s): the "
-                               "coupling ran away (check coupling.added_mass_ratio, e.g. the default 7)")
+                               "coupling ran away (check coupling.added_mass_ratio, e.g. the default 6.5)")
 
 
 def require_finite(**fields: Tensor) -> None:

@@ -141,8 +141,8 @@ def convergence_study(cfg: ConvergenceStudyConfig, device: str = "cpu",
     """Each knob's settings run as one batched episode (identical runs shared); per knob the
     displacement and thrust per setting, their observed orders, Richardson estimates and the
     default's error against the finest setting and against the Richardson estimate; for a knob
-    with a ``limit``, that run ("limit": its overrides, displacement, thrust, wall time) and the
-    default's error against it."""
+    with a ``limit``, that run ("limit": its overrides, displacement, thrust, wall time; run after
+    the knob's ``base``, listed as "base") and the default's error against it."""
     cache: dict[tuple, dict] = {}
     results = {}
     for name, knob in cfg.knobs.items():
@@ -176,7 +176,7 @@ def convergence_study(cfg: ConvergenceStudyConfig, device: str = "cpu",
                     progress(f"{name} limit {' '.join(limit)}")
                 cache[key] = episode([*cfg.overrides, *limit], cfg.frequencies, frames, device)
             lim = cache[key]
-            entry["limit"] = {"overrides": limit, "displacement_mm": lim["displacement_mm"],
+            entry["limit"] = {"overrides": list(knob.limit), "displacement_mm": lim["displacement_mm"],
                               "mean_thrust_mN": lim["mean_thrust_mN"], "wall_s": lim["wall_s"],
                               "failures": lim["failures"]}
             if i is not None:

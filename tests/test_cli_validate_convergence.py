@@ -51,7 +51,7 @@ def test_validate_convergence_small(tmp_path):
     error = (m["substeps"]["displacement_mm"][1][0] - limit["displacement_mm"][0]) / abs(limit["displacement_mm"][0])
     assert m["substeps"]["default_error_vs_limit"][0] == pytest.approx(error) and "limit" not in m["grid"]
     passes = m["penalization"]            # the split passes (base) against the default joint stage (limit)
-    assert passes["limit"]["overrides"] == ["fluid.implicit=false", "fluid.implicit=true"]
+    assert passes["base"] == ["fluid.implicit=false"] and passes["limit"]["overrides"] == ["fluid.implicit=true"]
     assert passes["displacement_mm"][1] != passes["limit"]["displacement_mm"]
     assert "default_error_vs_finest" not in passes and "default_error_vs_limit" not in passes
     assert (tmp_path / "convergence.png").exists()

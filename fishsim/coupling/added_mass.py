@@ -31,12 +31,17 @@ an M^ far above M + M_a (e.g. lumped on the light surface nodes, where tangentia
 added mass) acts as negative damping.
 
 M^ = ratio * M node by node (``SolidModel(..., added_mass_ratio=)``; isotropic, so the PD
-matrices keep their per-axis structure and are still factorised once).  Default ratio = 7: the
-fish's heave added mass is 9.2 M with the numerical fluid's joint stage (9.0 M with the former
-8 x 3 passes, 10.2 M with HydroNet), a window of 4.1 <= M^/M <= 10.2 by the bound above, but the
-light tail sits nearer its edge: the 7 Hz fish's lateral force carries 44 / 9.6 / 4.6 % of its
-energy above 35 Hz at ratios 5 / 6 / 7 (frames 30-80; 7.6 % at 8, 3.8 % at 9), HydroNet's 0.2 /
-0.5 / 1.0 % at 5 / 7 / 9 (tests/test_rollout.py). It is above the surge window's mass-spring
+matrices keep their per-axis structure and are still factorised once).  Default ratio = 6.5:
+the fish's heave added mass is 9.2 M with the numerical fluid's joint stage (9.0 M with the
+former 8 x 3 passes, 10.2 M with HydroNet), a window of 4.1 <= M^/M <= 10.2 by the bound above,
+but the light tail sits nearer its edge: the 7 Hz fish's lateral force carries 40 / 9.6 / 5.0 /
+4.6 % of its energy above 35 Hz at ratios 5 / 6 / 6.5 / 7 (frames 30-80, 4 sub-steps; at 2
+sub-steps 7.6 % at 8, 3.8 % at 9), HydroNet's 0.2 / 0.5 / 1.0 % at 5 / 7 / 9
+(tests/test_rollout.py). The upper edge is the tangential modes' (M_a ~ 0: M^ <= M), which every
+ratio above 1 exceeds; its negative damping grows per second as h shrinks: at h = 0.0025 s the
+frequency study is sane at ratios 5 / 6 / 6.5 (44.9 / 112.8 / 225.6 to 46.0 / 114.6 / 228.0 mm at
+3 / 5 / 7 Hz) and wrong at 7 (92.7 / 157.7 / 266.9 mm, the 3 Hz fish twice as far; at h = 0.005
+ratio 9 fails so). A ratio normal to the surface alone would remove that edge. It is above the surge window's mass-spring
 bound (M^/M <= 1.08), but a free surge mode (no spring) only relaxes: a_t+1 = (M^ - M_a)/(M + M^)
 a_t + f/(M + M^), a low-pass of the thrust's 2f oscillation that keeps its mean.  The ratio is not
 a free knob: the lag it leaves, (M^ - M_a)(a_t - a_t+1), is O(h) but not small at 5-7 Hz (omega h

@@ -57,9 +57,9 @@ class CouplingConfig:
         steps = 0.2 s, the controller's activation ramp t_a.
     added_mass_ratio: the added-mass stabilisation's M^ / M (fishsim.coupling.added_mass);
         0 switches it off (plain explicit coupling, unstable for this light fish at the
-        calibrated stroke).  Stable for (M_a - M) / 2 <= M^ <= M + M_a in every mode. Default 7:
-        the least at which the 7 Hz fish's lateral force is clean with the numerical fluid's
-        joint stage (fishsim/coupling/added_mass.py).
+        calibrated stroke).  Stable for (M_a - M) / 2 <= M^ <= M + M_a in every mode. Default 6.5:
+        the 7 Hz fish's lateral force is clean with the numerical fluid's joint stage from ~6.5,
+        and at h = 0.0025 s ratio 7 already fails (fishsim/coupling/added_mass.py).
         Per node with per-node forces; on the translation with averaged ones.
     subiterations: passes of the fluid-solid exchange a frame (1: the explicit coupling). Each
         further pass re-steps the fluid from frame t with the body at the solid's estimate of
@@ -94,7 +94,7 @@ class CouplingConfig:
     force_mode: str = PER_NODE
     fix_lateral: bool = False
     n_burn_in: int = 20
-    added_mass_ratio: float = 7.0
+    added_mass_ratio: float = 6.5
     subiterations: int = 1
     k_nearest: int = 24
 
