@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from fishsim.config import NumericalConfig
+from benchmarks.bench_fluid import FISH_STEPPING
 from fishsim.coupling.ibm import ibm_force
 from fishsim.fields import Boundary, FluidParams, Grid
 from fishsim.fluid import grid as G
@@ -24,7 +24,6 @@ from fishsim.fluid.cases import (
     moving,
     oscillating_cylinder,
 )
-from fishsim.fluid.factory import numerical_stepping
 from fishsim.fluid.numerical import NumericalFluid
 
 D = torch.float64
@@ -191,7 +190,7 @@ def test_oscillating_cylinder_on_the_fish_grid_has_its_published_added_mass():
         qs = disc_polyline(*centre, R, 63)
         return ibm_force(qs, s.p, bd.mask, g, sigma_prime=g.dx**2).sum(1)[0, 1:]
 
-    res = oscillating_cylinder(8, 160, probe=ibm, stepping=numerical_stepping(NumericalConfig()))
+    res = oscillating_cylinder(8, 160, probe=ibm, stepping=FISH_STEPPING)
     reference = res.stokes_wang * res.confinement
     assert abs(res.exchange / reference - 1) < 0.05
     assert abs(res.probe[0] / reference - 1) < 0.10
