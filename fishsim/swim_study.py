@@ -138,23 +138,30 @@ def observed_order(values, d) -> dict:
 
 def convergence_study(cfg: ConvergenceStudyConfig, device: str = "cpu",
                       progress: Callable[[str], None] | None = None) -> dict:
-    """Each knob's settings run as one batched episode (identical runs shared); per knob the
+    """Each knob's settings run as one batched episode (runs of the same resolved config shared,
+    e.g. every knob's default, or a limit that is another knob's setting); per knob the
     displacement and thrust per setting, their observed orders, Richardson estimates and the
     default's error against the finest setting and against the Richardson estimate; for a knob
     with a ``limit``, that run ("limit": its overrides, displacement, thrust, wall time; run after
     the knob's ``base``, listed as "base") and the default's error against it."""
-    cache: dict[tuple, dict] = {}
+    cache: dict[str, dict] = {}
+
+    def run(what: str, overrides: list[str], frames: int) -> dict:
+        from fishsim.config import load_config
+
+        key = repr(load_config("simulate", [*cfg.overrides, *overrides, f"frames={frames}"]))
+        if key not in cache:
+            if progress:
+                progress(what)
+            cache[key] = episode([*cfg.overrides, *overrides], cfg.frequencies, frames, device)
+        return cache[key]
+
     results = {}
     for name, knob in cfg.knobs.items():
         frames = knob.frames or cfg.frames
-        runs, lengths = [], [knob.episode_frames(v, frames) for v in knob.values]
-        for v, n in zip(knob.values, lengths):
-            key = (knob.key, float(v), n, tuple(knob.base))
-            if key not in cache:
-                if progress:
-                    progress(f"{name} {knob.override(v)}")
-                cache[key] = episode([*cfg.overrides, *knob.base, knob.override(v)], cfg.frequencies, n, device)
-            runs.append(cache[key])
+        lengths = [knob.episode_frames(v, frames) for v in knob.values]
+        runs = [run(f"{name} {knob.override(v)}", [*knob.base, knob.override(v)], n)
+                for v, n in zip(knob.values, lengths)]
         d = np.array([r["displacement_mm"] for r in runs])
         f = np.array([r["mean_thrust_mN"] for r in runs])
         entry = {"key": knob.key, "values": list(knob.values), "default": knob.default, "base": list(knob.base),
@@ -170,12 +177,7 @@ def convergence_study(cfg: ConvergenceStudyConfig, device: str = "cpu",
             entry["default_error_vs_richardson"] = ((d[i] - rich) / np.abs(rich)).tolist()
         if knob.limit:
             limit = [*knob.base, *knob.limit]
-            key = (tuple(limit), frames)
-            if key not in cache:
-                if progress:
-                    progress(f"{name} limit {' '.join(limit)}")
-                cache[key] = episode([*cfg.overrides, *limit], cfg.frequencies, frames, device)
-            lim = cache[key]
+            lim = run(f"{name} limit {' '.join(limit)}", limit, frames)
             entry["limit"] = {"overrides": list(knob.limit), "displacement_mm": lim["displacement_mm"],
                               "mean_thrust_mN": lim["mean_thrust_mN"], "wall_s": lim["wall_s"],
                               "failures": lim["failures"]}

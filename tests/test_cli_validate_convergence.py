@@ -54,6 +54,8 @@ def test_validate_convergence_small(tmp_path):
     assert passes["base"] == ["fluid.implicit=false"] and passes["limit"]["overrides"] == ["fluid.implicit=true"]
     assert passes["displacement_mm"][1] != passes["limit"]["displacement_mm"]
     assert "default_error_vs_finest" not in passes and "default_error_vs_limit" not in passes
+    # one run per resolved config: the default at 4 frames serves three knobs (wall times shared)
+    assert m["grid"]["wall_s"][0] == m["frame_step"]["wall_s"][0] == passes["limit"]["wall_s"]
     assert (tmp_path / "convergence.png").exists()
 
 
