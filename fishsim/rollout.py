@@ -44,6 +44,7 @@ from fishsim.coupling import (
 )
 from fishsim.coupling.added_mass import mass_centroid, stabilise_translation, stabilising_force
 from fishsim.coupling.config import AVERAGE
+from fishsim.coupling.forces import burn_in_scale
 from fishsim.errors import ConfigError, SimulationBlowUp
 from fishsim.fields import Boundary, FluidModel, FluidParams, FluidState, Grid, all_finite
 from fishsim.fluid.grid import curl, faces_to_centres
@@ -240,11 +241,14 @@ class Swimmer:
         """Lumped nodal masses [N] (kg per unit depth) as ``like``'s dtype and device."""
         return torch.as_tensor(self.solid.fem.mass, dtype=like.dtype, device=like.device)
 
-    def added_mass_force(self, state: SwimState) -> Tensor | float:
-        """M^ a_t, the added-mass stabilisation's share of the force (0 without an estimate)."""
+    def added_mass_force(self, state: SwimState, step: int) -> Tensor | float:
+        """s M^ a_t, the added-mass stabilisation's share of the force in the frame ending at
+        ``step`` (0 without an estimate), scaled with the fluid's force by the burn-in's s
+        (``burn_in_scale``; fishsim.coupling.added_mass)."""
         if state.qdot_prev is None or self.added_mass is None:
             return 0.0
-        return stabilising_force(self.added_mass.to(state.q), state.qdot, state.qdot_prev, self.h)
+        scale = burn_in_scale(step, self.coupling.n_burn_in)
+        return scale * stabilising_force(self.added_mass.to(state.q), state.qdot, state.qdot_prev, self.h)
 
     def muscle_weights(self, params: SwimParams) -> tuple[Tensor, Tensor] | None:
         """(PD weights [n_act], top shares [n_act]) of the solid's muscle layer as functions of
@@ -317,7 +321,7 @@ class Swimmer:
             self.solid, (t + 1) * self.h, top_share=None if share is None else share.to(params.controller.C))
         solid_start = start.q if start is not None else (
             None if state.qdot_prev is None else predicted_start(state.q, state.qdot, state.qdot_prev, self.h))
-        q, qdot = pd_step(self.solid, state.q, state.qdot, contraction, f_ext + self.added_mass_force(state),
+        q, qdot = pd_step(self.solid, state.q, state.qdot, contraction, f_ext + self.added_mass_force(state, t + 1),
                           params.E, start=solid_start, muscle_weight=weight, cache=cache)
         for _ in range(1, self.coupling.subiterations if self.fluid.exerts_force else 1):
             clock.add("solid", t0, dev)
@@ -354,7 +358,8 @@ class Swimmer:
         fish, boundary = self.fish_and_boundary(estimate, alone=self.coupling.force == "exchange")
         fluid, f_ext = self.fluid_step(estimate, fish, boundary, params, t, None, mass, clock)
         t0, dev = time.perf_counter(), q.device
-        stabilising = stabilising_force(self.added_mass.to(q), qdot, state.qdot, self.h)
+        stabilising = burn_in_scale(t + 1, self.coupling.n_burn_in) * stabilising_force(
+            self.added_mass.to(q), qdot, state.qdot, self.h)
         q, qdot = pd_step(self.solid, state.q, state.qdot, contraction, f_ext + stabilising, params.E, start=q,
                           muscle_weight=weight, cache=cache)
         clock.add("solid", t0, dev)
@@ -428,10 +433,10 @@ def require_sound(q: Tensor, qdot: Tensor, triangles: Tensor | None = None, grid
                                f"{x_hi:.3g}], y in [{y_lo:.3g}, {y_hi:.3g}] m): it "
                                "swam through a wall (the solid does not collide with the walls: start it farther "
                                "away with origin=..., or run fewer frames) or the coupling ran away (check "
-                               "coupling.added_mass_ratio, e.g. the default 6.5)")
+                               "coupling.added_mass_ratio, e.g. the default 6.75)")
     if speed > MAX_SPEED:
         raise SimulationBlowUp(f"a node moves at {speed:.3g} m/s (> {MAX_SPEED:g} m/s): the coupling ran away "
-                               "(check coupling.added_mass_ratio, e.g. the default 6.5)")
+                               "(check coupling.added_mass_ratio, e.g. the default 6.75)")
 
 
 def _frame_checks(q: Tensor, qdot: Tensor, triangles: Tensor | None = None) -> tuple:
@@ -466,7 +471,7 @@ def require_bounded_force(f_ext: Tensor, rho, length: float) -> None:
         b = int(torch.argmax(force / bound))
         raise SimulationBlowUp(f"the fluid pushes fish {b} with {float(force[b]):.3g} N/m (> rho U^2 L = "
                                f"{float(bound[min(b, len(bound) - 1)]):.3g} N/m at U = {MAX_SPEED:g} m/s): the "
-                               "coupling ran away (check coupling.added_mass_ratio, e.g. the default 6.5)")
+                               "coupling ran away (check coupling.added_mass_ratio, e.g. the default 6.75)")
 
 
 def require_finite(**fields: Tensor) -> None:

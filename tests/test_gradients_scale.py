@@ -24,8 +24,8 @@ COMMON = ["frames=60", "params.frequency.lower=0.5", "params.frequency.upper=20"
 FLUIDS = {"numerical": ["fluid=numerical", "tank.H=48", "tank.W=144", "tank.dx=5e-3", "origin=[0.2,0.12]",
                         "coupling.sigma=2e-6", "coupling.xi=2e-6", "coupling.tau=2e-6", "coupling.sigma_prime=2.5e-5"],
           "hydronet": ["fluid=hydronet", "tank.H=48", "tank.W=144", "origin=[0.1,0.06]"]}
-F0 = 5.0                      # Hz; central differences at a 1e-5 relative step (the episode's J is
-                              # curved enough that 1e-4 is 0.16 % off, 1e-3 0.9 %)
+F0 = 5.0                      # Hz; the numerical fluid's central differences at a 1e-6 relative step
+                              # (the episode's J is curved enough that 1e-5 is 0.7 % off, 1e-4 0.9 %)
 STEPS = (1e-7, 1e-8)          # HydroNet's relative steps (its map is rough on coarser scales, below)
 
 
@@ -41,13 +41,13 @@ def autograd(pr: Problem, space: Space) -> float:
 
 @pytest.fixture(scope="module", params=list(FLUIDS))
 def reference(request):
-    """(fluid, float64 problem, its central differences at F0 in float64 (numerical: the 1e-5
+    """(fluid, float64 problem, its central differences at F0 in float64 (numerical: the 1e-6
     step; HydroNet: each of STEPS), the float64 autograd gradient on one thread), computed once
     for the tests below."""
     import numba
 
     pr, space = problem(request.param, "float64")
-    fd = central_differences(pr, space, F0, (1e-5,) if request.param == "numerical" else STEPS)
+    fd = central_differences(pr, space, F0, (1e-6,) if request.param == "numerical" else STEPS)
     before = torch.get_num_threads(), numba.get_num_threads()
     torch.set_num_threads(1)
     numba.set_num_threads(1)
@@ -60,11 +60,13 @@ def reference(request):
 
 
 def test_float64_gradient_matches_central_differences(reference):
-    """Within 1e-3 of every central difference computed. The numerical fluid: the 1e-5 step
-    (measured with the joint stage at 4 sub-steps and ratio 6.5, the defaults since 2026-11-29:
-    differences 1.13830 / 1.13958 / 1.13988 e-2 at steps 1e-4 / 1e-5 / 1e-6, autograd 1.13985e-2,
-    0.14 / 0.02 / 0.002 % from them; at ratio 7 the 1e-4 step was 3.7 % off, the map curved on
-    its scale. With the split passes (8 x 3) and the IBM weight "outside": 1.4481 / 1.4733 / 1.4710 / 1.4723 / 1.4875
+    """Within 1e-3 of every central difference computed. The numerical fluid: the 1e-6 step
+    (measured at the defaults since 2026-11-29, later: the joint stage at 4 sub-steps, ratio 6.75,
+    no force ramp: differences 1.27504 / 1.27776 / 1.28684 / 1.28671 e-2 at steps 1e-4 / 1e-5 /
+    1e-6 / 1e-7, autograd 1.28671e-2, 0.9 / 0.7 / 0.01 / 0.00004 % from them: the map is curved
+    on the 1e-5 step's scale; at ratio 6.5 with the paper's 20-frame force ramp 1.13830 / 1.13958 /
+    1.13988 e-2 at 1e-4 / 1e-5 / 1e-6, autograd 1.13985e-2; at ratio 7 the 1e-4 step was 3.7 %
+    off. With the split passes (8 x 3) and the IBM weight "outside": 1.4481 / 1.4733 / 1.4710 / 1.4723 / 1.4875
     e-2 at steps 1e-3 to 1e-7, autograd 1.4705e-2). HydroNet's map is rough on coarser scales (a ReLU network is
     piecewise linear, so a step crosses activation kinks): differences 9.4077 / 9.3503 / 9.3676 /
     9.3622 / 9.3698 e-3 at steps 1e-5 to 1e-9, autograd 9.3626e-3: 0.05 % and 0.003 % from the

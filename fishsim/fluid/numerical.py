@@ -72,9 +72,11 @@ PDE. It converges in sub-steps at once, thin bodies included: the 6 x 0.8 cm ell
 reach 1.362 / 1.369 only at K = 81, n = 8 / 32 (8 x 3: 1.200), and 1.3645 at n = 2; the
 paper's fish (120 frames, 3 / 5 / 7 Hz, added-mass ratio 5) swims 44.36 / 126.00 / 237.19 mm at
 n = 2, within 0.2 % of n = 1, 3, 4 and 8 and 0.5 / 0.2 / 1.5 % of the passes at 16 x 9. Its
-gradient converges slowly: on a 60-frame fish (5 mm cells, ratio 6.5) d(head x)/d(f) is
-1.0729 / 1.0924 / 1.1399 / 1.1989 / 1.2321 e-2 at n = 2 / 3 / 4 / 8 / 16 (the head x within 0.15 % at every n; at ratio 7 1.3564 / 1.0733 /
-1.0721 e-2 at n = 2 / 4 / 8). `fishsim simulate` runs it at n = 4
+gradient to a few per cent: on a 60-frame fish (5 mm cells) d(head x)/d(f) is 1.2867 / 1.2405 /
+1.2522 e-2 at n = 4 / 8 / 16 at the defaults (ratio 6.75, no force ramp); with the paper's
+20-frame ramp at ratio 6.5 1.0729 / 1.0924 / 1.1399 / 1.1989 / 1.2321 e-2 at n = 2 / 3 / 4 / 8 /
+16 (the head x within 0.15 % at every n), the ramp's frames outside the stabilisation's window
+(fishsim/coupling/config.py) making it sensitive. `fishsim simulate` runs it at n = 4
 (``fluid.implicit``, ``fluid.substeps``). Its cost is a PCG solve a stage (~8 iterations to a
 relative residual of 1e-6 with the Schwarz preconditioner), compiled on the CPU with its adjoint
 (``kernels.SplitStep``).
