@@ -241,14 +241,14 @@ class Swimmer:
         """Lumped nodal masses [N] (kg per unit depth) as ``like``'s dtype and device."""
         return torch.as_tensor(self.solid.fem.mass, dtype=like.dtype, device=like.device)
 
-    def added_mass_force(self, state: SwimState, step: int) -> Tensor | float:
-        """s M^ a_t, the added-mass stabilisation's share of the force in the frame ending at
-        ``step`` (0 without an estimate), scaled with the fluid's force by the burn-in's s
-        (``burn_in_scale``; fishsim.coupling.added_mass)."""
-        if state.qdot_prev is None or self.added_mass is None:
+    def added_mass_force(self, qdot: Tensor, qdot_prev: Tensor | None, step: int) -> Tensor | float:
+        """s M^ (qdot - qdot_prev) / h, the added-mass stabilisation's share of the force in the
+        frame ending at ``step`` (0 without an estimate), scaled with the fluid's force by the
+        burn-in's s (``burn_in_scale``; fishsim.coupling.added_mass)."""
+        if qdot_prev is None or self.added_mass is None:
             return 0.0
         scale = burn_in_scale(step, self.coupling.n_burn_in)
-        return scale * stabilising_force(self.added_mass.to(state.q), state.qdot, state.qdot_prev, self.h)
+        return scale * stabilising_force(self.added_mass.to(qdot), qdot, qdot_prev, self.h)
 
     def muscle_weights(self, params: SwimParams) -> tuple[Tensor, Tensor] | None:
         """(PD weights [n_act], top shares [n_act]) of the solid's muscle layer as functions of
@@ -321,7 +321,8 @@ class Swimmer:
             self.solid, (t + 1) * self.h, top_share=None if share is None else share.to(params.controller.C))
         solid_start = start.q if start is not None else (
             None if state.qdot_prev is None else predicted_start(state.q, state.qdot, state.qdot_prev, self.h))
-        q, qdot = pd_step(self.solid, state.q, state.qdot, contraction, f_ext + self.added_mass_force(state, t + 1),
+        stabilising = self.added_mass_force(state.qdot, state.qdot_prev, t + 1)
+        q, qdot = pd_step(self.solid, state.q, state.qdot, contraction, f_ext + stabilising,
                           params.E, start=solid_start, muscle_weight=weight, cache=cache)
         for _ in range(1, self.coupling.subiterations if self.fluid.exerts_force else 1):
             clock.add("solid", t0, dev)
@@ -358,8 +359,7 @@ class Swimmer:
         fish, boundary = self.fish_and_boundary(estimate, alone=self.coupling.force == "exchange")
         fluid, f_ext = self.fluid_step(estimate, fish, boundary, params, t, None, mass, clock)
         t0, dev = time.perf_counter(), q.device
-        stabilising = burn_in_scale(t + 1, self.coupling.n_burn_in) * stabilising_force(
-            self.added_mass.to(q), qdot, state.qdot, self.h)
+        stabilising = self.added_mass_force(qdot, state.qdot, t + 1)
         q, qdot = pd_step(self.solid, state.q, state.qdot, contraction, f_ext + stabilising, params.E, start=q,
                           muscle_weight=weight, cache=cache)
         clock.add("solid", t0, dev)
