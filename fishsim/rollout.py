@@ -332,7 +332,8 @@ class Swimmer:
         if self.fluid.exerts_force and self.coupling.force_mode == AVERAGE and state.qdot_prev is not None:
             free = (not self.hold[0], not self.hold[1])
             q, qdot = stabilise_translation(q, qdot, state.qdot, state.qdot_prev, mass,
-                                            self.coupling.added_mass_ratio, self.h, free)
+                                            self.coupling.added_mass_ratio, self.h, free,
+                                            burn_in_scale(t + 1, self.coupling.n_burn_in))
         if any(self.hold):
             q, qdot = hold_centroid(q, qdot, state.q, mass, self.hold)
         tunnel = self.tunnel_speed(state, f_ext, params.fluid.rho, mass) if self.tunnel else None

@@ -75,17 +75,18 @@ def mass_centroid(x: Tensor, mass: Tensor) -> Tensor:
 
 
 def stabilise_translation(q: Tensor, qdot: Tensor, qdot_t: Tensor, qdot_prev: Tensor, mass: Tensor,
-                          ratio: float, h: float, axes: tuple[bool, bool]) -> tuple[Tensor, Tensor]:
+                          ratio: float, h: float, axes: tuple[bool, bool], scale: float = 1.0) -> tuple[Tensor, Tensor]:
     """The added-mass stabilisation of the rigid translation along each axis flagged in ``axes``
     (x, y), applied after a solid step without M^ (module docstring).  The step gave the centroid
     velocity v' = v_c,t + h F / M; this returns (q, qdot) [B, N, 2] shifted rigidly so that
 
-        v_c,t+1 = v_c,t + ((v' - v_c,t) + ratio h a_c,t) / (1 + ratio),
+        v_c,t+1 = v_c,t + ((v' - v_c,t) + scale ratio h a_c,t) / (1 + ratio),
 
     q by h times the velocity shift (implicit Euler).  qdot_t, qdot_prev: the velocities of
-    frames t and t-1; mass [N].  Differentiable."""
+    frames t and t-1; mass [N]; scale: the force ramp's s, which scales M^ a_c,t with the fluid's
+    force (as per node).  Differentiable."""
     keep = torch.tensor(axes, dtype=q.dtype, device=q.device)
     v_new, v_t, v_prev = (mass_centroid(x, mass) for x in (qdot, qdot_t, qdot_prev))
-    target = v_t + ((v_new - v_t) + ratio * (v_t - v_prev)) / (1 + ratio)
+    target = v_t + ((v_new - v_t) + scale * ratio * (v_t - v_prev)) / (1 + ratio)
     shift = (target - v_new) * keep
     return q + h * shift, qdot + shift
