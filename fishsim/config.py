@@ -206,8 +206,8 @@ class NumericalConfig(WaterConfig):
     refinement: internal grid dx / r and sub-steps h / r (1, 2 or 4).
     substeps: sub-steps per frame on the r = 1 grid (r times more on the refined one); a floor
         that the CFL safety net raises per fish. 4 with the joint stage (``implicit``): the
-        displacement converged (4 / 8 within 0.22 %), its gradient not (7.5 % below 16 sub-steps'
-        on a 60-frame check: fishsim/fluid/numerical.py). The split passes need 8
+        displacement converged (4 / 8 within 0.2 %), its gradient to a few per cent (2.8 % from
+        16 sub-steps' on a 60-frame check: fishsim/fluid/numerical.py). The split passes need 8
         (``implicit=false``).
     cfl: the safety net's largest advective Courant number max|v| dt / dx per sub-step. 0.8 keeps
         4 sub-steps up to 0.8 m/s on the 2.5 mm grid and 8 up to 1.6 m/s: the frequency study's

@@ -144,11 +144,11 @@ def convergence_study(cfg: ConvergenceStudyConfig, device: str = "cpu",
     default's error against the finest setting and against the Richardson estimate; for a knob
     with a ``limit``, that run ("limit": its overrides, displacement, thrust, wall time; run after
     the knob's ``base``, listed as "base") and the default's error against it."""
+    from fishsim.config import load_config
+
     cache: dict[str, dict] = {}
 
     def run(what: str, overrides: list[str], frames: int) -> dict:
-        from fishsim.config import load_config
-
         key = repr(load_config("simulate", [*cfg.overrides, *overrides, f"frames={frames}"]))
         if key not in cache:
             if progress:

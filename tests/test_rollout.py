@@ -13,6 +13,7 @@ import torch
 
 from fishsim.config import load_config
 from fishsim.coupling import fluid_to_solid, solid_to_fluid
+from fishsim.coupling.added_mass import stabilise_translation
 from fishsim.coupling.config import CouplingConfig
 from fishsim.episode import batch_params, build_episode
 from fishsim.errors import ConfigError, SimulationBlowUp
@@ -292,8 +293,6 @@ def test_burn_in_scales_the_stabilising_force_with_the_fluids():
     torch.testing.assert_close(sw.added_mass_force(qdot, rest, 1), 0.25 * full, rtol=1e-12, atol=0)
     torch.testing.assert_close(sw.added_mass_force(qdot, rest, 9), full, rtol=0, atol=0)
     # averaged forces: the translation's M^ a_c,t is scaled alike (no fluid force: the shift is it)
-    from fishsim.coupling.added_mass import stabilise_translation
-
     mass = sw.node_mass(qdot)
     shift = [stabilise_translation(state.q, qdot, qdot, rest, mass, 6.75, 0.01, (True, True), s)[1] - qdot
              for s in (1.0, 0.25)]

@@ -54,15 +54,9 @@ class CouplingConfig:
     force_mode: "per_node" (free swimming) | "average" (paper's optimisation mode).
     fix_lateral: drop the y force ("x-axis fixed", paper Sec. 4.4).
     n_burn_in: the fluid's force and the stabilisation's M^ a_t are scaled by s = min(1, t /
-        n_burn_in) (paper Sec. 3.4: the force alone, 20 frames); 0 (the default): not scaled.
-        Scaling the force alone scales the fluid's added mass M_a by s while the solid keeps
-        M^, which leaves the stabilisation's window M^ <= M + s M_a for s < (ratio - 1) M / M_a
-        (the first ~12 of 20 frames for the fish's heave, M_a = 9.2 M, at ratio 6.5): measured
-        (numerical fluid, 3 / 5 / 7 Hz, 120 frames' duration) at h = 0.0025 s a ramp of 0.2 s
-        sent the 3 Hz fish 154 mm instead of 45, and d(head x)/d(f) of the 60-frame gradient
-        problem moved 8 % from 4 to 16 sub-steps (1.5 % without a ramp). Scaling M^ a_t too
-        keeps the window (the solid then starts as heavy as M + M^); no ramp is needed: the
-        controller's activation already ramps over t_a = 0.2 s from rest.
+        n_burn_in) (paper Sec. 3.4: the force alone, 20 frames); 0 (the default): not scaled,
+        the controller's activation already ramps over t_a = 0.2 s from rest. Why M^ a_t is
+        scaled too and why the default has no ramp: fishsim/coupling/added_mass.py.
     added_mass_ratio: the added-mass stabilisation's M^ / M (fishsim.coupling.added_mass);
         0 switches it off (plain explicit coupling, unstable for this light fish at the
         calibrated stroke).  Stable for (M_a - M) / 2 <= M^ <= M + M_a in every mode. Default
