@@ -241,6 +241,15 @@ class BandLayout:
         self.rows, self.cols = -(-n // 4) * 4, self.width + 4               # the padded band
 
     @classmethod
+    def ordered(cls, perm: np.ndarray, width: int) -> BandLayout:
+        """The layout of a band its caller assembled itself (row k is row perm[k] of K, half-bandwidth
+        ``width``): what the solves need, without the CSR entries' places."""
+        layout = cls.__new__(cls)
+        layout.perm, layout.inverse, layout.width = perm, np.argsort(perm), int(width)
+        layout.rows, layout.cols = -(-len(perm) // 4) * 4, layout.width + 4
+        return layout
+
+    @classmethod
     def of(cls, indptr: np.ndarray, indices: np.ndarray) -> BandLayout:
         """The layout of a canonical CSR (or, symmetric, CSC) pattern (cached)."""
         key = (indptr.tobytes(), indices.tobytes())
