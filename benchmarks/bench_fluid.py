@@ -10,7 +10,8 @@ threads as torch is configured.  Backward: gradient of the final kinetic energy 
 amplitude (through mask velocity) after one step.
 
 ``bench_case`` times `fishsim simulate`'s numerical fluid (the joint stage at 4 sub-steps).
-``kernel_parts()`` (part of ``run()``) times the compiled split passes' parts per call at B = 1
+``joint_parts()`` (part of ``run()``) times the default joint stage's compiled parts per call at
+B = 1; ``kernel_parts()`` (part of ``run()``) the compiled split passes' parts
 (``fluid.implicit=false``: a frame at 8 sub-steps x 3 passes makes 16 predictor calls and 48 of
 each pass part). ``validation()`` (part of ``run()``, also callable alone) re-measures the validation figures of
 tests/fluid (fishsim.fluid.cases) at stated resolutions, with their wall times: the Taylor-Green
@@ -285,10 +286,71 @@ def kernel_parts(warmup: int = 30, repeats: int = 200) -> dict:
         return {f"{name}_ms": min(_time(fn, repeats) for _ in range(5)) for name, fn in parts.items()}
 
 
+def joint_parts(warmup: int = 30, repeats: int = 50) -> dict:
+    """ms per call of the default stage's compiled parts (the joint penalisation + projection,
+    fishsim/fluid/kernels.py and pressure.py) on the warmed-up fish flow of ``bench_case``, B = 1,
+    one thread, best of 5 means, with the arguments one step passes them: a frame at n sub-steps
+    (``substeps``) makes one ``subdomain`` set-up (the Schwarz preconditioner's S and its banded
+    factor), 2 n predictor calls and 2 n joint solves (``immerse``: a PCG of ``pcg_iterations``
+    iterations, each a preconditioner call, symmetric multiplicative Schwarz: two banded solves on
+    S, one DCT Poisson solve, two passes of A = -div(c grad .) over the field, and one more pass
+    of A); the backward as many predictor adjoints and adjoint solves. ``frame_forward_ms`` adds
+    the parts up to a forward step."""
+    import numpy as np
+
+    from fishsim.fluid import kernels as K
+    from fishsim.fluid import pressure as P
+    from fishsim.linalg.dct import inverse_sample
+
+    model = make_fluid(NumericalConfig(), TankConfig(H=GRID.H, W=GRID.W, dx=GRID.dx))
+    state, amp = _developed(model, warmup)
+    calls, original = [], K._sample_immersed_steps             # one step's arguments, as it passes them
+    K._sample_immersed_steps = lambda *args: calls.append(args) or original(*args)
+    try:
+        with torch.no_grad():
+            model.step(state, fish_boundary(GRID, warmup * 0.01, amp), _params(1))
+    finally:
+        K._sample_immersed_steps = original
+    (vx, vy, sx, sy, dx_, dy_, cx, cy, a, nu, dt, count, inv_dx, walls, pivots, pdx, *solver, tol,
+     max_iter) = calls[0][:24]
+    cells, band, width, perm, inverse, _ = solver
+    wx, wy, gx, gy = np.empty_like(vx), np.empty_like(vy), np.zeros_like(vx), np.zeros_like(vy)
+    K._sample_forward(vx, vy, nu, dt, inv_dx, walls, wx, wy)
+    phi, px, py = np.zeros(cx.shape[:1] + cy.shape[1:], vx.dtype), np.zeros_like(vx), np.zeros_like(vy)
+    f = np.random.default_rng(0).standard_normal(phi.shape).astype(vx.dtype)
+    f -= f.mean()
+    inv_dx2 = vx.dtype.type(inv_dx * inv_dx)
+    z, t = np.empty_like(f), np.empty_like(f)
+    iterations = P._pcg_sample(cx, cy, f, np.zeros_like(f), inv_dx2, pivots, pdx, *solver, tol, max_iter)
+    gs = [np.zeros_like(c) for c in (vx, vy, vx, vy)]
+    parts = {
+        "subdomain": lambda: P.subdomain(cx.astype(np.float64), cy.astype(np.float64), 1 / inv_dx),
+        "predictor": lambda: K._sample_forward(vx, vy, nu, dt, inv_dx, walls, wx, wy),
+        "predictor_adjoint": lambda: K._sample_backward(vx, vy, nu, dt, inv_dx, walls, vx, vy, gx, gy, False, False),
+        "immerse": lambda: K._immerse_sample(wx, wy, sx, sy, dx_, dy_, cx, cy, a, inv_dx, pivots, pdx, *solver, tol,
+                                             max_iter, phi.copy(), px, py),
+        "immerse_adjoint": lambda: K._immerse_adjoint_sample(vx, vy, np.zeros_like(phi), px, py, wx, wy, phi, sx, sy,
+                                                             dx_, dy_, cx, cy, a, inv_dx, pivots, pdx, *solver, tol,
+                                                             max_iter, *gs),
+        "pcg_iteration": lambda: (P._precondition_sample(cx, cy, f, inv_dx2, pivots, pdx, *solver, z, t),
+                                  P._apply_sample(cx, cy, z, inv_dx2, t)),
+        "banded_solve_on_S": lambda: P._local_sample(f, cells, band, width, perm, inverse, z),
+        "dct_poisson_solve": lambda: inverse_sample(f, pivots, pdx),
+        "apply_A": lambda: P._apply_sample(cx, cy, f, inv_dx2, t),
+    }
+    with _threads(1):
+        out = {f"{name}_ms": min(_time(fn, repeats) for _ in range(5)) for name, fn in parts.items()}
+    out.update(substeps=int(count), subdomain_cells=len(cells), half_bandwidth=int(width),
+               pcg_iterations=int(iterations),
+               frame_forward_ms=out["subdomain_ms"] + 2 * int(count) * (out["predictor_ms"] + out["immerse_ms"]))
+    return out
+
+
 def run() -> dict:
     """All cases (the r = 2, B = 16 forward + backward: 14 s per step on the 2-core CPU)."""
     out = {"grid": f"{GRID.H}x{GRID.W}", "threads": torch.get_num_threads()}
     out["kernel_parts_B1"] = kernel_parts()
+    out["joint_parts_B1"] = joint_parts()
     for r in (1, 2):
         for batch in (1, 16):
             out[f"r{r}_B{batch}"] = bench_case(r, batch)
