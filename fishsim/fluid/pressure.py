@@ -212,12 +212,12 @@ def _subdomain_cells(wx, wy, threshold, overlap):
 
 
 @jit
-def _cuthill_mckee(seed, cells, index, degree, W, order, placed, depth, m):
+def _cuthill_mckee(seed, cells, index, degree, order, placed, depth, m):
     """Cuthill-McKee from ``seed``: breadth-first over S's cells (neighbours by faces, each cell's
     new neighbours by rising degree), appended to order from m, with each cell's depth (levels
     from seed); returns the new m. placed marks the cells ordered so far (all of seed's component
     on return)."""
-    H = index.shape[0]
+    H, W = index.shape
     placed[seed] = True
     depth[seed] = 0
     order[m] = seed
@@ -245,7 +245,7 @@ def _cuthill_mckee(seed, cells, index, degree, W, order, placed, depth, m):
 
 
 @jit
-def _peripheral(seed, cells, index, degree, W):
+def _peripheral(seed, cells, index, degree):
     """A pseudo-peripheral cell of seed's component (George and Liu): move to a cell of least
     degree in the last level of a breadth-first search from the current one while the number of
     levels grows."""
@@ -254,7 +254,7 @@ def _peripheral(seed, cells, index, degree, W):
     levels = -1
     while True:
         placed[:] = False
-        m = _cuthill_mckee(seed, cells, index, degree, W, order, placed, depth, 0)
+        m = _cuthill_mckee(seed, cells, index, degree, order, placed, depth, 0)
         last = depth[order[m - 1]]
         if last <= levels:
             return seed
@@ -268,54 +268,31 @@ def _peripheral(seed, cells, index, degree, W):
 
 @jit
 def _subdomain_band(wx, wy, inv_dx2, threshold, overlap):
-    """``subdomain``'s cells [n] (row-major), its ordering perm [n] (band row k is the cell
-    cells[perm[k]]: reverse Cuthill-McKee by components, each from a cell of least degree) and
-    A_S's band [rows, cols] in fishsim.linalg.banded's layout with its half-bandwidth, unfactored:
-    diagonal (west + east + south + north) / dx^2 (every face's weight, the box's 0: the
-    Dirichlet truncation), -w_f / dx^2 between two cells of S."""
+    """``subdomain``'s cells [n] (flat, row-major), their order perm [n] (band row k is the cell
+    cells[perm[k]]: ``_reverse_cuthill_mckee``) and A_S's band [rows, cols] in
+    fishsim.linalg.banded's layout with its half-bandwidth, unfactored: diagonal (west + east +
+    south + north) / dx^2 (every face's weight, the box's 0: the Dirichlet truncation), -w_f / dx^2
+    between two cells of S."""
     H, W = wx.shape[0], wy.shape[1]
-    inside = _subdomain_cells(wx, wy, threshold, overlap)
     index = np.full((H, W), -1, np.int64)
-    n = 0
-    for i in range(H):
-        for j in range(W):
-            if inside[i, j]:
-                index[i, j] = n
-                n += 1
-    cells = np.empty(n, np.int64)
-    degree = np.zeros(n, np.int64)
-    for i in range(H):
-        for j in range(W):
-            k = index[i, j]
-            if k >= 0:
-                cells[k] = i * W + j
-                for ii, jj in ((i - 1, j), (i + 1, j), (i, j - 1), (i, j + 1)):
-                    if 0 <= ii < H and 0 <= jj < W and index[ii, jj] >= 0:
-                        degree[k] += 1
-    order, placed, depth = np.empty(n, np.int64), np.zeros(n, np.bool_), np.empty(n, np.int64)
-    m = 0
-    for seed in range(n):                    # each component from a peripheral cell
-        if not placed[seed]:
-            start = _peripheral(seed, cells, index, degree, W)
-            m = _cuthill_mckee(start, cells, index, degree, W, order, placed, depth, m)
-    perm = order[::-1].copy()
+    cells = np.flatnonzero(_subdomain_cells(wx, wy, threshold, overlap))
+    n = cells.shape[0]
+    for k in range(n):
+        index[cells[k] // W, cells[k] % W] = k
+    perm = _reverse_cuthill_mckee(cells, index)
     row = np.empty(n, np.int64)
-    for r in range(n):
-        row[perm[r]] = r
+    row[perm] = np.arange(n)
     width = 0
     for k in range(n):
-        c = cells[k]
-        i, j = c // W, c % W
+        i, j = cells[k] // W, cells[k] % W
         for ii, jj in ((i - 1, j), (i + 1, j), (i, j - 1), (i, j + 1)):
             if 0 <= ii < H and 0 <= jj < W and index[ii, jj] >= 0:
                 width = max(width, abs(row[k] - row[index[ii, jj]]))
     rows = -(-n // 4) * 4
     L = np.zeros((max(rows, 4), width + 4))
-    for r in range(n, rows):
-        L[r, 0] = 1.0
+    L[n:rows, 0] = 1.0
     for k in range(n):
-        c = cells[k]
-        i, j = c // W, c % W
+        i, j = cells[k] // W, cells[k] % W
         faces = ((i, j - 1, wx[i, j] if j > 0 else 0.0), (i, j + 1, wx[i, j + 1] if j < W - 1 else 0.0),
                  (i - 1, j, wy[i, j] if i > 0 else 0.0), (i + 1, j, wy[i + 1, j] if i < H - 1 else 0.0))
         diagonal = 0.0
@@ -325,6 +302,29 @@ def _subdomain_band(wx, wy, inv_dx2, threshold, overlap):
                 L[row[k], row[index[ii, jj]] - row[k]] = -w * inv_dx2
         L[row[k], 0] = diagonal * inv_dx2
     return cells, perm, L, width
+
+
+@jit
+def _reverse_cuthill_mckee(cells, index):
+    """perm [n] of the cells of S (index [H, W]: each cell's number, -1 off S): Cuthill-McKee by
+    components, each from a pseudo-peripheral cell (``_peripheral``), reversed. On the fish's tank
+    its half-bandwidth is 16 where scipy's reverse_cuthill_mckee (from a cell of least degree)
+    gives 24."""
+    H, W = index.shape
+    n = cells.shape[0]
+    degree = np.zeros(n, np.int64)
+    for k in range(n):
+        i, j = cells[k] // W, cells[k] % W
+        for ii, jj in ((i - 1, j), (i + 1, j), (i, j - 1), (i, j + 1)):
+            if 0 <= ii < H and 0 <= jj < W and index[ii, jj] >= 0:
+                degree[k] += 1
+    order, placed, depth = np.empty(n, np.int64), np.zeros(n, np.bool_), np.empty(n, np.int64)
+    m = 0
+    for seed in range(n):
+        if not placed[seed]:
+            start = _peripheral(seed, cells, index, degree)
+            m = _cuthill_mckee(start, cells, index, degree, order, placed, depth, m)
+    return order[::-1].copy()
 
 
 def local_solver(cells: np.ndarray, factor: BandedCholesky | None) -> tuple:
