@@ -149,10 +149,10 @@ def subdomain(wx: np.ndarray, wy: np.ndarray, dx: float, threshold: float = 0.99
     """(flat indices of S [n], banded Cholesky factor of A_S) of one sample's face weights wx [H,
     W+1], wy [H+1, W] (float64; ``SchwarzPreconditioner``); the factor is None when S is empty
     (then only the DCT part acts). One compiled call (``_subdomain_band``)."""
-    cells, perm, L, width = _subdomain_band(wx, wy, 1 / dx**2, threshold, overlap)
+    cells, perm, row, L, width = _subdomain_band(wx, wy, 1 / dx**2, threshold, overlap)
     if len(cells) == 0 or banded_factor(L, width, 0.0) <= 0:
         return cells, None
-    return cells, BandedCholesky(BandLayout.ordered(perm, width), L)
+    return cells, BandedCholesky(BandLayout.ordered(perm, row, width), L)
 
 
 @jit
@@ -269,7 +269,8 @@ def _peripheral(seed, cells, index, degree):
 @jit
 def _subdomain_band(wx, wy, inv_dx2, threshold, overlap):
     """``subdomain``'s cells [n] (flat, row-major), their order perm [n] (band row k is the cell
-    cells[perm[k]]: ``_reverse_cuthill_mckee``) and A_S's band [rows, cols] in
+    cells[perm[k]]: ``_reverse_cuthill_mckee``), its inverse row [n] (cell k's band row) and A_S's
+    band [rows, cols] in
     fishsim.linalg.banded's layout with its half-bandwidth, unfactored: diagonal (west + east +
     south + north) / dx^2 (every face's weight, the box's 0: the Dirichlet truncation), -w_f / dx^2
     between two cells of S."""
@@ -301,7 +302,7 @@ def _subdomain_band(wx, wy, inv_dx2, threshold, overlap):
             if 0 <= ii < H and 0 <= jj < W and index[ii, jj] >= 0 and row[index[ii, jj]] > row[k]:
                 L[row[k], row[index[ii, jj]] - row[k]] = -w * inv_dx2
         L[row[k], 0] = diagonal * inv_dx2
-    return cells, perm, L, width
+    return cells, perm, row, L, width
 
 
 @jit

@@ -241,11 +241,13 @@ class BandLayout:
         self.rows, self.cols = -(-n // 4) * 4, self.width + 4               # the padded band
 
     @classmethod
-    def ordered(cls, perm: np.ndarray, width: int) -> BandLayout:
-        """The layout of a band its caller assembled itself (row k is row perm[k] of K, half-bandwidth
-        ``width``): what the solves need, without the CSR entries' places."""
+    def ordered(cls, perm: np.ndarray, inverse: np.ndarray, width: int) -> BandLayout:
+        """The layout of a band its caller assembled itself (row k is row perm[k] of K, inverse =
+        argsort(perm), half-bandwidth ``width``): what the solves need; without the CSR entries'
+        places (``band`` is not available)."""
         layout = cls.__new__(cls)
-        layout.perm, layout.inverse, layout.width = perm, np.argsort(perm), int(width)
+        layout.perm, layout.inverse, layout.width = perm, inverse, int(width)
+        layout.lower = layout.column = layout.offset = None
         layout.rows, layout.cols = -(-len(perm) // 4) * 4, layout.width + 4
         return layout
 
