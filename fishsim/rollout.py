@@ -412,6 +412,7 @@ def frame_metrics(swimmer: Swimmer, state: SwimState, out: FrameOutput) -> dict[
 
 
 MAX_SPEED = 20.0  # m/s: a swimming fish of this size moves < 1 m/s; beyond this the coupling has run away
+RUNAWAY_HINT = f"check coupling.added_mass_ratio, e.g. the default {CouplingConfig.added_mass_ratio:g}"
 
 
 def require_sound(q: Tensor, qdot: Tensor, triangles: Tensor | None = None, grid: Grid | None = None) -> None:
@@ -433,11 +434,10 @@ def require_sound(q: Tensor, qdot: Tensor, triangles: Tensor | None = None, grid
         raise SimulationBlowUp(f"a fish left the {W:.3g} x {H:.3g} m tank (node at x in [{x_lo:.3g}, "
                                f"{x_hi:.3g}], y in [{y_lo:.3g}, {y_hi:.3g}] m): it "
                                "swam through a wall (the solid does not collide with the walls: start it farther "
-                               "away with origin=..., or run fewer frames) or the coupling ran away (check "
-                               "coupling.added_mass_ratio, e.g. the default 6.75)")
+                               f"away with origin=..., or run fewer frames) or the coupling ran away ({RUNAWAY_HINT})")
     if speed > MAX_SPEED:
         raise SimulationBlowUp(f"a node moves at {speed:.3g} m/s (> {MAX_SPEED:g} m/s): the coupling ran away "
-                               "(check coupling.added_mass_ratio, e.g. the default 6.75)")
+                               f"({RUNAWAY_HINT})")
 
 
 def _frame_checks(q: Tensor, qdot: Tensor, triangles: Tensor | None = None) -> tuple:
@@ -472,7 +472,7 @@ def require_bounded_force(f_ext: Tensor, rho, length: float) -> None:
         b = int(torch.argmax(force / bound))
         raise SimulationBlowUp(f"the fluid pushes fish {b} with {float(force[b]):.3g} N/m (> rho U^2 L = "
                                f"{float(bound[min(b, len(bound) - 1)]):.3g} N/m at U = {MAX_SPEED:g} m/s): the "
-                               "coupling ran away (check coupling.added_mass_ratio, e.g. the default 6.75)")
+                               f"coupling ran away ({RUNAWAY_HINT})")
 
 
 def require_finite(**fields: Tensor) -> None:
