@@ -155,6 +155,14 @@ def subdomain(wx: np.ndarray, wy: np.ndarray, dx: float, threshold: float = 0.99
     return cells, BandedCholesky(BandLayout.ordered(perm, row, width), L)
 
 
+@jit(inline="always")
+def _face_weights(wx, wy, i, j):
+    """(west, east, south, north) face weights of cell (i, j), the box's faces as 0."""
+    H, W = wx.shape[0], wy.shape[1]
+    return (wx[i, j] if j > 0 else 0.0, wx[i, j + 1] if j < W - 1 else 0.0,
+            wy[i, j] if i > 0 else 0.0, wy[i + 1, j] if i < H - 1 else 0.0)
+
+
 @jit
 def _subdomain_cells(wx, wy, threshold, overlap):
     """S of ``SchwarzPreconditioner`` as an [H, W] bool mask: the cells whose four face weights
@@ -164,10 +172,7 @@ def _subdomain_cells(wx, wy, threshold, overlap):
     inside = np.zeros((H, W), np.bool_)
     for i in range(H):
         for j in range(W):
-            west = wx[i, j] if j > 0 else 0.0
-            east = wx[i, j + 1] if j < W - 1 else 0.0
-            south = wy[i, j] if i > 0 else 0.0
-            north = wy[i + 1, j] if i < H - 1 else 0.0
+            west, east, south, north = _face_weights(wx, wy, i, j)
             inside[i, j] = max(max(west, east), max(south, north)) < threshold
     if overlap == 0:
         return inside
@@ -294,8 +299,8 @@ def _subdomain_band(wx, wy, inv_dx2, threshold, overlap):
     L[n:rows, 0] = 1.0
     for k in range(n):
         i, j = cells[k] // W, cells[k] % W
-        faces = ((i, j - 1, wx[i, j] if j > 0 else 0.0), (i, j + 1, wx[i, j + 1] if j < W - 1 else 0.0),
-                 (i - 1, j, wy[i, j] if i > 0 else 0.0), (i + 1, j, wy[i + 1, j] if i < H - 1 else 0.0))
+        west, east, south, north = _face_weights(wx, wy, i, j)
+        faces = ((i, j - 1, west), (i, j + 1, east), (i - 1, j, south), (i + 1, j, north))
         diagonal = 0.0
         for ii, jj, w in faces:
             diagonal += w
