@@ -37,7 +37,7 @@ from fishsim.fields import Boundary, FluidParams, FluidState, Grid
 from fishsim.fluid import cases
 from fishsim.fluid import grid as G
 from fishsim.fluid.factory import make_fluid, numerical_stepping
-from fishsim.fluid.numerical import NumericalFluid
+from fishsim.fluid.numerical import IMMERSE_TOL, NumericalFluid
 from fishsim.fluid.tank import TankConfig
 
 GRID = Grid(100, 300, 2.5e-3)
@@ -314,6 +314,7 @@ def joint_parts(warmup: int = 30, repeats: int = 50) -> dict:
     (vx, vy, sx, sy, dx_, dy_, cx, cy, a, nu, dt, count, inv_dx, walls, pivots, pdx, *solver, tol,
      max_iter) = calls[0][:24]
     cells, band, width, perm, inverse, _ = solver
+    adjoint_tol = IMMERSE_TOL[torch.from_numpy(vx).dtype][1]
     wx, wy, gx, gy = np.empty_like(vx), np.empty_like(vy), np.zeros_like(vx), np.zeros_like(vy)
     K._sample_forward(vx, vy, nu, dt, inv_dx, walls, wx, wy)
     phi, px, py = np.zeros(cx.shape[:1] + cy.shape[1:], vx.dtype), np.zeros_like(vx), np.zeros_like(vy)
@@ -330,8 +331,8 @@ def joint_parts(warmup: int = 30, repeats: int = 50) -> dict:
         "immerse": lambda: K._immerse_sample(wx, wy, sx, sy, dx_, dy_, cx, cy, a, inv_dx, pivots, pdx, *solver, tol,
                                              max_iter, phi.copy(), px, py),
         "immerse_adjoint": lambda: K._immerse_adjoint_sample(vx, vy, np.zeros_like(phi), px, py, wx, wy, phi, sx, sy,
-                                                             dx_, dy_, cx, cy, a, inv_dx, pivots, pdx, *solver, tol,
-                                                             max_iter, *gs),
+                                                             dx_, dy_, cx, cy, a, inv_dx, pivots, pdx, *solver,
+                                                             adjoint_tol, max_iter, *gs),
         "pcg_iteration": lambda: (P._precondition_sample(cx, cy, f, inv_dx2, pivots, pdx, *solver, z, t),
                                   P._apply_sample(cx, cy, z, inv_dx2, t)),
         "banded_solve_on_S": lambda: P._local_sample(f, cells, band, width, perm, inverse, z),

@@ -702,11 +702,12 @@ def _steps_adjoint(tapes, gv, gphi_all, gpen_all, masks, counts, nu_n, dt_n, inv
 
 @dataclass(frozen=True)
 class Immersion:
-    """``SplitStep``'s stage for a joint solve (``numerical.immerse``): lambda [1/s] and the PCG's
-    relative tolerance and iteration cap."""
+    """``SplitStep``'s stage for a joint solve (``numerical.immerse``): lambda [1/s], the PCG's
+    relative tolerances of the forward and the adjoint solves and its iteration cap."""
 
     stiffness: float
     tol: float
+    adjoint_tol: float
     max_iter: int
 
 
@@ -906,8 +907,8 @@ def _immersed_steps_adjoint(tapes, gv, gphi_all, gpen_all, masks, counts, nu_n, 
         a, c = _immersion_weights(masks, n, immersion, dt_n)
         out[0][n], out[1][n], g_nu[n] = _sample_immersed_steps_adjoint(
             *tape, gv[0][n], gv[1][n], gphi_all[n], gpen_all[0][n], gpen_all[1][n], *(m[n] for m in masks), *c, a,
-            nu_n[n], dt_n[n], int(counts[n]), inv_dx, walls, inverse.pivots, inverse.dx, *solver, immersion.tol,
-            immersion.max_iter, need_nu, *(m[n] for m in gmasks))
+            nu_n[n], dt_n[n], int(counts[n]), inv_dx, walls, inverse.pivots, inverse.dx, *solver,
+            immersion.adjoint_tol, immersion.max_iter, need_nu, *(m[n] for m in gmasks))
     return out, gmasks, g_nu
 
 

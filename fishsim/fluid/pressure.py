@@ -493,17 +493,18 @@ def solve_weighted_poisson(weights: Faces, f: Tensor, dx: float, tol: float, max
 
 class WeightedPoisson(torch.autograd.Function):
     """p = A(w)^+ f with A(w) p = -div(w grad p), differentiable in w (faces) and f (module
-    docstring); forward and backward are PCG solves to ``tol``, the forward started from
-    ``start`` (None: from zero), the backward from zero. The forward uses ``precondition`` (a
+    docstring); forward and backward are PCG solves to ``tol`` and ``adjoint_tol`` (None: ``tol``),
+    the forward started from ``start`` (None: from zero), the backward from zero. The forward uses ``precondition`` (a
     SchwarzPreconditioner of these weights shared by the solves of one step) or builds its own;
     the backward builds its own, so no factors are held from the forward until the backward."""
 
     @staticmethod
     def forward(ctx, wx: Tensor, wy: Tensor, f: Tensor, dx: float, tol: float, max_iter: int,
-                start: Tensor | None = None, precondition: SchwarzPreconditioner | None = None) -> Tensor:
+                start: Tensor | None = None, precondition: SchwarzPreconditioner | None = None,
+                adjoint_tol: float | None = None) -> Tensor:
         p, _ = solve_weighted_poisson((wx, wy), f, dx, tol, max_iter, start, precondition)
         ctx.save_for_backward(wx, wy, p)
-        ctx.settings = (dx, tol, max_iter)
+        ctx.settings = (dx, tol if adjoint_tol is None else adjoint_tol, max_iter)
         return p
 
     @staticmethod
@@ -512,7 +513,7 @@ class WeightedPoisson(torch.autograd.Function):
         dx, tol, max_iter = ctx.settings
         lam, _ = solve_weighted_poisson((wx, wy), grad_p, dx, tol, max_iter)
         (gl_x, gl_y), (gp_x, gp_y) = gradient(lam, dx), gradient(p, dx)
-        return -gl_x * gp_x, -gl_y * gp_y, _mean_free(lam), None, None, None, None, None
+        return -gl_x * gp_x, -gl_y * gp_y, _mean_free(lam), None, None, None, None, None, None
 
 
 def recover_pressure(v_old: Faces, v_new: Faces, mask: Tensor, rho: Tensor | float, mu: Tensor | float,
