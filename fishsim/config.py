@@ -225,8 +225,8 @@ class NumericalConfig(WaterConfig):
         converges in sub-steps (fishsim/fluid/numerical.py); null: the split scheme.
     implicit: solve each stage's penalisation at penalization_rate and its projection jointly
         (the default), the passes' limit (K -> infinity; converged in sub-steps, thin bodies
-        included), by a PCG solve a stage (at 4 sub-steps ~1.6-1.9x the 8 x 3 passes' time on
-        the frequency study); false: penalization_iterations split passes.
+        included), by a PCG solve a stage (at 4 sub-steps ~1.4-1.8x the 8 x 3 passes' time on
+        the paper's Table 1); false: penalization_iterations split passes.
     scheme: advection interpolation, "koren" (third order, TVD limited by min/max: a
         piecewise-smooth frame map) | "albada" (second order, van Albada limiter and upwinding
         written as smooth functions: smoother gradients; fishsim.fluid.grid.albada).
