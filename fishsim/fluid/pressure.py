@@ -83,6 +83,16 @@ def _mean_free(x: Tensor) -> Tensor:
     return x - x.mean(dim=(-2, -1), keepdim=True)
 
 
+SCHWARZ_OVERLAP = 12
+"""Cells by which S grows beyond the low-weight cells (``SchwarzPreconditioner``). Measured on the
+swimming fish (5 Hz, 40 frames; the joint solves to 1e-3): overlap 2 / 4 / 6 / 8 / 12 / 16 took
+5.7 / 4.7 / 4.0 / 3.6 / 3.1 / 2.7 iterations a solve on 3560 / 3920 / 4290 / 4680 / 5500 / 6380
+cells of S; per step the larger band costs less than the iterations it saves up to 12-16 (the
+frequency study 13.4-14.5 s at 12, 14.1-14.7 at 16, 16.1-16.3 at 24, against 15.4-15.5 s at 4,
+one thread; Table 1 forward / backward 11.3-12.5 / 14.3-15.8 s against 12.6-13.2 / 15.9-17.4 s);
+HydroNet's pressure recovery 6.8 iterations a solve against 8.2 at 4."""
+
+
 class SchwarzPreconditioner:
     """r -> z, the symmetric multiplicative Schwarz preconditioner of A = -div(w grad .) (symmetric
     positive semi-definite) from two solvers: B_S = R^T A_S^-1 R, an exact solve on the subdomain S
@@ -92,18 +102,19 @@ class SchwarzPreconditioner:
         z1 = B_S r,   z2 = z1 + L^+ (r - A z1),   z = z2 + B_S (r - A z2).
 
     S is every cell whose face weights are all < ``threshold`` (the body, its band and the tank
-    walls), the parts not joined to the box's edge grown by ``overlap`` cells (the walls' ring,
-    grown, would double S: 6918 cells instead of 3910 on the fish's tank, for 8 iterations
-    instead of 9). Measured on the fish's joint penalisation solves
-    (``NumericalFluid(implicit=True)``, PCG to 1e-6; 5 Hz, n = 4) and its pressure recovery
-    (HydroNet, ``fluid.pressure=recovered``): 8-9 / 8 iterations a solve, where the additive form
-    L^+ r + B_S r on the cells with weights < 0.5 took 20 / 22 (and 16-17 with the same overlap).
+    walls), the parts not joined to the box's edge grown by ``overlap`` cells (``SCHWARZ_OVERLAP``;
+    the walls' ring, grown by 4, would double S: 6918 cells instead of 3910 on the fish's tank,
+    for 8 iterations instead of 9 to 1e-6). Measured with overlap 4 on the fish's joint
+    penalisation solves (``NumericalFluid(implicit=True)``, PCG to 1e-6; 5 Hz, n = 4) and its
+    pressure recovery (HydroNet, ``fluid.pressure=recovered``): 8-9 / 8 iterations a solve, where
+    the additive form L^+ r + B_S r on the cells with weights < 0.5 took 20 / 22 (and 16-17 with
+    the same overlap).
     The banded Cholesky factors of A_S (one per sample, on the CPU; ``subdomain``: S, its reverse
     Cuthill-McKee order and the band in one compiled pass, ~1 ms on the fish's tank where scipy's
     labelling, dilation, sparse assembly and ordering took ~4 ms) are built on first use, so a
     solve that starts converged costs nothing."""
 
-    def __init__(self, weights: Faces, dx: float, threshold: float = 0.99, overlap: int = 4):
+    def __init__(self, weights: Faces, dx: float, threshold: float = 0.99, overlap: int = SCHWARZ_OVERLAP):
         self.weights, self.dx, self.threshold, self.overlap = weights, dx, threshold, overlap
         H, W = weights[0].shape[-2], weights[1].shape[-1]
         self.inverse = neumann_inverse(H, W, dx, weights[0].device, weights[0].dtype)
@@ -145,7 +156,7 @@ class SchwarzPreconditioner:
 
 
 def subdomain(wx: np.ndarray, wy: np.ndarray, dx: float, threshold: float = 0.99,
-              overlap: int = 4) -> tuple[np.ndarray, BandedCholesky | None]:
+              overlap: int = SCHWARZ_OVERLAP) -> tuple[np.ndarray, BandedCholesky | None]:
     """(flat indices of S [n], banded Cholesky factor of A_S) of one sample's face weights wx [H,
     W+1], wy [H+1, W] (float64; ``SchwarzPreconditioner``); the factor is None when S is empty
     (then only the DCT part acts). One compiled call (``_subdomain_band``)."""
