@@ -335,10 +335,11 @@ IMMERSE_TOL = {torch.float32: (1e-3, 1e-4), torch.float64: (1e-6, 1e-6)}
 """The joint solves' PCG relative residuals |f - A phi| / |f| (forward, adjoint) by the fluid's
 dtype. float32 (the default): the swimming study (120 frames, 3 / 5 / 7 Hz) moves by <= 0.01 %
 from 1e-6 (1e-2: 0.3 %), the thin ellipse's added mass by <= 0.05 %, the 60-frame gradient of
-tests/test_gradients_scale.py by 0.035 % (the adjoint's tolerance is what moves it: 1e-3 there
-gave 0.10 %); 4-5 iterations a forward solve instead of 9. float64 (finite-difference checks)
-stays at 1e-6, so the map is smooth on the 1e-6 steps those checks take."""
-IMMERSE_MAX_ITER = 200  # 4-9 iterations a solve on the fish (rate penalisation 2400 1/s, implicit at n = 4)
+tests/test_gradients_scale.py by 0.035-0.04 % (the adjoint's tolerance is what moves it: 1e-3 there
+gave 0.10 %); 1-4 iterations a forward solve (3.1 on average at the Schwarz overlap 12) instead of
+8-9. float64 (finite-difference checks) stays at 1e-6, so the map is smooth on the 1e-6 steps
+those checks take."""
+IMMERSE_MAX_ITER = 200  # 1-9 iterations a solve on the fish (rate penalisation 2400 1/s, implicit at n = 4)
 
 
 def immersion_weights(b: Faces, lam_dt: Tensor | float) -> Faces:
