@@ -18,12 +18,17 @@ def _load(name: str):
 
 
 def test_gradient_example_matches_finite_differences():
-    """The example's d(distance)/d(frequency) agrees with central differences of its distance."""
+    """The example's d(distance)/d(frequency) agrees with central differences of its distance, in
+    float64 (``fluid.dtype=float64``, the setting for finite-difference checks): in float32 the
+    numerical fluid's joint solves stop at a relative residual of 1e-3 (fishsim/fluid/numerical.py
+    IMMERSE_TOL), whose stopping points move with the frequency and leave the float32 map rough
+    on this scale: AD -8.47e-6 against FD -8.28e-6 m/Hz in float32 (2.3 %, measured)."""
     main = _load("gradient_of_distance").main
-    out = main(SMALL)
-    f0, eps = 5.0, 0.02  # measured: FD 1.9337e-5 vs AD 1.9338e-5 m/Hz; eps = 0.05 lands on float32 noise (2 % off)
-    hi = main(SMALL + [f"controller.frequency={f0 + eps}"])["distance_m"][0]
-    lo = main(SMALL + [f"controller.frequency={f0 - eps}"])["distance_m"][0]
+    small = SMALL + ["fluid.dtype=float64"]
+    out = main(small)
+    f0, eps = 5.0, 0.02
+    hi = main(small + [f"controller.frequency={f0 + eps}"])["distance_m"][0]
+    lo = main(small + [f"controller.frequency={f0 - eps}"])["distance_m"][0]
     assert out["d_distance_d_frequency_m_per_Hz"][0] == pytest.approx((hi - lo) / (2 * eps), rel=2e-2)
 
 
