@@ -19,15 +19,17 @@ gradients); a 500-frame HydroNet gradient episode at 0.98 GB (estimate 1.5 GB); 
 Table 1 episode (300 frames, 10-frame segments, B = 1) at 1.04 GB (estimate 1.26 GB).
 
 The time of an episode (seconds), calibrated on this project's 2-core CPU with nothing else
-running (default fish; the numerical fluid's joint stage, 2026-11-29, night: 57.7 ms a frame at
-B = 1, of which the fluid 48.7 ms, and 31.6 ms per fish and frame at B = 16; HydroNet ~37 ms a
-frame at B = 1; gradient factors from ``make bench``, 300 frames forward / backward: 17.3 / 18.5 s
-numerical (2.1; 3.4 at B = 16), 11 / 21 s HydroNet):
-    per fish and frame  t = 7 ms (N / 1803)^1.5 + c_fluid C r^3    c_numerical = 1.2 us, c_hydronet = 0.9 us
+running (default fish; the numerical fluid's joint stage, its float32 solves to 1e-3, 2026-11-29,
+late night: 38 ms a frame at B = 1, of which the fluid 28 ms, and 20 ms per fish and frame at
+B = 16 (fluid 17 ms); HydroNet ~37 ms a frame at B = 1; gradient factors from ``make bench``, 300
+frames forward / backward: 11.4 / 15.0 s numerical (2.3; 3.3 at B = 16), 11 / 21 s HydroNet):
+    per fish and frame  t = 7 ms (N / 1803)^1.5 + c_fluid C r^3    c_numerical = 0.9 us, c_hydronet = 0.9 us
     episode             T frames B fish t, times g for a gradient run (g = 2.5 numerical, 2.9 HydroNet, 1.5 vacuum)
 (the solid's and the numerical fluid's shares lie between B = 1's and a batch's, where the solid
-runs eight fish at once and the fluid two samples at a time: within ~40 % of both; r^3: r^2 the cells of the refined grid, r the sub-steps.)  The estimate is printed
-before a run on the CPU; inside a SLURM job (``SLURM_JOB_END_TIME``) a run estimated to outlast the job is refused.
+runs eight fish at once and the fluid two samples at a time: 300 frames at B = 1 estimated at
+10.2 s against 11.4 s measured, a fish and frame at B = 16 at 34 ms against 20; r^3: r^2 the
+cells of the refined grid, r the sub-steps.)  The estimate is printed before a run on the CPU;
+inside a SLURM job (``SLURM_JOB_END_TIME``) a run estimated to outlast the job is refused.
 """
 
 from __future__ import annotations
@@ -41,7 +43,7 @@ from fishsim.errors import ConfigError
 
 NODES_DEFAULT, EDGE_DEFAULT, LENGTH_DEFAULT = 1803, 2.0e-3, 0.2
 SOLID_FRAME_S = 7e-3                                    # solid + coupling, default fish, one frame [s]
-FLUID_CELL_FRAME_S = {"numerical": 1.2e-6, "hydronet": 0.9e-6, "none": 0.0}
+FLUID_CELL_FRAME_S = {"numerical": 0.9e-6, "hydronet": 0.9e-6, "none": 0.0}
 GRADIENT_FACTOR = {"numerical": 2.5, "hydronet": 2.9, "none": 1.5}  # (forward + backward) / forward
 
 
