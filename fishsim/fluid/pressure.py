@@ -506,9 +506,10 @@ def solve_weighted_poisson(weights: Faces, f: Tensor, dx: float, tol: float, max
 class WeightedPoisson(torch.autograd.Function):
     """p = A(w)^+ f with A(w) p = -div(w grad p), differentiable in w (faces) and f (module
     docstring); forward and backward are PCG solves to ``tol`` and ``adjoint_tol`` (None: ``tol``),
-    the forward started from ``start`` (None: from zero), the backward from zero. The forward uses ``precondition`` (a
-    SchwarzPreconditioner of these weights shared by the solves of one step) or builds its own;
-    the backward builds its own, so no factors are held from the forward until the backward."""
+    the forward started from ``start`` (None: from zero), the backward from zero. The forward
+    uses ``precondition`` (a SchwarzPreconditioner of these weights shared by the solves of one
+    step) or builds its own; the backward builds its own, so no factors are held from the forward
+    until the backward."""
 
     @staticmethod
     def forward(ctx, wx: Tensor, wy: Tensor, f: Tensor, dx: float, tol: float, max_iter: int,
