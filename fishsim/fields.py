@@ -61,18 +61,24 @@ class FluidState:
 
     a: vector potential (2D stream function) on vertices, [B, 1, H+1, W+1], m^2/s.
     p: pressure at cell centres, [B, 1, H, W], Pa (defined up to a constant; kept mean free).
+    solves: not state but a record of the step that made it: the solutions of its iterative
+        solves (the numerical fluid's joint stages: [B, 2 n, H, W] potentials, m^2/s), None for
+        a model without any. A recomputation of the step passes the state back as ``start``
+        (``FluidModel.step``), so that those solves start converged. Left out of ``tensors()``
+        and dropped by ``map`` and ``with_tensors``.
     """
 
     a: Tensor
     p: Tensor
+    solves: Tensor | None = None
 
     def _names(self) -> list[str]:
-        return [f.name for f in dataclasses.fields(self) if getattr(self, f.name) is not None]
+        return [f.name for f in dataclasses.fields(self) if f.name != "solves" and getattr(self, f.name) is not None]
 
     def map(self, fn: Callable[[str, Tensor], Tensor]) -> Self:
         """The same kind of state with ``fn(name, tensor)`` applied to each of its tensors (a, p
         and a refined state's fine_a): per-sample selection, slicing, device moves."""
-        return dataclasses.replace(self, **{name: fn(name, getattr(self, name)) for name in self._names()})
+        return dataclasses.replace(self, solves=None, **{name: fn(name, getattr(self, name)) for name in self._names()})
 
     def tensors(self) -> tuple[Tensor, ...]:
         """Its tensors (a, p, a refined state's fine_a; fields that are None left out), the form
@@ -81,7 +87,7 @@ class FluidState:
 
     def with_tensors(self, tensors) -> Self:
         """The same kind of state with its tensors replaced by ``tensors`` (``tensors()``'s order)."""
-        return dataclasses.replace(self, **dict(zip(self._names(), tensors, strict=True)))
+        return dataclasses.replace(self, solves=None, **dict(zip(self._names(), tensors, strict=True)))
 
 
 @dataclass(frozen=True)
@@ -167,11 +173,12 @@ class FluidModel(Protocol):
         ...
 
     def step(self, state: FluidState, boundary: Boundary, params: FluidParams,
-             start: Tensor | None = None) -> FluidState:
-        """Return the state one time step ``params.h`` later. ``start``: a guess of the new
-        pressure [B, 1, H, W] for a model that solves for it iteratively (a checkpoint
-        recomputation passes the forward pass's result); it changes the result only within
-        the solver's tolerance."""
+             start: FluidState | None = None) -> FluidState:
+        """Return the state one time step ``params.h`` later. ``start``: what this step returned
+        before from the same inputs (a checkpoint recomputation passes the forward pass's
+        result), the start of the model's iterative solves (HydroNet's pressure recovery from its
+        p, the numerical fluid's joint stages from its ``solves``); it changes the result only
+        within the solvers' tolerance."""
         ...
 
 

@@ -9,14 +9,17 @@ The estimate of an episode (bytes), with B fish, C = (H r) (W r) fluid cells on 
     base 0.6 GB (Python, torch, compiled kernels)
     + B C 400 B          fluid state and the solver's / U-Net's work arrays per fish
     + B N 16 sqrt(N) B   the solid's banded Newton factors (half-bandwidth ~ sqrt(N) nodes)
-    + B T (4 C + 16 N)   gradient runs: the forward solutions replayed by the checkpointed backward
+    + B T (4 C (1 + 2 n r) + 16 N)   gradient runs: the forward solutions replayed by the checkpointed
+                         backward (p; with the numerical fluid's joint stage the 2 n r stage potentials
+                         of its n r sub-steps, ``fluid.substeps`` n)
     + G B S C 1 kB       gradient runs: G checkpoint segments' autograd graphs (S frames; G = 2 for one
                          fish in a fluid other than HydroNet, whose backward recomputes the previous
                          segment beside the current one: rollout.Segments; else 1)
 
 Measured for scale: the default HydroNet episode peaks at 0.88 GB (estimate 0.62 GB without
 gradients); a 500-frame HydroNet gradient episode at 0.98 GB (estimate 1.5 GB); the numerical
-Table 1 episode (300 frames, 10-frame segments, B = 1) at 1.04 GB (estimate 1.26 GB).
+Table 1 episode (300 frames, 10-frame segments, B = 1) at 1.13 GB (estimate 1.55 GB; its replay
+record ~1 MB a frame).
 
 The time of an episode (seconds), calibrated on this project's 2-core CPU with nothing else
 running (default fish; the numerical fluid's joint stage, its float32 solves to 1e-3, 2026-11-29,
@@ -59,13 +62,23 @@ def episode_bytes(cfg, batch: int, gradient_frames: int = 0, segment: int = 25) 
     total = 0.6e9 + batch * cells * 400 + batch * nodes * 16 * math.sqrt(nodes)
     if gradient_frames:
         graphs = 2 if batch == 1 and cfg.fluid.model != "hydronet" else 1
-        total += batch * gradient_frames * (4 * cells + 16 * nodes) + graphs * batch * min(segment, gradient_frames) * cells * 1e3
+        record = 1 + replayed_solves(cfg.fluid)
+        total += batch * gradient_frames * (4 * cells * record + 16 * nodes) + \
+            graphs * batch * min(segment, gradient_frames) * cells * 1e3
     return total
 
 
 def refinement(fluid) -> int:
     """The internal grid's refinement r of a fluid config (1 but for the numerical fluid's)."""
     return getattr(fluid, "refinement", 1)
+
+
+def replayed_solves(fluid) -> int:
+    """The fields of iterative solves a fluid config's step records for a recomputation to replay
+    (``FluidState.solves``): the numerical fluid's joint stage, two a sub-step at its floor of n r
+    sub-steps; 0 for any other."""
+    joint = fluid.model == "numerical" and (getattr(fluid, "implicit", False) or getattr(fluid, "brinkman", None))
+    return 2 * fluid.substeps * refinement(fluid) if joint else 0
 
 
 def available_bytes() -> float | None:

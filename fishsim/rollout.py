@@ -12,9 +12,11 @@ Every arrow is differentiable; ``rollout`` checkpoints segments of frames so lon
 memory: a segment's forward runs without an autograd graph (only its boundary states are kept)
 and its backward recomputes it with one (``CheckpointedFrames``). The recomputation replays each
 frame's iterative solves from the forward pass's solutions (the PD step's q_t+1 and the fluid's
-pressure p_t+1, kept detached while the graph lives: 140 kB per fish and frame on the default
-grid), so they converge without iterating and the backward pays only for the network, the
-coupling and the adjoints; a second backward through the same graph replays them again. While a
+state p_t+1 with its ``solves``, the numerical fluid's joint stages' potentials, kept detached
+while the graph lives: 1.1 MB per fish and frame on the default grid, 140 kB with HydroNet), so
+they converge without iterating and the backward pays only for the network, the coupling, the
+numerical fluid's explicit parts and the adjoints (the numerical fluid's recomputation 14 instead
+of 30 ms a frame); a second backward through the same graph replays them again. While a
 segment is differentiated, the one before it is recomputed in a background thread (``Segments``),
 so on two cores the recomputation runs beside the adjoints.
 """
@@ -276,10 +278,11 @@ class Swimmer:
             state, fine, alone=self.coupling.force == "exchange")
         t0 = timer.add("coupling", t0, dev)
         if self.coupling.force == "exchange":
-            fluid, diag = self.fluid.step_with_diagnostics(state.fluid, body_boundary, params.fluid)
+            fluid, diag = self.fluid.step_with_diagnostics(state.fluid, body_boundary, params.fluid,
+                                                           start=None if start is None else start.fluid)
         else:
             fluid = self.fluid.step(state.fluid, body_boundary, params.fluid,
-                                    start=None if start is None else start.fluid.p)
+                                    start=None if start is None else start.fluid)
         require_finite(fluid_vector_potential_a=fluid.a, fluid_pressure_p=fluid.p)
         t0 = timer.add("fluid", t0, dev)
         if self.coupling.force == "exchange":
@@ -570,8 +573,11 @@ class CheckpointedFrames(torch.autograd.Function):
 
 
 def _detached(state: SwimState) -> SwimState:
-    """The solved parts of a state (q, fluid p), detached, as a start for a recomputation."""
-    return SwimState(q=state.q.detach(), qdot=None, fluid=FluidState(a=None, p=state.fluid.p.detach()))
+    """The solved parts of a state (q, the fluid's p and solves), detached, as a start for a
+    recomputation."""
+    solves = state.fluid.solves
+    return SwimState(q=state.q.detach(), qdot=None, fluid=FluidState(
+        a=None, p=state.fluid.p.detach(), solves=None if solves is None else solves.detach()))
 
 
 def rollout(swimmer: Swimmer, state: SwimState, params: SwimParams, n_frames: int,

@@ -661,10 +661,11 @@ def _sample_steps_adjoint(tx, ty, gvx, gvy, gphi, gpx, gpy, bx, by, dx_, dy_, nu
     return gvx, gvy, g_nu
 
 
-def _steps(v, masks, nu_n, dt_n, counts, inv_dx, walls, inverse, passes, keep):
+def _steps(v, masks, nu_n, dt_n, counts, inv_dx, walls, inverse, passes, keep, guesses, solves):
     """``SplitStep``'s sub-steps on numpy samples (v = (v_x [N, H, W+1], v_y [N, H+1, W]), masks
     (b_x, b_y, v_d,x, v_d,y) alike; counts [N] the samples' sub-step counts), one compiled call a
-    sample: returns (v', sum of phi, sum of pen (x, y), the samples' tapes if keep, else empty)."""
+    sample: returns (v', sum of phi, sum of pen (x, y), the samples' tapes if keep, else empty).
+    ``guesses`` and ``solves``: unused (the passes' solves are direct; ``_immersed_steps``)."""
     N, H, W = v[1].shape[0], v[0].shape[1], v[1].shape[2]
     out = (np.empty_like(v[0]), np.empty_like(v[1]))
     phi_sum, pen = np.zeros((N, H, W), v[0].dtype), (np.zeros_like(v[0]), np.zeros_like(v[1]))
@@ -807,34 +808,39 @@ def _immerse_adjoint_sample(gvx, gvy, gphi, gpx, gpy, wx, wy, phi, sx, sy, dx_, 
 
 @jit
 def _sample_immersed_steps(vx, vy, sx, sy, dx_, dy_, cx, cy, a, nu, dt, count, inv_dx, walls, pivots, pdx, cells, band,
-                           width, perm, inverse, local, tol, max_iter, keep, tx, ty, tphi, phi_sum, pen_x, pen_y):
+                           width, perm, inverse, local, tol, max_iter, guess, keep, tx, ty, tphi, phi_sum, pen_x,
+                           pen_y):
     """One sample's ``count`` Heun sub-steps with the joint stage I = ``_immerse_sample`` (v1 =
-    I(P(v)), v' = I((v + P(v1)) / 2); each solve starts from the one before, the first from 0), in
-    one compiled call; returns v'. phi_sum and (pen_x, pen_y) (zeros on entry) receive the sums of
-    phi1/2 + phi2 and of pen1/2 + pen2. With ``keep``, sub-step s fills the tape: (tx, ty)[4 s +
-    ...] = v, v1, the stages' inputs w1, w2; tphi[2 s + ...] = phi1, phi2."""
+    I(P(v)), v' = I((v + P(v1)) / 2); each solve starts from the one before, the first from 0, or
+    with a ``guess`` [2 count, H, W] (else [0, H, W]) solve k from guess[k]), in one compiled call;
+    returns v'. tphi[2 s + ...] receives sub-step s's phi1, phi2; phi_sum and (pen_x, pen_y)
+    (zeros on entry) the sums of phi1/2 + phi2 and of pen1/2 + pen2. With ``keep``, sub-step s
+    fills the tape (tx, ty)[4 s + ...] = v, v1, the stages' inputs w1, w2."""
     half = _constants(vx).half
     phi = np.zeros_like(phi_sum)
+    replay = guess.shape[0] > 0
     for s in range(count):
         w1x, w1y = np.empty_like(vx), np.empty_like(vy)
         _sample_forward(vx, vy, nu, dt, inv_dx, walls, w1x, w1y)
         p1x, p1y = np.zeros_like(vx), np.zeros_like(vy)
+        if replay:
+            phi[:] = guess[2 * s]
         v1x, v1y = _immerse_sample(w1x, w1y, sx, sy, dx_, dy_, cx, cy, a, inv_dx, pivots, pdx, cells, band, width,
                                    perm, inverse, local, tol, max_iter, phi, p1x, p1y)
-        phi1 = phi.copy()
+        tphi[2 * s] = phi
         w2x, w2y = np.empty_like(vx), np.empty_like(vy)
         _sample_forward(v1x, v1y, nu, dt, inv_dx, walls, w2x, w2y)
         w2x, w2y = half * (vx + w2x), half * (vy + w2y)
         if keep:
             tx[4 * s], ty[4 * s], tx[4 * s + 1], ty[4 * s + 1] = vx, vy, v1x, v1y
             tx[4 * s + 2], ty[4 * s + 2], tx[4 * s + 3], ty[4 * s + 3] = w1x, w1y, w2x, w2y
-            tphi[2 * s] = phi1
         p2x, p2y = np.zeros_like(vx), np.zeros_like(vy)
+        if replay:
+            phi[:] = guess[2 * s + 1]
         vx, vy = _immerse_sample(w2x, w2y, sx, sy, dx_, dy_, cx, cy, a, inv_dx, pivots, pdx, cells, band, width,
                                  perm, inverse, local, tol, max_iter, phi, p2x, p2y)
-        if keep:
-            tphi[2 * s + 1] = phi
-        phi_sum += half * phi1 + phi
+        tphi[2 * s + 1] = phi
+        phi_sum += half * tphi[2 * s] + phi
         pen_x += half * p1x + p2x
         pen_y += half * p1y + p2y
     return vx, vy
@@ -873,24 +879,28 @@ def _immersion_weights(masks, n: int, immersion: Immersion, dt_n) -> tuple:
     return a, tuple(1 / (1 + s.dtype.type(a) * s[n]) for s in masks[:2])
 
 
-def _immersed_steps(v, masks, nu_n, dt_n, counts, inv_dx, walls, inverse, immersion, keep):
+def _immersed_steps(v, masks, nu_n, dt_n, counts, inv_dx, walls, inverse, immersion, keep, guesses, solves):
     """``_steps`` with the joint stage (``Immersion``): per sample the weights c
     (``_immersion_weights``), the Schwarz preconditioner's subdomain factor of c
-    (``fluid.pressure.subdomain``, once a step), then ``_sample_immersed_steps``. The tapes hold
-    (tape, the factor's arrays) a sample."""
+    (``fluid.pressure.subdomain``, once a step), then ``_sample_immersed_steps``, its solves
+    started from ``guesses`` [N, 2 n_max, H, W] (None: each from the one before) and written to
+    ``solves`` (alike). The tapes hold (tape, the factor's arrays) a sample."""
     N, H, W = v[1].shape[0], v[0].shape[1], v[1].shape[2]
     out = (np.empty_like(v[0]), np.empty_like(v[1]))
     phi_sum, pen = np.zeros((N, H, W), v[0].dtype), (np.zeros_like(v[0]), np.zeros_like(v[1]))
+    none = np.empty((0, H, W), v[0].dtype)
     tapes = []
     for n in range(N):
         a, c = _immersion_weights(masks, n, immersion, dt_n)
         solver = local_solver(*subdomain(*(w.astype(np.float64) for w in c), 1 / inv_dx))
-        size = int(counts[n]) if keep else 0
+        count = int(counts[n])
+        size = count if keep else 0
         tape = (np.empty((4 * size, H, W + 1), v[0].dtype), np.empty((4 * size, H + 1, W), v[0].dtype),
-                np.empty((2 * size, H, W), v[0].dtype))
+                solves[n, :2 * count])
+        guess = none if guesses is None else guesses[n, :2 * count]
         out[0][n], out[1][n] = _sample_immersed_steps(
-            v[0][n], v[1][n], *(m[n] for m in masks), *c, a, nu_n[n], dt_n[n], int(counts[n]), inv_dx, walls,
-            inverse.pivots, inverse.dx, *solver, immersion.tol, immersion.max_iter, keep, *tape, phi_sum[n],
+            v[0][n], v[1][n], *(m[n] for m in masks), *c, a, nu_n[n], dt_n[n], count, inv_dx, walls,
+            inverse.pivots, inverse.dx, *solver, immersion.tol, immersion.max_iter, guess, keep, *tape, phi_sum[n],
             pen[0][n], pen[1][n])
         if keep:
             tapes.append((tape, solver))
@@ -933,16 +943,19 @@ class SplitStep(torch.autograd.Function):
     Inputs: v = (v_x [B, C, H, W+1], v_y [B, C, H+1, W]) in m/s, the face masks b (the joint
     stage's weight s) and body velocities v_d (broadcast to v's shapes), nu [m^2/s] and dt [s]
     (scalars or [B, 1, 1, 1]; dt is not differentiated), n [B] (int64 tensor), inverse
-    (``dct.neumann_inverse``, v's dtype), dx [m], walls (grid.WallBC), stage. Returns (v'_x, v'_y,
-    sum over the sub-steps of phi1/2 + phi2 [m^2/s], of the penalisation's increments pen1/2 +
-    pen2 (x, y) [m/s]). CPU tensors; differentiable in v, b, v_d and nu. When a gradient is wanted
+    (``dct.neumann_inverse``, v's dtype), dx [m], walls (grid.WallBC), stage, guess (the joint
+    stage's starts, a former call's ``solves`` from the same inputs, or None). Returns (v'_x,
+    v'_y, sum over the sub-steps of phi1/2 + phi2 [m^2/s], of the penalisation's increments
+    pen1/2 + pen2 (x, y) [m/s], solves: the joint stages' potentials [B, C, 2 max(n), H, W], phi1
+    and phi2 of each sub-step, zeros past a sample's own; [B, C, 0, H, W] with the passes, not
+    differentiable). CPU tensors; differentiable in v, b, v_d and nu. When a gradient is wanted
     the forward keeps what the adjoints read (each sub-step's v and v1 and the stages' inputs: 4 +
     4 K fields a sub-step with the passes, 8 and the two potentials with the joint stage, whose
     preconditioner factors serve the backward's solves too), in place of the ~100 taped ops and
     autograd nodes a step costs the torch loop."""
 
     @staticmethod
-    def forward(ctx, vx, vy, bx, by, dx_, dy_, nu, dt, n, inverse, dx: float, walls, stage):
+    def forward(ctx, vx, vy, bx, by, dx_, dy_, nu, dt, n, inverse, dx: float, walls, stage, guess=None):
         shapes = (vx.shape, vy.shape)
         wall_args = (bool(walls.slip), float(walls.u_bottom), float(walls.u_top), float(walls.v_left),
                      float(walls.v_right))
@@ -953,21 +966,27 @@ class SplitStep(torch.autograd.Function):
         chunks = sample_chunks(len(counts))
         steps, ctx.adjoint = (_steps, _steps_adjoint) if isinstance(stage, int) else \
             (_immersed_steps, _immersed_steps_adjoint)
+        N, H, W = len(counts), vy.shape[-2] - 1, vy.shape[-1]
+        solves = np.zeros((N, 0 if isinstance(stage, int) else 2 * int(counts.max()), H, W), _flat(vx).dtype)
+        guesses = None if guess is None else np.ascontiguousarray(guess.detach().reshape(solves.shape).numpy(),
+                                                                  solves.dtype)
         out = in_sample_chunks(steps, chunks, (_flat(vx), _flat(vy)), masks, nu_n, dt_n, counts, *args,
-                               any(ctx.needs_input_grad))
+                               any(ctx.needs_input_grad), guesses, solves)
         v, phi_sum, pen_sum = (_joined([o[k] for o in out]) for k in range(3))
         ctx.save_for_backward(vx, vy, bx, by, dx_, dy_)
         ctx.tapes, ctx.chunks, ctx.counts = [o[3] for o in out], chunks, counts
         ctx.args = (nu_n, dt_n, *args)
         ctx.nu_shape = (torch.as_tensor(nu).shape, isinstance(nu, torch.Tensor))
         phi_shape = (*vx.shape[:-1], vx.shape[-1] - 1)
+        solves = torch.from_numpy(solves).reshape(*vx.shape[:2], -1, H, W)
+        ctx.mark_non_differentiable(solves)
         return (*(torch.from_numpy(a).reshape(shape) for a, shape in zip(v, shapes)),
                 torch.from_numpy(phi_sum).reshape(phi_shape),
-                *(torch.from_numpy(a).reshape(shape) for a, shape in zip(pen_sum, shapes)))
+                *(torch.from_numpy(a).reshape(shape) for a, shape in zip(pen_sum, shapes)), solves)
 
     @staticmethod
     @torch.autograd.function.once_differentiable
-    def backward(ctx, gvx, gvy, gphi, gpx, gpy):
+    def backward(ctx, gvx, gvy, gphi, gpx, gpy, _gsolves):
         vx, vy, *inputs = ctx.saved_tensors
         masks = tuple(_flat(t.expand_as(w)) for t, w in zip(inputs, (vx, vy, vx, vy)))
         out = in_sample_chunks(ctx.adjoint, ctx.chunks, [_flat(g) for g in (gvx, gvy)], _flat(gphi),
@@ -983,4 +1002,4 @@ class SplitStep(torch.autograd.Function):
             per_sample = torch.from_numpy(g_nu).to(vx.dtype).reshape(*vx.shape[:2], 1, 1)
             g_nu_t = per_sample.sum_to_size(shape) if len(shape) else per_sample.sum()
         return (torch.from_numpy(gv[0]).reshape(vx.shape), torch.from_numpy(gv[1]).reshape(vy.shape), *grads,
-                g_nu_t, None, None, None, None, None, None)
+                g_nu_t, None, None, None, None, None, None, None)

@@ -450,15 +450,18 @@ class NumericalFluid:
         return RefinedState(a=rest.a, p=rest.p, fine_a=fine_a)
 
     def step(self, state: FluidState, boundary: Boundary, params: FluidParams,
-             start: Tensor | None = None) -> FluidState:
-        """(a_t, p_t, b_t, v_d,t) -> (a_t+1, p_t+1); p_t is not needed by a projection method,
-        nor ``start`` (its pressure solves are direct)."""
-        return self.step_with_diagnostics(state, boundary, params)[0]
+             start: FluidState | None = None) -> FluidState:
+        """(a_t, p_t, b_t, v_d,t) -> (a_t+1, p_t+1); p_t is not needed by a projection method.
+        The new state's ``solves`` are the joint stages' potentials [B, 2 n_max, rH, rW] (stage
+        1 and 2 of each sub-step; None with the split passes, whose solves are direct);
+        ``start``: this step's result from the same inputs, whose ``solves`` start the joint
+        stages' PCG (a recomputation's solves then take no iteration)."""
+        return self.step_with_diagnostics(state, boundary, params, start)[0]
 
     # -- the step ------------------------------------------------------------------------------
 
     def step_with_diagnostics(
-        self, state: FluidState, boundary: Boundary, params: FluidParams
+        self, state: FluidState, boundary: Boundary, params: FluidParams, start: FluidState | None = None
     ) -> tuple[FluidState, StepDiagnostics]:
         """``step`` plus what it did (sub-step count, penalization force density)."""
         r, dx, h = self.refinement, self.fine.dx, params.h
@@ -471,21 +474,24 @@ class NumericalFluid:
         n = self._count_substeps(v, b, v_d, nu, h)                      # [B]
         dt = (h / n.to(v[0])).view(-1, 1, 1, 1)
         beta = self._blend_weight(b, h, n)
+        guess = None if start is None or self.stiffness is None else start.solves
+        if guess is not None and guess.shape[1] != 2 * int(n.max()):      # not this step's record
+            guess = None
         if self._compiled(v[0]):                      # the same sub-steps in one compiled call
             stage = self.penalization_iterations if self.stiffness is None else \
                 Immersion(self.stiffness, *IMMERSE_TOL[v[0].dtype], IMMERSE_MAX_ITER)
-            vx, vy, p_sum, *pen_sum = SplitStep.apply(*v, *beta, *v_d, nu, dt, n, self._inverse(v[0]), dx,
-                                                      self.walls, stage)
-            v = (vx, vy)
+            vx, vy, p_sum, *pen_sum, solves = SplitStep.apply(*v, *beta, *v_d, nu, dt, n, self._inverse(v[0]), dx,
+                                                              self.walls, stage, guess)
+            v, solves = (vx, vy), (solves.flatten(1, 2) if solves.shape[2] else None)
         else:
-            v, p_sum, pen_sum = self._substeps(v, beta, v_d, nu, dt, n)
+            v, p_sum, pen_sum, solves = self._substeps(v, beta, v_d, nu, dt, n, guess)
         self._check_finite(v, h)
         a = stream_function(v, dx)
         p = _mean_free(rho * p_sum / h)
         if r > 1:
-            new = RefinedState(a=_mean_free(a[..., ::r, ::r]), p=F.avg_pool2d(p, r), fine_a=a)
+            new = RefinedState(a=_mean_free(a[..., ::r, ::r]), p=F.avg_pool2d(p, r), fine_a=a, solves=solves)
         else:
-            new = FluidState(a=a, p=p)
+            new = FluidState(a=a, p=p, solves=solves)
         diag = StepDiagnostics(n, tuple(q / h for q in pen_sum), dx, r, b, v_start, v, h)
         return new, diag
 
@@ -509,17 +515,21 @@ class NumericalFluid:
         return tuple(torch.where(keep | (c >= 1), c, -torch.expm1(e * torch.log1p(-torch.where(c < 1, c, 0))))
                      for c in b)
 
-    def _substeps(self, v: Faces, b: Faces, v_d: Faces, nu: Tensor, dt: Tensor, n: Tensor):
+    def _substeps(self, v: Faces, b: Faces, v_d: Faces, nu: Tensor, dt: Tensor, n: Tensor,
+                  guess: Tensor | None = None):
         """The step's sub-steps as torch formulas, sample b stopping after its own n_b; returns (v',
-        sum of the sub-steps' pressure potentials, of their penalisation increments)."""
-        p_sum, pen_sum = 0.0, (0.0, 0.0)
+        sum of the sub-steps' pressure potentials, of their penalisation increments, the joint
+        stages' potentials [B, 2 n_max, H, W] or None). ``guess``: the stages' starts (``step``)."""
+        p_sum, pen_sum, solves = 0.0, (0.0, 0.0), []
         n_min, n_max = int(n.min()), int(n.max())
         last, precondition = None, None
         if self.stiffness is not None:       # one preconditioner for every solve of the step
             weights = tuple(c.detach() for c in immersion_weights(b, self.stiffness * dt))
             precondition = SchwarzPreconditioner(weights, self.fine.dx)
         for i in range(n_max):
-            new, phi, pen, last = self._substep(v, b, v_d, nu, dt, last, precondition)
+            starts = (last, None) if guess is None else (guess[:, 2 * i, None], guess[:, 2 * i + 1, None])
+            new, phi, pen, stages = self._substep(v, b, v_d, nu, dt, starts, precondition)
+            last = stages[1]
             if i >= n_min:                            # samples past their own count keep their state
                 active = (i < n).to(v[0]).view(-1, 1, 1, 1)
                 new = tuple(active * c + (1 - active) * o for c, o in zip(new, v))
@@ -527,19 +537,22 @@ class NumericalFluid:
             v = new
             p_sum = p_sum + phi
             pen_sum = tuple(s + q for s, q in zip(pen_sum, pen))
-        return v, p_sum, pen_sum
+            if self.stiffness is not None:
+                solves += [x.detach() for x in stages]
+        return v, p_sum, pen_sum, (torch.cat(solves, 1) if solves else None)
 
-    def _substep(self, v: Faces, b: Faces, v_d: Faces, nu: Tensor, dt: Tensor, start: Tensor | None = None,
+    def _substep(self, v: Faces, b: Faces, v_d: Faces, nu: Tensor, dt: Tensor,
+                 starts: tuple[Tensor | None, Tensor | None] = (None, None),
                  precondition: SchwarzPreconditioner | None = None):
         """One Heun (SSP-RK2) sub-step; returns (v', pressure potential phi1/2 + phi2 [m^2/s],
-        penalization increment pen1/2 + pen2 [m/s], the last stage's phi: the next solve's
-        start). ``start``: the first stage's guess for phi, ``precondition``: the step's
-        preconditioner (rate penalisation only)."""
+        penalization increment pen1/2 + pen2 [m/s], the stages' potentials (phi1, phi2): phi2
+        the next solve's start). ``starts``: the stages' guesses for phi (the second's None: the
+        first's solution), ``precondition``: the step's preconditioner (rate penalisation only)."""
         dx, walls, scheme = self.fine.dx, self.walls, self.scheme
-        v1, phi1, pen1 = self._constrain(predict(v, nu, dt, dx, walls, scheme), b, v_d, dt, start, precondition)
+        v1, phi1, pen1 = self._constrain(predict(v, nu, dt, dx, walls, scheme), b, v_d, dt, starts[0], precondition)
         w2 = tuple(0.5 * (c + q) for c, q in zip(v, predict(v1, nu, dt, dx, walls, scheme)))
-        v2, phi2, pen2 = self._constrain(w2, b, v_d, dt, phi1, precondition)
-        return v2, 0.5 * phi1 + phi2, tuple(0.5 * q1 + q2 for q1, q2 in zip(pen1, pen2)), phi2
+        v2, phi2, pen2 = self._constrain(w2, b, v_d, dt, phi1 if starts[1] is None else starts[1], precondition)
+        return v2, 0.5 * phi1 + phi2, tuple(0.5 * q1 + q2 for q1, q2 in zip(pen1, pen2)), (phi1, phi2)
 
     def _constrain(self, w: Faces, b: Faces, v_d: Faces, dt: Tensor, start: Tensor | None = None,
                    precondition: SchwarzPreconditioner | None = None):

@@ -26,5 +26,5 @@ class Vacuum:
         return FluidState(a=empty, p=empty)
 
     def step(self, state: FluidState, boundary: Boundary, params: FluidParams,
-             start: torch.Tensor | None = None) -> FluidState:
+             start: FluidState | None = None) -> FluidState:
         return state

@@ -155,6 +155,39 @@ def test_penalized_body_moves_with_its_velocity_and_walls_stay_at_rest(iteration
     assert abs(s.p.mean()) < 1e-12
 
 
+@pytest.mark.parametrize("compiled", [True, False])
+def test_a_step_started_from_its_own_record_replays_its_solves(compiled, monkeypatch):
+    """A checkpoint recomputation passes the forward's state back as ``start``: the joint stages'
+    PCG then starts from the recorded potentials (``FluidState.solves``, stage 1 and 2 of each
+    sub-step) and, converged there, keeps them. Shown with a start 1e-5 off the recorded one (far
+    inside the float32 solves' 1e-3): the replay returns the start's potentials, not a fresh
+    solve's, and the step's result moves only within the tolerance. The split passes (direct
+    solves) record none."""
+    import dataclasses
+
+    from fishsim.fluid import numerical
+
+    monkeypatch.setattr(numerical, "COMPILED", compiled)
+    g = Grid(32, 48, 0.005)
+    bd, _ = _tank_with_body(g, 0.05)
+    bd = Boundary(bd.mask.float(), bd.velocity.float())
+    m = NumericalFluid(g, substeps=2, implicit=True)
+    pr = FluidParams(torch.tensor([50.0]), torch.tensor([1e-3]))
+    s = m.initial_state(1)
+    for _ in range(3):
+        s = m.step(s, bd, pr)
+    first = m.step(s, bd, pr)
+    assert first.solves.shape == (1, 4, g.H, g.W) and first.solves.dtype == torch.float32
+    scale = first.solves.abs().max()
+    start = dataclasses.replace(first, solves=first.solves * (1 + 1e-5))
+    replay = m.step(s, bd, pr, start=start)
+    assert (first.solves - start.solves).abs().max() > 5e-6 * scale
+    assert (replay.solves - start.solves).abs().max() < 1e-6 * scale
+    assert (replay.a - first.a).abs().max() < 1e-4 * first.a.abs().max()
+    assert (m.step(s, bd, pr, start=s).a - first.a).abs().max() < 1e-3 * first.a.abs().max()  # another step's: a guess
+    assert NumericalFluid(g, substeps=2).step(s, bd, pr).solves is None
+
+
 def test_batch_members_are_independent_even_when_one_needs_more_substeps():
     """Each sample runs its own sub-step count (the floor, raised by the CFL safety net only for
     the fast sample: 5 m/s needs 10 > 8 sub-steps here), so a sample's step does not depend on its

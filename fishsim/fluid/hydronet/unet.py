@@ -240,9 +240,9 @@ class HydroNetFluid:
         return rest_state(self.grid, batch, device, dtype)
 
     def step(self, state: FluidState, boundary: Boundary, params: FluidParams,
-             start: Tensor | None = None) -> FluidState:
+             start: FluidState | None = None) -> FluidState:
         """(a_t, p_t, b, v_d) -> (a_t+1, p_t+1): one network evaluation (and the pressure
-        recovery, whose PCG starts from ``start``, else from p_t)."""
+        recovery, whose PCG starts from ``start``'s p, else from p_t)."""
         dev = state.a.device.type
         with torch.autocast(dev, dtype=torch.bfloat16, enabled=self.bf16):
             a, p = self.model(state.a, state.p, boundary.mask, boundary.velocity,
@@ -251,5 +251,5 @@ class HydroNetFluid:
             dx = self.grid.dx
             p = recover_pressure(curl(state.a, dx), curl(a, dx), boundary.mask.to(a.dtype), params.rho,
                                  params.mu, params.h, self.grid, self.recovery,
-                                 start=state.p if start is None else start)
+                                 start=state.p if start is None else start.p)
         return FluidState(a=a, p=p)
