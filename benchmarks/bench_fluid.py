@@ -33,8 +33,7 @@ from functools import partial
 import torch
 
 from fishsim.config import NumericalConfig
-from fishsim.coupling.geometry import area_vectors
-from fishsim.coupling.ibm import OUTSIDE, gather_cells, ibm_force, surface_samples
+from fishsim.coupling.ibm import ibm_force
 from fishsim.fields import Boundary, FluidParams, FluidState, Grid
 from fishsim.fluid import cases
 from fishsim.fluid import grid as G
@@ -175,43 +174,23 @@ def coupling_heave(g: Grid, s: FluidState, bd: Boundary, centre: tuple[float, fl
     return torch.stack([pressure, total])
 
 
-def wall_gradient_pressure(qs: torch.Tensor, p: torch.Tensor, mask: torch.Tensor, g: Grid,
-                           dp_dn: torch.Tensor) -> torch.Tensor:
-    """A candidate fit of the coupling's surface pressure (a study, not the coupling's): p_k [B, S]
-    from the cells the coupling samples (``ibm.surface_samples``, weight "outside", kernel std one
-    cell), the plane p ~ c + dp_dn h + g_t s with the wall-normal slope dp_dn [B, S] (Pa/m) given
-    instead of fitted (h, s: the offsets along the node's outward normal and its tangent): the
-    normal momentum balance at a no-slip wall, dp/dn = -rho a.n, for a body of acceleration a.
-    Where the pressure falls off over a body's radius (an accelerating cylinder's ~ R / r), the
-    free plane's slope, fitted 0.5-2 cells out, is shallower than the wall's, and extrapolated to
-    the surface it falls short by ~7 % at R = 4 cells."""
-    a = area_vectors(qs)
-    n = a / a.norm(dim=-1, keepdim=True)
-    flat, ox, oy, wn = surface_samples(qs, mask, g, g.dx**2, OUTSIDE, p.dtype, a)
-    h = ox * n[..., :1] + oy * n[..., 1:]
-    t = oy * n[..., :1] - ox * n[..., 1:]
-    y = gather_cells(p, flat) - dp_dn.unsqueeze(-1) * h
-    X = torch.stack([torch.ones_like(h), t], -1)                   # [B, S, M, 2]
-    XtW = X.transpose(-1, -2) * wn.unsqueeze(-2)
-    return torch.linalg.solve(XtW @ X, XtW @ y.unsqueeze(-1))[..., 0, 0]
-
-
 def wall_fit_heave(g: Grid, s: FluidState, bd: Boundary, centre: tuple[float, float], velocity: tuple[float, float],
                    radius: float, rho: float, acceleration: Callable[[], float]) -> torch.Tensor:
-    """y forces on an oscillating cylinder [N/m]: [the coupling's IBM pressure, the same with the
-    wall-normal slope imposed (``wall_gradient_pressure``, -rho a.n from ``acceleration()``, the
-    body's y acceleration over the step)], nodes as ``coupling_heave``'s."""
+    """y forces on an oscillating cylinder [N/m]: [the coupling's IBM pressure with its fit
+    "linear" and with "wall" (the wall-normal slope -rho a.n imposed, a = (0, ``acceleration()``),
+    the body's acceleration over the step)], nodes as ``coupling_heave``'s."""
     qs = cases.disc_polyline(*centre, radius, max(31, round(2 * math.pi * radius / (0.8 * g.dx)))).to(s.p.dtype)
-    a = area_vectors(qs)
-    n = a / a.norm(dim=-1, keepdim=True)
-    wall = wall_gradient_pressure(qs, s.p, bd.mask, g, -rho * acceleration() * n[..., 1])
-    return torch.stack([ibm_force(qs, s.p, bd.mask, g, sigma_prime=g.dx**2).sum(1)[0, 1], -(wall * a[..., 1]).sum()])
+    a = torch.zeros_like(qs)
+    a[..., 1] = acceleration()
+    return torch.stack([ibm_force(qs, s.p, bd.mask, g, sigma_prime=g.dx**2, fit=fit, wall=(a, rho)).sum(1)[0, 1]
+                        for fit in ("linear", "wall")])
 
 
 def oscillating_wall_fit(radius_cells: int) -> dict:
-    """The oscillating cylinder of ``_oscillating`` read by the coupling's pressure and by the
-    wall-slope fit (``wall_fit_heave``, the body's acceleration at the step's middle): C_m of each
-    against the reference (Stokes-Wang times confinement) and the momentum exchange."""
+    """The oscillating cylinder of ``_oscillating`` read by the coupling's pressure with its fits
+    "linear" and "wall" (``wall_fit_heave``, the body's acceleration at the step's middle): C_m of
+    each against the reference (Stokes-Wang times confinement) and the momentum exchange
+    (docs/validation.md, "The wall's pressure gradient imposed")."""
     kw, h = OSCILLATING_FISH_GRID, 0.01
     w, steps = 2 * math.pi * kw["freq"], []
 
@@ -229,15 +208,16 @@ def oscillating_wall_fit(radius_cells: int) -> dict:
 
 
 def towed_wall_fit(cells_per_d: int = 8) -> dict:
-    """The towed cylinder of ``CYLINDER_FISH_GRID`` read by the coupling's pressure and by the
-    wall-slope fit with dp/dn = 0 (a body moving steadily): mean C_D of each over the window."""
+    """The towed cylinder of ``CYLINDER_FISH_GRID`` read by the coupling's pressure with its fits
+    "linear" and "wall" (dp/dn = 0: a body moving steadily): mean pressure C_D of each over the
+    window, and the exchanged C_D."""
     kw = {**CYLINDER_FISH_GRID, "cells_per_d": cells_per_d}
 
     def probe(g: Grid, s: FluidState, bd: Boundary) -> torch.Tensor:
         qs = cases.disc_polyline(kw["x_centre"], kw["width"] / 2, 0.5, 31).to(s.p.dtype)
-        wall = wall_gradient_pressure(qs, s.p, bd.mask, g, torch.zeros(qs.shape[:2], dtype=s.p.dtype))
-        return torch.stack([ibm_force(qs, s.p, bd.mask, g, sigma_prime=g.dx**2).sum(1)[0, 0],
-                            -(wall * area_vectors(qs)[..., 0]).sum()])
+        still = (torch.zeros_like(qs), 1.0)
+        return torch.stack([ibm_force(qs, s.p, bd.mask, g, sigma_prime=g.dx**2, fit=fit, wall=still).sum(1)[0, 0]
+                            for fit in ("linear", "wall")])
 
     _, cd, _, probed = cases.cylinder_wake(**kw, probe=probe)
     return {"cd_exchange": cd, "cd_linear": probed[0], "cd_wall_slope": probed[1]}

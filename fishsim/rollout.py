@@ -45,7 +45,7 @@ from fishsim.coupling import (
     with_walls,
 )
 from fishsim.coupling.added_mass import mass_centroid, stabilise_translation, stabilising_force
-from fishsim.coupling.config import AVERAGE
+from fishsim.coupling.config import AVERAGE, WALL
 from fishsim.coupling.forces import burn_in_scale
 from fishsim.errors import ConfigError, SimulationBlowUp
 from fishsim.fields import Boundary, FluidModel, FluidParams, FluidState, Grid, all_finite
@@ -294,8 +294,12 @@ class Swimmer:
             if self.coupling.viscous:
                 v = faces_to_centres(curl(fluid.a, self.fluid.grid.dx))
                 viscous = (state.qdot, v, params.fluid.mu)
+            wall = None
+            if self.coupling.ibm_fit == WALL:          # the nodes' acceleration of the frame before
+                prev = state.qdot if state.qdot_prev is None else state.qdot_prev
+                wall = ((state.qdot - prev) / self.h, params.fluid.rho)
             f_ext = fluid_to_solid(state.q, fluid.p, boundary, self.surface, self.fluid.grid,
-                                   self.coupling, step=t + 1, mass=mass, viscous=viscous)
+                                   self.coupling, step=t + 1, mass=mass, viscous=viscous, wall=wall)
         timer.add("coupling", t0, dev)
         return fluid, f_ext
 

@@ -619,3 +619,23 @@ def test_the_background_recomputation_runs_in_a_forked_child():
     assert _recomputed_in_the_background() == 2.0
     with multiprocessing.get_context("fork").Pool(1) as pool:
         assert pool.apply_async(_recomputed_in_the_background).get(timeout=30) == 2.0
+
+
+def test_the_wall_fit_reads_each_node_s_acceleration_of_the_frame_before():
+    """``coupling.ibm_fit=wall``: a frame's force is the IBM force of the new pressure with the
+    wall's slope -rho a.n imposed, a = (qdot_t - qdot_t-1) / h (the explicit coupling's latest
+    acceleration), and differs from the free plane's."""
+    cfg, sw, ep = small_swimmer(["coupling.ibm_fit=wall"])
+    state = sw.initial_state(ep.params, ep.origin)
+    with torch.no_grad():
+        for t in range(3):
+            state, _ = sw.frame(state, ep.params, t)
+        boundary = sw.boundary(state)
+        new, out = sw.frame(state, ep.params, 3)
+        wall = ((state.qdot - state.qdot_prev) / sw.h, ep.params.fluid.rho)
+        args = (state.q, new.fluid.p, boundary, sw.surface, sw.fluid.grid)
+        expected = fluid_to_solid(*args, cfg.coupling, step=4, mass=sw.node_mass(state.q), wall=wall)
+        free = fluid_to_solid(*args, dataclasses.replace(cfg.coupling, ibm_fit="linear"), step=4,
+                              mass=sw.node_mass(state.q))
+    torch.testing.assert_close(out.f_ext, expected, rtol=1e-10, atol=1e-12)
+    assert (free - expected).abs().max() > 1e-3 * expected.abs().max()

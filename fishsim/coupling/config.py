@@ -13,7 +13,7 @@ from fishsim.errors import ConfigError
 SEGMENT, NODE = "segment", "node"                     # distance (band.py, mask.py)
 HARMONIC, ARITHMETIC = "harmonic", "arithmetic"       # mean (mask.py)
 FLUID, OUTSIDE, BODY, NONE = "fluid", "outside", "body", "none"  # ibm_weight (ibm.py)
-MEAN, LINEAR = "mean", "linear"                       # ibm_fit (ibm.py)
+MEAN, LINEAR, WALL = "mean", "linear", "wall"         # ibm_fit (ibm.py)
 CHORD, PAPER = "chord", "paper"                       # ibm_area (ibm.py)
 PER_NODE, AVERAGE = "per_node", "average"             # force_mode (forces.py)
 
@@ -21,7 +21,7 @@ _CHOICES = {
     "distance": (SEGMENT, NODE),
     "mean": (HARMONIC, ARITHMETIC),
     "ibm_weight": (FLUID, OUTSIDE, BODY, NONE),
-    "ibm_fit": (LINEAR, MEAN),
+    "ibm_fit": (LINEAR, MEAN, WALL),
     "ibm_area": (CHORD, PAPER),
     "force_mode": (PER_NODE, AVERAGE),
     "force": ("pressure", "exchange"),
@@ -41,7 +41,9 @@ class CouplingConfig:
     mean: soft-min of the squared distances, "harmonic" (0 on the surface) | "arithmetic" (paper).
     ibm_weight: cells sampled for the pressure, "outside" (beyond the mask's band, on each node's
         own side) | "fluid" (1 - b, the former default) | "body" (b, paper) | "none".
-    ibm_fit: "linear" (plane fit evaluated at the node) | "mean" (paper's weighted mean).
+    ibm_fit: "linear" (plane fit evaluated at the node) | "mean" (paper's weighted mean) |
+        "wall" (the plane with the wall-normal slope -rho a.n imposed, a the node's acceleration
+        of the frame before; needs ibm_weight "outside").
     ibm_area: "chord" (area vectors summing to 0) | "paper" (l_k n_k).
     viscous: add the viscous traction mu (grad v + grad v^T) n, fitted on the same cells as the
         pressure from the node's velocity (no slip) outwards (ibm.ibm_force); the paper
@@ -111,6 +113,9 @@ class CouplingConfig:
         if self.viscous and (self.ibm_weight != OUTSIDE or self.force != "pressure"):
             raise ConfigError("coupling.viscous=true needs coupling.ibm_weight=outside and coupling.force=pressure "
                               f"(got {self.ibm_weight!r}, {self.force!r}): the exchanged force already holds the viscous stress")
+        if self.ibm_fit == WALL and self.ibm_weight != OUTSIDE:
+            raise ConfigError(f"coupling.ibm_fit=wall needs coupling.ibm_weight=outside (got {self.ibm_weight!r}): "
+                              "the wall's slope is imposed on the samples beyond the band")
         if not self.added_mass_ratio >= 0:
             raise ConfigError(f"coupling.added_mass_ratio must be >= 0, got {self.added_mass_ratio}")
         if not 1 <= self.subiterations <= 32:

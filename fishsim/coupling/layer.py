@@ -118,7 +118,8 @@ def united_with_nothing(walls: Boundary) -> Boundary:
 
 def fluid_to_solid(q: Tensor, p: Tensor, boundary: Boundary, surface, grid: Grid,
                    cfg: CouplingConfig, step: int | None = None, mass: Tensor | None = None,
-                   viscous: tuple[Tensor, Tensor, Tensor] | None = None) -> Tensor:
+                   viscous: tuple[Tensor, Tensor, Tensor] | None = None,
+                   wall: tuple[Tensor, Tensor] | None = None) -> Tensor:
     """External hydrodynamic force on every mesh node, f_ext [B, N, 2] N (per unit depth).
 
     q: node positions [B, N, 2] (m); p: pressure [B, 1, H, W] (Pa); boundary: the mask used to
@@ -126,7 +127,8 @@ def fluid_to_solid(q: Tensor, p: Tensor, boundary: Boundary, surface, grid: Grid
     mass: lumped node masses [N], how ``force_mode=average`` shares the total (None: equally);
     viscous: (qdot [B, N, 2] m/s, the fluid velocity at the cell centres [B, 2, H, W] m/s,
     mu [B] Pa s) to add the viscous traction (ibm.ibm_force; the caller passes it with
-    ``cfg.viscous``), None for the pressure alone.
+    ``cfg.viscous``), None for the pressure alone; wall: (the nodes' accelerations [B, N, 2]
+    m/s^2, rho [B] kg/m^3) for ``cfg.ibm_fit`` "wall" (ibm.ibm_force).
     Result in q.dtype; differentiable in q, p, boundary.mask and the viscous inputs.
     """
     idx = surface_index(surface, q.device)
@@ -134,7 +136,7 @@ def fluid_to_solid(q: Tensor, p: Tensor, boundary: Boundary, surface, grid: Grid
         qdot, v, mu = viscous
         viscous = (qdot[:, idx], v, mu)
     f = ibm_force(q, p, boundary.mask, grid, cfg.sigma_prime, cfg.ibm_weight, cfg.ibm_fit, cfg.ibm_area, viscous,
-                  surface=idx)
+                  surface=idx, wall=wall)
     scale = 1.0 if step is None else burn_in_scale(step, cfg.n_burn_in)
     return fext_from_surface(f, idx, q.shape[1], cfg.force_mode, cfg.fix_lateral, scale, mass)
 

@@ -58,6 +58,21 @@ def test_ibm_force_gradient(weight, fit):
     assert gradcheck(fn, (qs, p), eps=1e-7, atol=1e-6, rtol=1e-4, fast_mode=True)
 
 
+def test_ibm_force_gradient_with_the_wall_fit():
+    """``fit="wall"``: differentiable in the node positions, the pressure and the accelerations
+    whose slope -rho a.n it imposes."""
+    qs = small_body()
+    g = torch.Generator().manual_seed(4)
+    p = (100 * torch.randn(1, 1, GRID.H, GRID.W, dtype=torch.float64, generator=g)).requires_grad_(True)
+    a = torch.randn(qs.shape, dtype=torch.float64, generator=g).requires_grad_(True)
+
+    def fn(q, pressure, acceleration):
+        mask = soft_mask(q, GRID, dtype=torch.float64)
+        return ibm_force(q, pressure, mask, GRID, fit="wall", wall=(acceleration, 50.0))
+
+    assert gradcheck(fn, (qs, p, a), eps=1e-7, atol=1e-6, rtol=1e-4, fast_mode=True)
+
+
 def test_layer_gradient_through_a_fixed_boundary():
     """fluid_to_solid w.r.t. node positions and pressure, average mode with burn-in."""
     qs = small_body()

@@ -162,3 +162,31 @@ def test_viscous_traction_needs_the_outside_pressure_weight():
     v = torch.zeros(1, 2, GRID.H, GRID.W, dtype=torch.float64)
     with pytest.raises(ValueError, match="outside"):
         ibm_force(shape, v[:, :1], soft_mask(shape, GRID), GRID, weight="fluid", viscous=(shape, v, 1e-3))
+
+
+@pytest.mark.parametrize("shape", [ellipse(200), fish_outline(200)], ids=["ellipse", "fish"])
+def test_the_wall_fit_is_exact_for_a_linear_pressure_of_the_imposed_slope(shape):
+    """``fit="wall"`` imposes dp/dn = -rho a.n at each node: with accelerations whose imposed
+    slope is the linear field's own (a_k = -(G.n_k) n_k / rho), the plane is exact and the forces
+    obey the divergence theorem as the free fit does; with a = 0 (dp/dn = 0) they do not."""
+    rho = 50.0
+    mask = soft_mask(shape, GRID, dtype=torch.float64)
+    a = area_vectors(shape)
+    n = a / a.norm(dim=-1, keepdim=True)
+    grad = torch.tensor([0.3, 1.0], dtype=torch.float64) * G
+    p = (GRID.cell_centres(dtype=torch.float64) @ grad)[None, None]
+    acceleration = -(n @ grad).unsqueeze(-1) * n / rho
+    force = ibm_force(shape, p, mask, GRID, fit="wall", wall=(acceleration, rho)).sum(1)[0]
+    expected = -grad * polygon_area(shape)[0]
+    assert (force - expected).norm() < 1e-5 * expected.norm()
+    still = ibm_force(shape, p, mask, GRID, fit="wall", wall=(torch.zeros_like(shape), rho)).sum(1)[0]
+    assert (still - expected).norm() > 1e-2 * expected.norm()
+
+
+def test_the_wall_fit_needs_the_outside_samples_and_accelerations():
+    with pytest.raises(ConfigError, match="ibm_fit=wall needs coupling.ibm_weight=outside"):
+        CouplingConfig(ibm_fit="wall", ibm_weight="fluid")
+    shape = ellipse(64)
+    p = torch.zeros(1, 1, GRID.H, GRID.W, dtype=torch.float64)
+    with pytest.raises(ValueError, match="needs wall="):
+        ibm_force(shape, p, soft_mask(shape, GRID), GRID, fit="wall")
