@@ -129,7 +129,8 @@ def fluid_to_solid(q: Tensor, p: Tensor, boundary: Boundary, surface, grid: Grid
     mu [B] Pa s) to add the viscous traction (ibm.ibm_force; the caller passes it with
     ``cfg.viscous``), None for the pressure alone; wall: (the nodes' accelerations [B, N, 2]
     m/s^2, rho [B] kg/m^3) for ``cfg.ibm_fit`` "wall" (ibm.ibm_force).
-    Result in q.dtype; differentiable in q, p, boundary.mask and the viscous inputs.
+    Result in q.dtype; differentiable in q, p, boundary.mask, the viscous inputs and the wall's
+    accelerations.
     """
     idx = surface_index(surface, q.device)
     if viscous is not None:
