@@ -26,7 +26,6 @@ from __future__ import annotations
 import json
 import math
 import time
-from collections.abc import Callable
 from contextlib import contextmanager
 from functools import partial
 
@@ -150,77 +149,33 @@ CYLINDER_FISH_GRID_16 = {**CYLINDER_FISH_GRID, "cells_per_d": 16}   # a 4 cm cyl
 
 def coupling_drag(g: Grid, s: FluidState, bd: Boundary) -> torch.Tensor:
     """x forces on CYLINDER_FISH_GRID's cylinder as the coupling reads them: [IBM pressure, IBM
-    viscous traction], summed over 31 surface nodes (kernel std one cell, sigma' = dx^2; the
-    fluid's units: rho = U = D = 1, mu = 0.01)."""
+    viscous traction, IBM pressure with ``ibm_fit`` "wall" (dp/dn = 0: the body moves steadily)],
+    summed over 31 surface nodes (kernel std one cell, sigma' = dx^2; the fluid's units: rho = U =
+    D = 1, mu = 0.01)."""
     kw = CYLINDER_FISH_GRID
     qs = cases.disc_polyline(kw["x_centre"], kw["width"] / 2, 0.5, 31)
     v = G.faces_to_centres(G.curl(s.a, g.dx))
     pressure = ibm_force(qs, s.p, bd.mask, g, sigma_prime=g.dx**2).sum(1)[0]
     traction = ibm_force(qs, torch.zeros_like(s.p), bd.mask, g, sigma_prime=g.dx**2,
                          viscous=(torch.zeros_like(qs), v, 0.01)).sum(1)[0]
-    return torch.stack([pressure[0], traction[0]])
+    wall = ibm_force(qs, s.p, bd.mask, g, sigma_prime=g.dx**2, fit="wall", wall=(torch.zeros_like(qs), 1.0)).sum(1)[0]
+    return torch.stack([pressure[0], traction[0], wall[0]])
 
 
 def coupling_heave(g: Grid, s: FluidState, bd: Boundary, centre: tuple[float, float], velocity: tuple[float, float],
-                   radius: float, mu: float) -> torch.Tensor:
+                   acceleration: float, radius: float, mu: float, rho: float) -> torch.Tensor:
     """y forces on an oscillating cylinder as the coupling reads them [N/m]: [IBM pressure, IBM
-    pressure + viscous traction], summed over surface nodes ~0.8 cells apart (as the fish's; at
-    least 31), kernel std one cell."""
+    pressure + viscous traction, IBM pressure with ``ibm_fit`` "wall" (the wall-normal slope
+    -rho a.n of the body's acceleration)], summed over surface nodes ~0.8 cells apart (as the
+    fish's; at least 31), kernel std one cell."""
     qs = cases.disc_polyline(*centre, radius, max(31, round(2 * math.pi * radius / (0.8 * g.dx))))
     v = G.faces_to_centres(G.curl(s.a, g.dx))
     u = torch.tensor(velocity, dtype=qs.dtype).expand_as(qs)
     pressure = ibm_force(qs, s.p, bd.mask, g, sigma_prime=g.dx**2).sum(1)[0, 1]
     total = ibm_force(qs, s.p, bd.mask, g, sigma_prime=g.dx**2, viscous=(u, v, mu)).sum(1)[0, 1]
-    return torch.stack([pressure, total])
-
-
-def wall_fit_heave(g: Grid, s: FluidState, bd: Boundary, centre: tuple[float, float], velocity: tuple[float, float],
-                   radius: float, rho: float, acceleration: Callable[[], float]) -> torch.Tensor:
-    """y forces on an oscillating cylinder [N/m]: [the coupling's IBM pressure with its fit
-    "linear" and with "wall" (the wall-normal slope -rho a.n imposed, a = (0, ``acceleration()``),
-    the body's acceleration over the step)], nodes as ``coupling_heave``'s."""
-    qs = cases.disc_polyline(*centre, radius, max(31, round(2 * math.pi * radius / (0.8 * g.dx)))).to(s.p.dtype)
-    a = torch.zeros_like(qs)
-    a[..., 1] = acceleration()
-    return torch.stack([ibm_force(qs, s.p, bd.mask, g, sigma_prime=g.dx**2, fit=fit, wall=(a, rho)).sum(1)[0, 1]
-                        for fit in ("linear", "wall")])
-
-
-def oscillating_wall_fit(radius_cells: int) -> dict:
-    """The oscillating cylinder of ``_oscillating`` read by the coupling's pressure with its fits
-    "linear" and "wall" (``wall_fit_heave``, the body's acceleration at the step's middle): C_m of
-    each against the reference (Stokes-Wang times confinement) and the momentum exchange
-    (docs/validation.md, "The wall's pressure gradient imposed")."""
-    kw, h = OSCILLATING_FISH_GRID, 0.01
-    w, steps = 2 * math.pi * kw["freq"], []
-
-    def acceleration() -> float:                                   # a_y at the middle of the step just taken
-        steps.append(None)
-        return kw["amplitude"] * w * w * math.cos(w * (len(steps) - 0.5) * h)
-
-    probe = partial(wall_fit_heave, radius=radius_cells * kw["dx"], rho=kw["rho"], acceleration=acceleration)
-    res = cases.oscillating_cylinder(radius_cells, **kw, probe=probe, stepping=FISH_STEPPING)
-    reference = res.stokes_wang * res.confinement
-    out = {"reference": reference, "cm_exchange": res.exchange}
-    for name, cm in zip(("linear", "wall_slope"), res.probe):
-        out.update({f"cm_{name}": cm, f"{name}_vs_reference": cm / reference - 1, f"{name}_vs_exchange": cm / res.exchange - 1})
-    return out
-
-
-def towed_wall_fit(cells_per_d: int = 8) -> dict:
-    """The towed cylinder of ``CYLINDER_FISH_GRID`` read by the coupling's pressure with its fits
-    "linear" and "wall" (dp/dn = 0: a body moving steadily): mean pressure C_D of each over the
-    window, and the exchanged C_D."""
-    kw = {**CYLINDER_FISH_GRID, "cells_per_d": cells_per_d}
-
-    def probe(g: Grid, s: FluidState, bd: Boundary) -> torch.Tensor:
-        qs = cases.disc_polyline(kw["x_centre"], kw["width"] / 2, 0.5, 31).to(s.p.dtype)
-        still = (torch.zeros_like(qs), 1.0)
-        return torch.stack([ibm_force(qs, s.p, bd.mask, g, sigma_prime=g.dx**2, fit=fit, wall=still).sum(1)[0, 0]
-                            for fit in ("linear", "wall")])
-
-    _, cd, _, probed = cases.cylinder_wake(**kw, probe=probe)
-    return {"cd_exchange": cd, "cd_linear": probed[0], "cd_wall_slope": probed[1]}
+    a = torch.tensor((0.0, acceleration), dtype=qs.dtype).expand_as(qs)
+    wall = ibm_force(qs, s.p, bd.mask, g, sigma_prime=g.dx**2, fit="wall", wall=(a, rho)).sum(1)[0, 1]
+    return torch.stack([pressure, total, wall])
 
 
 # The oscillating cylinder on the fish's grid, stepping and fluid (2.5 mm cells, h = 0.01 s, rho = 50,
@@ -231,7 +186,7 @@ OSCILLATING_FISH_GRID = {"box_cells": 240, "dx": 2.5e-3, "rho": 50.0, "mu": 1.25
 def _oscillating(radius_cells: int) -> dict:
     t0 = time.perf_counter()
     kw = OSCILLATING_FISH_GRID
-    probe = partial(coupling_heave, radius=radius_cells * kw["dx"], mu=kw["mu"])
+    probe = partial(coupling_heave, radius=radius_cells * kw["dx"], mu=kw["mu"], rho=kw["rho"])
     res = cases.oscillating_cylinder(radius_cells, **kw, probe=probe, stepping=FISH_STEPPING)
     reference = res.stokes_wang * res.confinement
     return {"resolution": f"{2 * radius_cells} cells per D, {kw['box_cells']}^2 cells of {kw['dx']:g} m, fish stepping",
@@ -239,14 +194,16 @@ def _oscillating(radius_cells: int) -> dict:
             "cm_exchange": res.exchange, "cm_ibm_pressure": res.probe[0], "cm_ibm_pressure_traction": res.probe[1],
             "exchange_vs_reference": res.exchange / reference - 1,
             "ibm_vs_reference": res.probe[1] / reference - 1, "ibm_vs_exchange": res.probe[1] / res.exchange - 1,
-            "wall_s": time.perf_counter() - t0}
+            "cm_ibm_wall_fit": res.probe[2], "wall_fit_vs_reference": res.probe[2] / reference - 1,
+            "wall_fit_vs_exchange": res.probe[2] / res.exchange - 1, "wall_s": time.perf_counter() - t0}
 
 
 def _cylinder(kw: dict, probe=None) -> dict:
     t0 = time.perf_counter()
     st, cd, cl, probed = cases.cylinder_wake(**kw, probe=probe)
     n = kw["cells_per_d"]
-    extra = {"cd_ibm_pressure": probed[0], "cd_ibm_traction": probed[1]} if probed else {}
+    extra = {"cd_ibm_pressure": probed[0], "cd_ibm_traction": probed[1],
+             "cd_ibm_pressure_wall_fit": probed[2]} if probed else {}
     return {**extra,
         "resolution": f"{n} cells/D, {kw['length']:g} D x {kw['width']:g} D "
         f"({round(kw['width'] * n)}x{round(kw['length'] * n)}), h = {kw['h']:g} D/U, "

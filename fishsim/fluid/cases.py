@@ -262,7 +262,7 @@ def in_phase_added_mass(force: np.ndarray, acceleration: np.ndarray, velocity: n
 def oscillating_cylinder(
     radius_cells=8, box_cells=160, dx=2.5e-3, rho=50.0, mu=1.25e-4, freq=2.0, amplitude=5e-3, periods=4, h=0.01,
     dtype=torch.float64, stepping: dict | None = None,
-    probe: Callable[[Grid, FluidState, Boundary, tuple[float, float], tuple[float, float]], Tensor] | None = None,
+    probe: Callable[[Grid, FluidState, Boundary, tuple[float, float], tuple[float, float], float], Tensor] | None = None,
 ) -> OscillatingCylinder:
     """A rigid cylinder oscillating across still fluid, y(t) = y0 - A cos(w t), from rest, in a
     closed square box of ``box_cells``^2 cells of ``dx`` [m] (walls two cells thick), stepped
@@ -275,8 +275,9 @@ def oscillating_cylinder(
     with the unbounded viscous value of Stokes and Wang (1968, small KC = 2 pi A / D),
     C_m = 1 + 4 / sqrt(pi beta) + O(1 / beta), beta = f D^2 / nu, times the confinement of potential
     flow in a concentric circular box of radius R_b (the box's inscribed circle),
-    (R_b^2 + R^2) / (R_b^2 - R^2).  probe(grid, state, boundary, centre [m], velocity [m/s]) -> y
-    forces [k] (N/m, e.g. the coupling's IBM force summed over the surface) of each step's state.
+    (R_b^2 + R^2) / (R_b^2 - R^2).  probe(grid, state, boundary, centre [m], velocity [m/s], y
+    acceleration [m/s^2] at the step's middle) -> y forces [k] (N/m, e.g. the coupling's IBM force
+    summed over the surface) of each step's state.
     """
     g = Grid(box_cells, box_cells, dx)
     R, w, L = radius_cells * dx, 2 * math.pi * freq, box_cells * dx
@@ -293,7 +294,8 @@ def oscillating_cylinder(
         bd = G.union(tank, Boundary(body, moving(body, 0.0, vy)))
         s, diag = m.step_with_diagnostics(s, bd, pr)
         inertia = rho * body.sum().item() * dx**2 * (vy - v_prev) / h
-        probed = probe(g, s, bd, (L / 2, y), (0.0, vy)).tolist() if probe is not None else []
+        acceleration = amplitude * w * w * math.cos(w * (k + 0.5) * h)
+        probed = probe(g, s, bd, (L / 2, y), (0.0, vy), acceleration).tolist() if probe is not None else []
         t = (k + 1) * h  # the step's end, where the state is
         rows.append([t, diag.force(rho, region)[0][1].item() + inertia, *probed,
                      amplitude * w * w * math.cos(w * t), amplitude * w * math.sin(w * t)])
