@@ -60,11 +60,18 @@ class Run:
     pool: ScenePool
     loss_fn: object = None
     teacher: object = None          # the numerical solver giving L_t's targets (None: physics only)
+    average: nn.Module | None = None  # the weights' moving average (AveragedModel; cfg.ema > 0)
     iteration: int = 0
     best_val: float = math.inf
     best_swim: float = math.inf     # the lowest swimming error of swim_check (swim_every > 0)
     last_val: float = math.nan
     elapsed: float = 0.0
+
+    @property
+    def evaluated(self) -> nn.Module:
+        """The weights that are validated, swum and saved as model files: the moving average
+        when there is one, else the iterate."""
+        return self.model if self.average is None else self.average.module
 
 
 def make_loss_fn(cfg: TrainConfig):
@@ -110,6 +117,8 @@ def train_step(run: Run, cfg: TrainConfig, net: nn.Module) -> LossTerms:
     if cfg.grad_clip > 0:
         nn.utils.clip_grad_norm_(net.parameters(), cfg.grad_clip)
     run.opt.step()
+    if run.average is not None:
+        run.average.update_parameters(run.model)
     run.pool.tell(idx, new)
     run.iteration += 1
     mean = lambda name: None if getattr(steps[0], name) is None else \
@@ -177,6 +186,8 @@ def save_checkpoint(run: Run, cfg: TrainConfig, out: Path, rank: int) -> None:
     if rank > 0:
         atomic_save(common, out / f"ckpt_rank{rank}.pt")
         return
+    if run.average is not None:
+        common["average"] = run.average.state_dict()
     atomic_save({**common, "optimizer": run.opt.state_dict(),
                  "net": asdict(model.cfg), "config": asdict(cfg), "best_val": run.best_val, "best_swim": run.best_swim,
                  "last_val": run.last_val, "elapsed": run.elapsed}, out / "ckpt.pt")
@@ -195,6 +206,8 @@ def load_checkpoint(run: Run, out: Path, rank: int, lr: float | None = None) -> 
         group["lr"] = main["config"]["lr"] if lr is None else lr
     if "pool" in own:
         run.pool.load_state_dict(own["pool"])
+    if run.average is not None and "average" in main:   # else it starts from the next step's weights
+        run.average.load_state_dict(main["average"])
     torch.set_rng_state(own["torch_rng"])
     run.iteration, run.best_val = main["iteration"], main["best_val"]
     run.best_swim = main.get("best_swim", math.inf)
@@ -355,7 +368,12 @@ def build(cfg: TrainConfig, rank: int, world: int, device: torch.device) -> tupl
         net = nn.parallel.DistributedDataParallel(model, device_ids=[device.index] if device.type == "cuda" else None)
     if cfg.compile:
         net = torch.compile(net)
-    return Run(model, opt, pool, make_loss_fn(cfg), make_teacher(cfg)), net
+    average = None
+    if cfg.ema > 0:
+        from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
+
+        average = AveragedModel(model, multi_avg_fn=get_ema_multi_avg_fn(cfg.ema), use_buffers=True)
+    return Run(model, opt, pool, make_loss_fn(cfg), make_teacher(cfg), average), net
 
 
 def _due(run: Run, cfg: TrainConfig, last_save: float, world: int) -> bool:
@@ -376,16 +394,16 @@ def _after_step(run: Run, cfg: TrainConfig, out: Path, rank: int, world: int, lo
     """Validation (+ best.pt), logging and checkpointing after one iteration; returns the time of
     the last checkpoint."""
     if rank == 0 and run.iteration % cfg.val_every == 0:
-        run.last_val = validate(run.model, cfg)
+        run.last_val = validate(run.evaluated, cfg)
         if run.last_val < run.best_val:
             run.best_val = run.last_val
-            save_weights(run.model, run, out / "best.pt", cfg, run.best_val)
+            save_weights(run.evaluated, run, out / "best.pt", cfg, run.best_val)
     if rank == 0 and cfg.swim_every and run.iteration % cfg.swim_every == 0:
-        save_weights(run.model, run, out / "swim_model.pt", cfg, math.nan)
+        save_weights(run.evaluated, run, out / "swim_model.pt", cfg, math.nan)
         error = swim_check.check(out / "swim_model.pt", out, cfg, run.iteration)
         if error < run.best_swim:
             run.best_swim = error
-            save_weights(run.model, run, out / "best_swim.pt", cfg, error)
+            save_weights(run.evaluated, run, out / "best_swim.pt", cfg, error)
     if log is not None and run.iteration % cfg.log_every == 0:
         log.log(run, terms)
     if _due(run, cfg, last_save, world):

@@ -49,6 +49,38 @@ def test_resume_continues_exactly(cfg, tmp_path, fast):
     assert len(lines) == 1 + 6  # header + one row per iteration, no duplicates
 
 
+def test_ema_averages_the_iterates_and_resumes_exactly(cfg, tmp_path, monkeypatch):
+    """ema=d: after every step theta_avg <- d theta_avg + (1 - d) theta (the first step's weights
+    as the start); validation sees the average, not the iterate; ckpt.pt keeps it, so 6 steps in
+    one go and 3 + 3 resumed end with the same average."""
+    d = 0.5
+    cfg = replace(cfg, ema=d)
+    run, net = T.build(cfg, 0, 1, torch.device("cpu"))
+    expected = None
+    for _ in range(3):
+        T.train_step(run, cfg, net)
+        theta = {k: v.detach().clone() for k, v in run.model.named_parameters()}
+        expected = theta if expected is None else {k: d * expected[k] + (1 - d) * theta[k] for k in theta}
+    averaged = dict(run.average.module.named_parameters())
+    for k, v in expected.items():
+        torch.testing.assert_close(averaged[k], v, rtol=0, atol=1e-7)
+        assert not torch.equal(averaged[k], theta[k]) or v.abs().max() == 0
+    seen = []
+    monkeypatch.setattr(T, "validate", lambda model, c: seen.append(model) or -float(len(seen)))  # always better
+    straight = T.run(cfg)
+    assert seen and all(p.grad is None for m in seen for p in m.parameters())   # never the iterate (it has grads)
+    half = replace(cfg, out_dir=str(tmp_path / "resumed"), iterations=3)
+    T.run(half)
+    T.run(replace(half, iterations=6, resume=True))
+    a1 = torch.load(tmp_path / "run" / "ckpt.pt", weights_only=False)["average"]
+    a2 = torch.load(tmp_path / "resumed" / "ckpt.pt", weights_only=False)["average"]
+    assert straight["iteration"] == 6 and a1.keys() == a2.keys()
+    for k in a1:
+        assert torch.equal(a1[k], a2[k]), k
+    best = torch.load(tmp_path / "resumed" / "best.pt", weights_only=False)["model"]
+    assert all(torch.equal(best[k], a2["module." + k]) for k in best)      # the last validation's average
+
+
 def test_compact_checkpoint_resumes_model_and_optimiser(cfg, tmp_path):
     """A pool-less checkpoint (the one committed between sittings) is ~3x smaller and resumes
     the counters, weights and Adam state; training then goes on."""

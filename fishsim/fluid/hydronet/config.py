@@ -119,6 +119,10 @@ class TrainConfig:
     compile: torch.compile the trunk (measured slower on CPU); compile_loss: torch.compile the
     loss (~80 s once; then the Koren residual's forward + backward runs 10x faster). log_every, ckpt_every (iterations), ckpt_minutes,
     val_every, val_scenes, val_steps: bookkeeping. grad_clip: max gradient norm (0: off).
+    ema: decay d of an exponential moving average of the weights, theta_avg <- d theta_avg + (1 - d)
+    theta after every step (Polyak averaging; 0: off): the validation, the swim checks and the
+    model files (best.pt, best_swim.pt) then hold the average, which follows the run over ~1 / (1 -
+    d) iterations without the iterate's step-to-step scatter; ckpt.pt keeps both.
     swim_every: every this many iterations the network swims the frequency study (swim_frequencies
     [Hz], swim_frames) against the numerical fluid, logged to swim.csv; best_swim.pt keeps the
     closest (``swim_check``; 0: off).
@@ -154,6 +158,7 @@ class TrainConfig:
     val_scenes: int = 8
     val_steps: int = 40
     grad_clip: float = 0.0
+    ema: float = 0.0
     swim_every: int = 0
     swim_frames: int = 120
     swim_frequencies: tuple[float, ...] = (3.0, 4.0, 5.0, 6.0, 7.0)
@@ -167,6 +172,7 @@ class TrainConfig:
         _check(self.iterations >= 1 and self.batch_size >= 1, "iterations and batch_size must be >= 1")
         _check(self.lr > 0 and self.beta > 0 and self.gamma >= 0 and self.teacher >= 0,
                "lr and beta must be > 0, gamma and teacher >= 0")
+        _check(0 <= self.ema < 1, f"ema must be a decay in [0, 1) (0: off), got {self.ema}")
         _check(self.unroll >= 1, f"unroll must be >= 1 network steps per iteration, got {self.unroll}")
         _check(self.swim_every >= 0 and self.swim_frames >= 1 and len(self.swim_frequencies) >= 1
                and all(f > 0 for f in self.swim_frequencies),
