@@ -42,7 +42,7 @@ from torch import nn
 from fishsim.errors import ConfigError, Terminated
 from fishsim.fields import Boundary, FluidParams, FluidState, rest_state
 from fishsim.fluid.hydronet.config import RESUME_NEEDS_OUT_DIR, TrainConfig, resolve_bf16
-from fishsim.fluid.hydronet.loss import EPS, LossConfig, LossTerms, hydronet_loss, teacher_loss
+from fishsim.fluid.hydronet.loss import EPS, LossConfig, LossTerms, energy_loss, hydronet_loss, teacher_loss
 from fishsim.fluid.hydronet.model_file import load_file, load_weights
 from fishsim.fluid.hydronet.trained_range import stored_range, training_range
 from fishsim.fluid.hydronet.unet import HydroNet
@@ -109,7 +109,7 @@ def train_step(run: Run, cfg: TrainConfig, net: nn.Module) -> LossTerms:
         if run.teacher is not None:
             with torch.no_grad():
                 target = run.teacher.step(FluidState(target.a.float(), target.p.float()), boundary, params)
-            terms = with_teacher(terms, cfg, target, new, params)
+            terms = with_teacher(terms, cfg, target, new, boundary, params)
         steps.append(terms)
     objective = torch.stack([t.objective for t in steps]).mean()
     run.opt.zero_grad(set_to_none=True)
@@ -123,15 +123,19 @@ def train_step(run: Run, cfg: TrainConfig, net: nn.Module) -> LossTerms:
     run.iteration += 1
     mean = lambda name: None if getattr(steps[0], name) is None else \
         torch.stack([getattr(t, name).detach() for t in steps]).mean(0)
-    return LossTerms(mean("momentum"), mean("boundary"), mean("total"), objective.detach(), mean("teacher"))
+    return LossTerms(mean("momentum"), mean("boundary"), mean("total"), objective.detach(), mean("teacher"),
+                     mean("energy"))
 
 
-def with_teacher(terms: LossTerms, cfg: TrainConfig, target: FluidState, new: FluidState,
+def with_teacher(terms: LossTerms, cfg: TrainConfig, target: FluidState, new: FluidState, boundary: Boundary,
                  params: FluidParams) -> LossTerms:
-    """``terms`` with L_t of ``new`` against the solver's ``target`` added to L and the objective."""
-    lt = teacher_loss(FluidState(new.a.float(), new.p.float()), target, params, cfg.pool.grid)
-    total = terms.total + cfg.teacher * lt
-    return LossTerms(terms.momentum, terms.boundary, total, torch.log(total + EPS).mean(), lt)
+    """``terms`` with L_t (and, with ``cfg.energy``, L_E) of ``new`` against the solver's
+    ``target`` added to L and the objective."""
+    new = FluidState(new.a.float(), new.p.float())
+    lt = teacher_loss(new, target, params, cfg.pool.grid)
+    le = energy_loss(new, target, boundary, params, cfg.pool.grid) if cfg.energy else None
+    total = terms.total + cfg.teacher * lt + (0 if le is None else cfg.energy * le)
+    return LossTerms(terms.momentum, terms.boundary, total, torch.log(total + EPS).mean(), lt, le)
 
 
 def make_teacher(cfg: TrainConfig):
@@ -167,7 +171,7 @@ def validate(model: HydroNet, cfg: TrainConfig, seed: int = 12345) -> float:
             terms = hydronet_loss(state, new, boundary, params, grid, loss_cfg)
             if teacher is not None:
                 target = teacher.step(FluidState(state.a.float(), state.p.float()), boundary, params)
-                terms = with_teacher(terms, cfg, target, new, params)
+                terms = with_teacher(terms, cfg, target, new, boundary, params)
             losses.append(terms.objective.item())
         state = new
     model.train(was_training)
@@ -258,13 +262,13 @@ def export_model(checkpoint: str | Path, dest: str | Path, metadata: dict) -> Pa
 class Logger:
     """CSV + TensorBoard (rank 0 only) and a rich progress bar (plain lines when not a terminal)."""
 
-    COLUMNS = ("iteration", "seconds", "loss", "L_p", "L_b", "val", "it_per_s", "samples_per_s", "L_t")
+    COLUMNS = ("iteration", "seconds", "loss", "L_p", "L_b", "val", "it_per_s", "samples_per_s", "L_t", "L_E")
 
     def __init__(self, out: Path, cfg: TrainConfig, start: int):
         from rich.console import Console
 
         self.cfg, self.t0, self.i0 = cfg, time.perf_counter(), start
-        trim_log(out / "log.csv", start)
+        trim_log(out / "log.csv", start, self.COLUMNS)
         new = not (out / "log.csv").exists()
         self.csv_file = open(out / "log.csv", "a", newline="")  # noqa: SIM115 (closed in close())
         self.csv = csv.writer(self.csv_file)
@@ -295,13 +299,14 @@ class Logger:
         rate = (run.iteration - self.i0) / max(dt, 1e-9)
         row = [run.iteration, round(run.elapsed, 1), terms.objective.item(), terms.momentum.mean().item(),
                terms.boundary.mean().item(), run.last_val, rate, rate * self.cfg.batch_size,
-               math.nan if terms.teacher is None else terms.teacher.mean().item()]
+               *(math.nan if t is None else t.mean().item() for t in (terms.teacher, terms.energy))]
         self.csv.writerow(row)
         self.csv_file.flush()
         for name, value in zip(self.COLUMNS[2:], row[2:]):
             if math.isfinite(value) and self.tb is not None:
                 self.tb.add_scalar(f"train/{name}", value, run.iteration)
-        teach = "" if terms.teacher is None else f"  L_t {row[8]:.2e}"
+        teach = ("" if terms.teacher is None else f"  L_t {row[8]:.2e}") + \
+            ("" if terms.energy is None else f"  L_E {row[9]:.2e}")
         status = f"loss {row[2]:.3f}  L_p {row[3]:.2e}  L_b {row[4]:.2e}{teach}  val {row[5]:.3f}  {rate:.2f} it/s"
         if self.bar is not None:
             self.bar.update(self.task, completed=run.iteration, status=status)
@@ -316,17 +321,22 @@ class Logger:
             self.tb.close()
 
 
-def trim_log(path: Path, start: int) -> None:
+def trim_log(path: Path, start: int, columns: tuple[str, ...]) -> None:
     """Drop the rows of log.csv after iteration ``start``, the checkpoint this run starts from
     (rows a run wrote after its last checkpoint before a SIGKILL, or of a replaced run), and a
-    row cut short, so that a resumed log holds each iteration once."""
+    row cut short, so that a resumed log holds each iteration once; a log of a version with fewer
+    ``columns`` gets the new ones (nan in its rows)."""
     if not path.exists():
         return
     lines = path.read_text().splitlines(keepends=True)
     keep = lines[:1] + [line for line in lines[1:] if _row_iteration(line) is not None
                         and _row_iteration(line) <= start]
-    if len(keep) < len(lines):
-        atomic_text(path, "".join(keep))
+    old = lines[0].rstrip("\n").split(",") if lines else list(columns)
+    if old != list(columns[:len(old)]):
+        raise ConfigError(f"{path} holds another run's log (columns {old}); give another out_dir")
+    pad = ",nan" * (len(columns) - len(old))
+    if len(keep) < len(lines) or pad:
+        atomic_text(path, "".join([",".join(columns) + "\n"] + [line.rstrip("\n") + pad + "\n" for line in keep[1:]]))
 
 
 def _row_iteration(line: str) -> int | None:

@@ -6,7 +6,15 @@ import torch
 
 from fishsim.fields import Boundary, FluidParams, FluidState
 from fishsim.fluid.grid import closed_tank, stream_function, vector_to_faces
-from fishsim.fluid.hydronet.loss import LossConfig, boundary_loss, hydronet_loss, momentum_loss, teacher_loss
+from fishsim.fluid.hydronet.loss import (
+    ENERGY_FLOOR,
+    LossConfig,
+    boundary_loss,
+    energy_loss,
+    hydronet_loss,
+    momentum_loss,
+    teacher_loss,
+)
 from fishsim.fluid.residual import boundary_face_masks, fluid_face_masks
 
 from .conftest import paper_params
@@ -146,3 +154,29 @@ def test_teacher_term_is_zero_on_the_solvers_own_step_and_counts_cells_per_step(
     nx, ny = (grid.H * (grid.W + 1)), ((grid.H + 1) * grid.W)
     assert torch.allclose(teacher_loss(shifted, target, params, grid), torch.tensor([nx / (nx + ny)]),
                           rtol=1e-4)
+
+
+def test_energy_term_is_the_relative_kinetic_energy_error_of_the_step(grid):
+    """L_E vanishes on the solver's own step (a moving body in the tank); the same flow 1 % faster
+    everywhere has (1.01^2 - 1)^2 / (1 + E_0 / E*)^2 with E* its fluid faces' mean (v / U*)^2, a
+    sign-blind squared gain; a still target leaves only the floor."""
+    from fishsim.fluid.grid import curl, union
+    from fishsim.fluid.numerical import NumericalFluid
+
+    tank = closed_tank(grid, 2, 3, 1)
+    yy, xx = torch.meshgrid(torch.arange(grid.H), torch.arange(grid.W), indexing="ij")
+    disc = (((xx - grid.W / 2) ** 2 + (yy - grid.H / 2) ** 2) < 9).float()[None, None]
+    boundary = union(tank, Boundary(disc, torch.stack([0.1 * disc[:, 0], 0.05 * disc[:, 0]], 1)))
+    params = paper_params(1)
+    target = NumericalFluid(grid).step(_rest(grid, 1), boundary, params)
+    assert energy_loss(target, target, boundary, params, grid).abs().max() == 0
+    u = grid.dx / params.h
+    w = fluid_face_masks(boundary.mask)
+    e = sum(((c / u) ** 2 * wi).sum() for c, wi in zip(curl(target.a, grid.dx), w)) / sum(
+        c[0].numel() for c in curl(target.a, grid.dx))
+    for gain in (1.01, 0.99):
+        faster = FluidState(gain * target.a, target.p)
+        expected = ((gain**2 - 1) * e / (e + ENERGY_FLOOR)) ** 2
+        assert torch.allclose(energy_loss(faster, target, boundary, params, grid), expected[None], rtol=1e-4)
+    still = _rest(grid, 1)
+    assert torch.allclose(energy_loss(target, still, boundary, params, grid), (e / ENERGY_FLOOR)[None] ** 2, rtol=1e-4)

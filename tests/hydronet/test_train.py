@@ -324,6 +324,34 @@ def test_an_unrolled_step_advances_its_scenes_and_follows_the_solvers_rollout(cf
         replace(cfg, unroll=0).validate()
 
 
+def test_energy_term_adds_to_the_teachers_objective_and_its_log_column(cfg, tmp_path):
+    """energy=w (with a teacher): L = L_p + L_b + teacher L_t + w L_E, L_E logged; without a
+    teacher the config is refused; a log.csv from before the L_E column is resumed with the column
+    added (nan in its old rows)."""
+    import csv
+
+    from fishsim.errors import ConfigError
+
+    torch.manual_seed(0)
+    c = replace(cfg, batch_size=2, teacher=1.0, energy=50.0, iterations=3)
+    run, net = T.build(c, 0, 1, torch.device("cpu"))
+    terms = T.train_step(run, c, net)
+    assert terms.energy.shape == (2,) and torch.all(terms.energy >= 0)
+    torch.testing.assert_close(terms.total, c.beta * terms.momentum + c.gamma * terms.boundary
+                               + c.teacher * terms.teacher + c.energy * terms.energy)
+    with pytest.raises(ConfigError, match="energy must be >= 0 and needs the solver's step"):
+        replace(cfg, energy=1.0).validate()
+    T.run(c)
+    log = tmp_path / "run" / "log.csv"
+    rows = list(csv.DictReader(log.open()))
+    assert all(float(r["L_E"]) >= 0 for r in rows)
+    old = [line.rsplit(",", 1)[0] for line in log.read_text().splitlines()]      # the 9-column log of before
+    log.write_text("\n".join(old) + "\n")
+    T.run(replace(c, iterations=5, resume=True))
+    rows = list(csv.DictReader(log.open()))
+    assert [r["L_E"] for r in rows[:3]] == ["nan"] * 3 and float(rows[-1]["L_E"]) >= 0 and len(rows) == 5
+
+
 def test_swim_check_keeps_the_weights_that_swim_closest_to_the_numerical_fluid(cfg):
     """swim_every=3: at iterations 3 and 6 the network (the shipped one, fine-tuned a few steps)
     swims the frequency study (2 fish, 3 frames, the default tank and fish); swim.csv holds each

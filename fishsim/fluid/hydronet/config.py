@@ -110,6 +110,8 @@ class TrainConfig:
     iterations: total optimiser steps; batch_size: scenes per step (per rank); lr: Adam step size.
     beta, gamma: loss weights; advection: "koren" | "central" scheme of the loss's residual.
     teacher: weight of L_t, the numerical solver's one-step target (0: physics only, the paper).
+    energy: weight of L_E, the step's relative kinetic-energy error against the solver's (needs a
+        teacher; 0: off).
     unroll: network steps per iteration, back-propagated through together (1: Wandel's one step);
         with a teacher, step j is compared with the solver's own j-step rollout.
     device: "cpu" | "cuda"; threads: torch CPU threads (0: default).
@@ -140,6 +142,7 @@ class TrainConfig:
     beta: float = 1.0
     gamma: float = 20.0
     teacher: float = 0.0
+    energy: float = 0.0
     unroll: int = 1
     advection: str = "koren"
     net: NetConfig = field(default_factory=lambda: NetConfig(hidden=16))
@@ -172,6 +175,8 @@ class TrainConfig:
         _check(self.iterations >= 1 and self.batch_size >= 1, "iterations and batch_size must be >= 1")
         _check(self.lr > 0 and self.beta > 0 and self.gamma >= 0 and self.teacher >= 0,
                "lr and beta must be > 0, gamma and teacher >= 0")
+        _check(self.energy >= 0 and (self.energy == 0 or self.teacher > 0),
+               f"energy must be >= 0 and needs the solver's step (teacher > 0), got energy={self.energy}")
         _check(0 <= self.ema < 1, f"ema must be a decay in [0, 1) (0: off), got {self.ema}")
         _check(self.unroll >= 1, f"unroll must be >= 1 network steps per iteration, got {self.unroll}")
         _check(self.swim_every >= 0 and self.swim_frames >= 1 and len(self.swim_frequencies) >= 1

@@ -34,6 +34,16 @@ the fluid and boundary terms conflict, and the network's rollouts reach a lower 
 solver's own steps while swimming 4-8x less far. L_t anchors the network to the solver's
 discrete dynamics on the network's own rollout states (solver-in-the-loop one-step targets).
 
+Energy term (optional, ``energy > 0`` in training, with the teacher). The relative error of the
+step's kinetic energy on the fluid faces,
+
+    L_E = ((E - E*) / (E* + E_0))^2,     E = sum_f w_f (v_f / U*)^2 / N,  w = 1 - b_f,  E_0 = 1e-4
+
+(E_0: a floor, a mean speed of 0.01 cells per step, for still scenes). L_t weighs every face's
+error alike, so a gain of a fraction of a percent per step applied to the whole flow costs it
+next to nothing, yet over 150 steps it compounds: the network's rollouts held ~2x the solver's
+kinetic energy. L_E is that systematic part alone.
+
 Advection scheme. The residual's (vbar . grad) vbar uses Koren's limited third-order upwind
 interpolation (``grid.advection``, the numerical solver's scheme), not Wandel's central one.
 Central differences cannot see a 2-cell (checkerboard) mode and at the paper's viscosity
@@ -74,13 +84,15 @@ class LossConfig:
 @dataclass(frozen=True)
 class LossTerms:
     """Per-sample terms [B] (dimensionless) and the scalar training objective mean(log(L + eps));
-    ``teacher``: L_t [B] when trained against the solver (then included in ``total``)."""
+    ``teacher``: L_t [B] when trained against the solver, ``energy``: L_E [B] with the energy
+    term (each then included in ``total``)."""
 
     momentum: Tensor
     boundary: Tensor
     total: Tensor
     objective: Tensor
     teacher: Tensor | None = None
+    energy: Tensor | None = None
 
 
 def masked_mean(q: tuple[Tensor, Tensor], w: tuple[Tensor, Tensor]) -> Tensor:
@@ -127,3 +139,16 @@ def teacher_loss(new: FluidState, target: FluidState, params: FluidParams,
     dg = tuple((g * grid.dx / s.pressure) ** 2 for g in gradient(new.p - target.p, grid.dx))
     ones = tuple(torch.ones_like(d[:1]) for d in dv)
     return masked_mean(dv, ones) + masked_mean(dg, ones)
+
+
+ENERGY_FLOOR = 1e-4   # E_0: a mean speed of 0.01 cells per step
+
+
+def energy_loss(new: FluidState, target: FluidState, boundary: Boundary, params: FluidParams,
+                grid: Grid) -> Tensor:
+    """L_E [B]: the squared relative error of ``new``'s kinetic energy on the fluid faces against
+    the solver's ``target`` step (module docstring), in grid units."""
+    s = scales_of(grid, params)
+    w = fluid_face_masks(boundary.mask)
+    energy = [masked_mean(tuple((c / s.velocity) ** 2 for c in curl(x.a, grid.dx)), w) for x in (new, target)]
+    return ((energy[0] - energy[1]) / (energy[1] + ENERGY_FLOOR)) ** 2
