@@ -197,10 +197,10 @@ def save_checkpoint(run: Run, cfg: TrainConfig, out: Path, rank: int) -> None:
                  "last_val": run.last_val, "elapsed": run.elapsed}, out / "ckpt.pt")
 
 
-def load_checkpoint(run: Run, out: Path, rank: int, lr: float | None = None) -> None:
+def load_checkpoint(run: Run, out: Path, rank: int, lr: float | None = None) -> bool:
     """Restore ``run`` from ckpt.pt (and ckpt_rank{r}.pt for rank r > 0); ``lr`` replaces the
     saved learning rate. A compact checkpoint (``compact_checkpoint``: no pool) keeps the freshly
-    drawn pool: everything else continues exactly."""
+    drawn pool: everything else continues exactly. Returns whether the pool was restored."""
     main = load_file(out / "ckpt.pt", "checkpoint")
     own = main if rank == 0 else load_file(out / f"ckpt_rank{rank}.pt", "checkpoint")
     model = run.model.module if hasattr(run.model, "module") else run.model
@@ -208,7 +208,8 @@ def load_checkpoint(run: Run, out: Path, rank: int, lr: float | None = None) -> 
     run.opt.load_state_dict(main["optimizer"])
     for group in run.opt.param_groups:  # the configured lr wins: resume with a smaller one to anneal
         group["lr"] = main["config"]["lr"] if lr is None else lr
-    if "pool" in own:
+    restored = "pool" in own
+    if restored:
         run.pool.load_state_dict(own["pool"])
     if run.average is not None and "average" in main:   # else it starts from the next step's weights
         run.average.load_state_dict(main["average"])
@@ -216,6 +217,7 @@ def load_checkpoint(run: Run, out: Path, rank: int, lr: float | None = None) -> 
     run.iteration, run.best_val = main["iteration"], main["best_val"]
     run.best_swim = main.get("best_swim", math.inf)
     run.last_val, run.elapsed = main["last_val"], main["elapsed"]
+    return restored
 
 
 def compact_checkpoint(src: str | Path, dest: str | Path) -> Path:
@@ -423,18 +425,42 @@ def _after_step(run: Run, cfg: TrainConfig, out: Path, rank: int, world: int, lo
 
 
 def _restore(run: Run, cfg: TrainConfig, out: Path, rank: int, device: torch.device) -> None:
-    """resume: everything from out/ckpt.pt; else init_from: the weights only. A run already in
-    ``out`` is continued (resume) or replaced (overwrite), never silently restarted."""
+    """resume: everything from out/ckpt.pt; else init_from: the weights only; trained weights on
+    a freshly drawn pool then age it first (``cfg.warm_pool``). A run already in ``out`` is
+    continued (resume) or replaced (overwrite), never silently restarted."""
     if cfg.resume and not (out / "ckpt.pt").exists():
         raise ConfigError(f"resume=true but {out} holds no ckpt.pt to continue; drop resume=true to start "
                           "training, or give the out_dir of the run to continue")
     if not (cfg.resume or cfg.overwrite) and (out / "ckpt.pt").exists():
         raise ConfigError(f"{out} already holds a training run (ckpt.pt); pass resume=true to continue it, "
                           "overwrite=true to start again, or another out_dir")
+    trained_on_fresh_pool = False
     if cfg.resume:
-        load_checkpoint(run, out, rank, cfg.lr)
+        trained_on_fresh_pool = not load_checkpoint(run, out, rank, cfg.lr)
     elif cfg.init_from:
         load_weights(run.model, load_file(Path(cfg.init_from), "model (init_from)"), Path(cfg.init_from))
+        trained_on_fresh_pool = True
+    if trained_on_fresh_pool and cfg.warm_pool:
+        run.pool.warm(network_step(run, cfg), cfg.warm_pool, cfg.batch_size)
+
+
+def network_step(run: Run, cfg: TrainConfig):
+    """(state, boundary, params) -> the network's next FluidState, without gradient and in eval
+    mode (BatchNorm's running statistics, left unchanged), autocast when ``cfg.bf16``."""
+    grid = run.pool.grid
+
+    @torch.no_grad()
+    def step(state: FluidState, boundary: Boundary, params: FluidParams) -> FluidState:
+        was_training = run.model.training
+        run.model.eval()
+        try:
+            with torch.autocast(run.pool.device.type, dtype=torch.bfloat16, enabled=cfg.bf16):
+                return FluidState(*run.model(state.a, state.p, boundary.mask, boundary.velocity, params.rho,
+                                             params.mu, grid.dx, params.h))
+        finally:
+            run.model.train(was_training)
+
+    return step
 
 
 class StopRequest:

@@ -77,6 +77,29 @@ def test_non_finite_states_are_reset(tiny_pool):
     assert torch.isfinite(pool.a).all()
 
 
+def test_warm_ages_every_scene_by_its_own_count_of_steps(tiny_pool):
+    """warm(step, 6, 3): each scene is stepped k_i times (0 <= k_i <= 6, counted here by a step
+    that adds 1 to a), its clock advanced by k_i h, with a spread of ages and no round-robin
+    reset; a step that returns NaN resets that scene to rest."""
+    pool = ScenePool(tiny_pool, batch=3, seed=5)
+    sizes = []
+
+    def count(state, boundary, params):
+        sizes.append(state.a.shape[0])
+        assert boundary.mask.shape[0] == state.a.shape[0] == params.rho.shape[0]
+        return type(state)(state.a + 1, state.p)
+
+    pool.warm(count, 6, 3)
+    ages = pool.a[:, 0, 0, 0].round().long()
+    clocks = torch.tensor([round(s.t / tiny_pool.h) for s in pool.scenes])
+    assert torch.equal(ages, clocks) and torch.equal(pool.a, ages.float()[:, None, None, None].expand_as(pool.a))
+    assert ages.min() >= 0 and ages.max() <= 6 and len(set(ages.tolist())) >= 3
+    assert max(sizes) <= 3 and sum(sizes) == ages.sum() and pool.told == 0
+    fresh = ScenePool(tiny_pool, batch=3, seed=5)
+    fresh.warm(lambda state, b, p: type(state)(state.a * float("nan"), state.p), 6, 3)
+    assert torch.isfinite(fresh.a).all() and fresh.a.abs().max() == 0
+
+
 def test_state_dict_resumes_identically(tiny_pool):
     """Saving and loading a pool reproduces the next asks exactly (scenes, RNG, states)."""
     pool = ScenePool(tiny_pool, batch=2, seed=4)

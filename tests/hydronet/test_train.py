@@ -81,6 +81,31 @@ def test_ema_averages_the_iterates_and_resumes_exactly(cfg, tmp_path, monkeypatc
     assert all(torch.equal(best[k], a2["module." + k]) for k in best)      # the last validation's average
 
 
+def test_trained_weights_on_a_fresh_pool_warm_it_first(cfg, tmp_path, monkeypatch):
+    """init_from and a resumed compact checkpoint (no pool) age the new pool by the network
+    (warm_pool steps at most) before training; a full checkpoint's pool, a run from scratch and
+    warm_pool=0 are left as they are."""
+    from fishsim.learn.pool import ScenePool
+
+    calls = []
+    monkeypatch.setattr(ScenePool, "warm", lambda self, step, steps, batch: calls.append((steps, batch)))
+    cfg = replace(cfg, iterations=2, warm_pool=7)
+    T.run(cfg)                                                              # from scratch
+    T.run(replace(cfg, iterations=3, resume=True))                          # full checkpoint
+    assert calls == []
+    T.compact_checkpoint(tmp_path / "run" / "ckpt.pt", tmp_path / "compact" / "ckpt.pt")
+    T.run(replace(cfg, out_dir=str(tmp_path / "compact"), iterations=4, resume=True))
+    T.run(replace(cfg, out_dir=str(tmp_path / "fine"), init_from=str(tmp_path / "run" / "ckpt.pt")))
+    T.run(replace(cfg, out_dir=str(tmp_path / "off"), init_from=str(tmp_path / "run" / "ckpt.pt"), warm_pool=0))
+    assert calls == [(7, cfg.batch_size)] * 2
+    run, _ = T.build(cfg, 0, 1, torch.device("cpu"))
+    state, boundary, params = run.pool.ask(cfg.batch_size)[1:]
+    before = {k: v.clone() for k, v in run.model.state_dict().items()}
+    new = T.network_step(run, cfg)(state, boundary, params)
+    assert new.a.shape == state.a.shape and not new.a.requires_grad and run.model.training
+    assert all(torch.equal(before[k], v) for k, v in run.model.state_dict().items())   # BatchNorm's stats too
+
+
 def test_compact_checkpoint_resumes_model_and_optimiser(cfg, tmp_path):
     """A pool-less checkpoint (the one committed between sittings) is ~3x smaller and resumes
     the counters, weights and Adam state; training then goes on."""

@@ -133,6 +133,9 @@ class TrainConfig:
     overwrite: start a new run in an out_dir that holds one (else refused: a run is never lost).
     init_from: start a new run from the weights of this best.pt / ckpt.pt (fresh optimiser and
     pool: fine-tuning on another crop size or fluid range); ignored when resuming.
+    warm_pool: when trained weights meet a freshly drawn pool (init_from, or resuming a compact
+    checkpoint), first step each scene by the network a random 0..warm_pool times, so training
+    does not start on the pool's start-ups alone (``ScenePool.warm``; 0: off).
     """
 
     out_dir: str | None = None
@@ -168,6 +171,7 @@ class TrainConfig:
     resume: bool = False
     overwrite: bool = False
     init_from: str = ""
+    warm_pool: int = 200
     progress: bool = True
 
     def validate(self) -> None:
@@ -177,6 +181,7 @@ class TrainConfig:
                "lr and beta must be > 0, gamma and teacher >= 0")
         _check(self.energy >= 0 and (self.energy == 0 or self.teacher > 0),
                f"energy must be >= 0 and needs the solver's step (teacher > 0), got energy={self.energy}")
+        _check(self.warm_pool >= 0, f"warm_pool must be >= 0 steps (0: off), got {self.warm_pool}")
         _check(0 <= self.ema < 1, f"ema must be a decay in [0, 1) (0: off), got {self.ema}")
         _check(self.unroll >= 1, f"unroll must be >= 1 network steps per iteration, got {self.unroll}")
         _check(self.swim_every >= 0 and self.swim_frames >= 1 and len(self.swim_frequencies) >= 1
