@@ -441,7 +441,11 @@ def _restore(run: Run, cfg: TrainConfig, out: Path, rank: int, device: torch.dev
         load_weights(run.model, load_file(Path(cfg.init_from), "model (init_from)"), Path(cfg.init_from))
         trained_on_fresh_pool = True
     if trained_on_fresh_pool and cfg.warm_pool:
+        t0 = time.perf_counter()
         run.pool.warm(network_step(run, cfg), cfg.warm_pool, cfg.batch_size)
+        if rank == 0:
+            print(f"warmed the freshly drawn scene pool: each scene stepped 0..{cfg.warm_pool} times by the "
+                  f"network ({time.perf_counter() - t0:.0f} s; warm_pool=0: off)", flush=True)
 
 
 def network_step(run: Run, cfg: TrainConfig):
