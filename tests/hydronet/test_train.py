@@ -375,6 +375,9 @@ def test_energy_term_adds_to_the_teachers_objective_and_its_log_column(cfg, tmp_
     T.run(replace(c, iterations=5, resume=True))
     rows = list(csv.DictReader(log.open()))
     assert [r["L_E"] for r in rows[:3]] == ["nan"] * 3 and float(rows[-1]["L_E"]) >= 0 and len(rows) == 5
+    log.write_text("step,error\n1,0.5\n")                                    # some other program's log
+    with pytest.raises(ConfigError, match="holds another run's log"):
+        T.run(replace(c, iterations=6, resume=True))
 
 
 def test_swim_check_keeps_the_weights_that_swim_closest_to_the_numerical_fluid(cfg):
