@@ -40,7 +40,7 @@ import torch.distributed as dist
 from torch import nn
 
 from fishsim.errors import ConfigError, Terminated
-from fishsim.fields import Boundary, FluidParams, FluidState, rest_state
+from fishsim.fields import Boundary, FluidParams, FluidState, Grid, rest_state
 from fishsim.fluid.hydronet.config import RESUME_NEEDS_OUT_DIR, TrainConfig, resolve_bf16
 from fishsim.fluid.hydronet.loss import EPS, LossConfig, LossTerms, energy_loss, hydronet_loss, teacher_loss
 from fishsim.fluid.hydronet.model_file import load_file, load_weights
@@ -90,6 +90,15 @@ def make_loss_fn(cfg: TrainConfig):
 # ----------------------------------------------------------------------------- one step
 
 
+def network_forward(net: nn.Module, state: FluidState, boundary: Boundary, params: FluidParams, grid: Grid,
+                    bf16: bool) -> FluidState:
+    """The network's step from ``state`` to the ``boundary`` at t + h, as training runs it
+    (bfloat16 autocast when ``bf16``)."""
+    with torch.autocast(state.a.device.type, dtype=torch.bfloat16, enabled=bf16):
+        return FluidState(*net(state.a, state.p, boundary.mask, boundary.velocity, params.rho, params.mu, grid.dx,
+                               params.h))
+
+
 def train_step(run: Run, cfg: TrainConfig, net: nn.Module) -> LossTerms:
     """ask -> ``unroll`` steps -> loss -> Adam -> tell; returns the detached loss terms of the
     batch (means over the unrolled steps). With a teacher, step j's target is the solver's own
@@ -101,9 +110,7 @@ def train_step(run: Run, cfg: TrainConfig, net: nn.Module) -> LossTerms:
         if j:
             boundary = run.pool.advance(idx)
         old = new
-        with torch.autocast(run.pool.device.type, dtype=torch.bfloat16, enabled=cfg.bf16):
-            new = FluidState(*net(old.a, old.p, boundary.mask, boundary.velocity, params.rho, params.mu,
-                                  run.pool.grid.dx, params.h))
+        new = network_forward(net, old, boundary, params, run.pool.grid, cfg.bf16)
         terms = LossTerms(*run.loss_fn(old.a, old.p, new.a, new.p, boundary.mask, boundary.velocity, params.rho,
                                        params.mu, params.h))
         if run.teacher is not None:
@@ -163,9 +170,7 @@ def validate(model: HydroNet, cfg: TrainConfig, seed: int = 12345) -> float:
     for k in range(cfg.val_steps):
         scenes = [advance(s, cfg.pool, rng) for s in scenes]
         boundary = scene_boundaries(scenes, grid, dev)
-        with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=cfg.bf16):
-            new = FluidState(*model(state.a, state.p, boundary.mask, boundary.velocity, params.rho,
-                                    params.mu, grid.dx, params.h))
+        new = network_forward(model, state, boundary, params, grid, cfg.bf16)
         if k >= cfg.val_steps // 2:
             loss_cfg = LossConfig(cfg.beta, cfg.gamma, scheme=cfg.advection)
             terms = hydronet_loss(state, new, boundary, params, grid, loss_cfg)
@@ -449,18 +454,15 @@ def _restore(run: Run, cfg: TrainConfig, out: Path, rank: int, device: torch.dev
 
 
 def network_step(run: Run, cfg: TrainConfig):
-    """(state, boundary, params) -> the network's next FluidState, without gradient and in eval
-    mode (BatchNorm's running statistics, left unchanged), autocast when ``cfg.bf16``."""
-    grid = run.pool.grid
+    """(state, boundary, params) -> the network's next FluidState (``network_forward``), without
+    gradient and in eval mode (BatchNorm's running statistics, left unchanged)."""
 
     @torch.no_grad()
     def step(state: FluidState, boundary: Boundary, params: FluidParams) -> FluidState:
         was_training = run.model.training
         run.model.eval()
         try:
-            with torch.autocast(run.pool.device.type, dtype=torch.bfloat16, enabled=cfg.bf16):
-                return FluidState(*run.model(state.a, state.p, boundary.mask, boundary.velocity, params.rho,
-                                             params.mu, grid.dx, params.h))
+            return network_forward(run.model, state, boundary, params, run.pool.grid, cfg.bf16)
         finally:
             run.model.train(was_training)
 
