@@ -414,13 +414,9 @@ class ScenePool:
         return ti, FluidState(self.a[ti], self.p[ti]), boundary, params
 
     def tell(self, idx: Tensor, state: FluidState) -> None:
-        """Store the new states (detached); reset non-finite scenes and, every ``reset_every``
-        calls, the next scene in round-robin order."""
-        a, p = state.a.detach().to(self.device, torch.float32), state.p.detach().to(self.device, torch.float32)
-        self.a[idx], self.p[idx] = a, p
-        bad = ~(torch.isfinite(a).flatten(1).all(1) & torch.isfinite(p).flatten(1).all(1))
-        for i in idx[bad].tolist():
-            self.reset(i)
+        """Store the new states (``_store``) and, every ``reset_every`` calls, reset the next
+        scene in round-robin order."""
+        self._store(idx, state)
         self.told += 1
         if self.told % self.reset_every == 0:
             self.reset(self.next_reset)
@@ -441,12 +437,16 @@ class ScenePool:
                 for i in chunk:
                     self.scenes[i] = advance(self.scenes[i], self.cfg, self.rng)
                 idx, state, boundary, params = self._batch(chunk)
-                new = step(state, boundary, params)
-                a, p = new.a.detach().to(self.device, torch.float32), new.p.detach().to(self.device, torch.float32)
-                self.a[idx], self.p[idx] = a, p
-                for i in idx[~(torch.isfinite(a).flatten(1).all(1) & torch.isfinite(p).flatten(1).all(1))].tolist():
-                    self.reset(i)
-                    ages[i] = 0
+                ages[self._store(idx, step(state, boundary, params))] = 0
+
+    def _store(self, idx: Tensor, state: FluidState) -> list[int]:
+        """Store the scenes' new states (detached); reset the non-finite ones, returned."""
+        a, p = state.a.detach().to(self.device, torch.float32), state.p.detach().to(self.device, torch.float32)
+        self.a[idx], self.p[idx] = a, p
+        bad = idx[~(torch.isfinite(a).flatten(1).all(1) & torch.isfinite(p).flatten(1).all(1))].tolist()
+        for i in bad:
+            self.reset(i)
+        return bad
 
     def reset(self, i: int) -> None:
         """Replace scene i by a new random scene with the fluid at rest."""
