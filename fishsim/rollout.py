@@ -73,13 +73,17 @@ class SwimState:
     qdot_prev: Tensor | None = None
     tunnel: Tensor | None = None
 
+    @property
+    def previous_qdot(self) -> Tensor:
+        """qdot_prev, or qdot where None (a start from rest: no acceleration, and predicted_start
+        then makes the free flight)."""
+        return self.qdot if self.qdot_prev is None else self.qdot_prev
+
     def tensors(self) -> tuple[Tensor, ...]:
         """The state as a tuple of tensors, the form checkpoint segments pass: q, qdot,
-        qdot_prev (qdot where None: a start from rest, which predicted_start then also makes
-        the free flight), the fluid state's tensors and the swim tunnel's speeds if any."""
-        qdot_prev = self.qdot if self.qdot_prev is None else self.qdot_prev
+        ``previous_qdot``, the fluid state's tensors and the swim tunnel's speeds if any."""
         tunnel = () if self.tunnel is None else (self.tunnel,)
-        return (self.q, self.qdot, qdot_prev, *self.fluid.tensors(), *tunnel)
+        return (self.q, self.qdot, self.previous_qdot, *self.fluid.tensors(), *tunnel)
 
     def with_tensors(self, tensors) -> SwimState:
         """The same kind of state (fluid state, tunnel or not) from ``tensors()``'s tuple."""
@@ -296,8 +300,7 @@ class Swimmer:
                 viscous = (state.qdot, v, params.fluid.mu)
             wall = None
             if self.coupling.ibm_fit == WALL:          # the nodes' acceleration of the frame before
-                prev = state.qdot if state.qdot_prev is None else state.qdot_prev
-                wall = ((state.qdot - prev) / self.h, params.fluid.rho)
+                wall = ((state.qdot - state.previous_qdot) / self.h, params.fluid.rho)
             f_ext = fluid_to_solid(state.q, fluid.p, boundary, self.surface, self.fluid.grid,
                                    self.coupling, step=t + 1, mass=mass, viscous=viscous, wall=wall)
         timer.add("coupling", t0, dev)

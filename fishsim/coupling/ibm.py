@@ -300,7 +300,7 @@ def ibm_force(qs: Tensor, p: Tensor, mask: Tensor, grid: Grid, sigma_prime: floa
         from fishsim.coupling.kernels import OutsidePressureForce  # the same formulas, compiled
 
         if fit not in (LINEAR, MEAN):
-            raise ValueError(f"fit must be 'mean' or 'linear', got {fit!r}")
+            raise ValueError(f"fit must be 'mean', 'linear' or 'wall', got {fit!r}")
         return OutsidePressureForce.apply(qs, p, mask, None if surface is None else surface.numpy(), OUTSIDE_MASK,
                                           grid.dx, sigma_prime, kernel_radius(sigma_prime, grid.dx), fit == LINEAR)
     if surface is not None:
