@@ -177,7 +177,7 @@ def random_fish(rng: np.random.Generator, cfg: PoolConfig, wall: tuple[int, int]
     half_w = 0.04 * L + amp
     c, s = abs(math.cos(theta)), abs(math.sin(theta))
     extent = (c * L / 2 + s * half_w, s * L / 2 + c * half_w)
-    speed = float(rng.uniform(0.0, 0.15)) if rng.random() < 0.5 else 0.0
+    speed = float(rng.uniform(*cfg.fish_speed)) if rng.random() < 0.5 else 0.0
     motion = _place(rng, cfg, wall, extent, speed, 0.0, 0.0, theta)
     return Fish(L, amp, freq, wave, float(rng.uniform(0, 2 * math.pi)), float(rng.uniform(0.0, 0.3)), motion)
 

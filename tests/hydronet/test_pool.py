@@ -170,6 +170,19 @@ def test_fish_tail_amplitude_and_speed_cap(tiny_pool):
         assert max(speeds) <= tiny_pool.max_speed * 1.02
 
 
+def test_fish_translation_speed_range(tiny_pool):
+    """pool.fish_speed: half the fish translate, each with a typical speed drawn from the range
+    (the study's fish swim up to ~0.35 m/s; the default range stops at 0.15)."""
+    from dataclasses import replace
+
+    rng = np.random.default_rng(3)
+    fast = replace(tiny_pool, fish_speed=(0.3, 0.4))
+    speeds = np.array([random_fish(rng, fast, (2, 2)).motion.speed for _ in range(200)])
+    moving = speeds[speeds > 0]
+    assert 0.3 <= moving.min() and moving.max() <= 0.4
+    assert 0.35 < moving.size / speeds.size < 0.65
+
+
 def test_scene_advances_time_without_mutation(tiny_pool):
     rng = np.random.default_rng(0)
     s = random_scene(rng, tiny_pool)

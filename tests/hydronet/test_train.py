@@ -231,7 +231,8 @@ def test_cli_config_composes_and_validates():
                                                       "net.condition=true", "bf16=false", "lr=0.0005"]))
     assert c.net.hidden == 8 and c.pool.H == 32 and c.pool.rho == (10.0, 50.0) and not c.bf16 and c.lr == 5e-4
     assert c.net.condition and c == T.train_config(c)
-    for bad in (["nonsense=1"], ["pool.rho=[10,50]"], ["lr=-1"], ["pool.size=4", "batch_size=8"], ["pool.mu=[1e-3,1e-4]"]):
+    for bad in (["nonsense=1"], ["pool.rho=[10,50]"], ["lr=-1"], ["pool.size=4", "batch_size=8"], ["pool.mu=[1e-3,1e-4]"],
+                ["pool.fish_speed=[-0.1,0.2]"]):
         with pytest.raises(ConfigError):
             load_config("train-hydronet", bad)
     d = T.train_config({"batch_size": 4, "net": {"hidden": 8}, "pool": {"H": 32, "mu": [1.25e-4, 1e-3]}})

@@ -68,7 +68,8 @@ class PoolConfig:
     p_fish: probability of a swimming fish; max_obstacles: rigid obstacles per scene.
     sigma: log-uniform range of the mask softness (m^2); p_sigma_coupling: probability of the
         coupling's default 5e-7 instead.
-    fish_length, fish_freq (Hz), fish_amp (tail amplitude / L), fish_wavelength (/ L): fish ranges.
+    fish_length, fish_freq (Hz), fish_amp (tail amplitude / L), fish_wavelength (/ L): fish ranges;
+        fish_speed (m/s): range of the translation speed of the half of the fish that translates.
     obstacle_cells: range of obstacle half-sizes in cells; tau_motion: OU correlation time (s) of
         the target velocities.
     """
@@ -92,6 +93,7 @@ class PoolConfig:
     fish_freq: tuple[float, float] = (1.0, 8.0)
     fish_amp: tuple[float, float] = (0.03, 0.1)
     fish_wavelength: tuple[float, float] = (0.7, 1.5)
+    fish_speed: tuple[float, float] = (0.0, 0.15)
     obstacle_cells: tuple[float, float] = (3.0, 14.0)
     tau_motion: float = 1.0
 
@@ -200,8 +202,9 @@ class TrainConfig:
                      "obstacle_cells", "wall"):
             lo, hi = getattr(p, name)
             _check(0 < lo <= hi, f"pool.{name} must be a range 0 < low <= high, got [{lo}, {hi}]")
-        lo, hi = p.fish_amp  # 0: a fish that holds still (its body is still a boundary to learn)
-        _check(0 <= lo <= hi, f"pool.fish_amp must be a range 0 <= low <= high, got [{lo}, {hi}]")
+        for name in ("fish_amp", "fish_speed"):  # fish_amp 0: a fish that holds still (still a boundary to learn)
+            lo, hi = getattr(p, name)
+            _check(0 <= lo <= hi, f"pool.{name} must be a range 0 <= low <= high, got [{lo}, {hi}]")
         _check(self.net.condition or (p.rho[0] == p.rho[1] and p.mu[0] == p.mu[1]),
                "a fluid range (pool.rho / pool.mu low < high) needs net.condition=true")
         _check(not self.resume or bool(self.out_dir), RESUME_NEEDS_OUT_DIR)
