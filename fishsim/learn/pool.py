@@ -36,10 +36,11 @@ from torch import Tensor
 
 from fishsim.coupling import band_boundary, band_margin, surface_band
 from fishsim.fields import Boundary, FluidParams, FluidState, Grid
-from fishsim.fluid.grid import channel, union
+from fishsim.fluid.grid import channel, curl, union
 from fishsim.fluid.hydronet.config import PoolConfig
 
 SIGMA_COUPLING = 5e-7  # m^2, the coupling's default mask softness
+RUNAWAY = 4.0          # a stored state faster than RUNAWAY * max_speed has diverged: its scene is reset
 
 
 # ------------------------------------------------------------------------------------ scenes
@@ -440,10 +441,15 @@ class ScenePool:
                 ages[self._store(idx, step(state, boundary, params))] = 0
 
     def _store(self, idx: Tensor, state: FluidState) -> list[int]:
-        """Store the scenes' new states (detached); reset the non-finite ones, returned."""
+        """Store the scenes' new states (detached); reset the diverged ones, returned: non-finite,
+        or max |v| above ``RUNAWAY`` max_speed (a network rolled out on scenes beyond what it
+        learned can run away, and the teacher cannot step such a state: 94 m/s would need 754
+        sub-steps)."""
         a, p = state.a.detach().to(self.device, torch.float32), state.p.detach().to(self.device, torch.float32)
         self.a[idx], self.p[idx] = a, p
-        bad = idx[~(torch.isfinite(a).flatten(1).all(1) & torch.isfinite(p).flatten(1).all(1))].tolist()
+        speed = torch.stack([c.abs().flatten(1).amax(1) for c in curl(a, self.grid.dx)]).amax(0)
+        sane = (speed <= RUNAWAY * self.cfg.max_speed) & torch.isfinite(p).flatten(1).all(1)   # NaN a: not <=
+        bad = idx[~sane].tolist()
         for i in bad:
             self.reset(i)
         return bad

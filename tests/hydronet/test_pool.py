@@ -57,7 +57,7 @@ def test_ask_tell_round_trip_and_reset(tiny_pool):
     pool = ScenePool(tiny_pool, batch=3, seed=1)
     assert pool.reset_every == round(tiny_pool.episode_steps / 3)
     idx, state, _, _ = pool.ask(3)
-    new_a = torch.randn_like(state.a)
+    new_a = 1e-5 * torch.randn_like(state.a)                # m^2/s: ~4 mm/s on 2.5 mm cells
     new_p = torch.randn_like(state.p)
     pool.tell(idx, type(state)(new_a, new_p))
     assert torch.equal(pool.a[idx], new_a) and torch.equal(pool.p[idx], new_p)
@@ -75,6 +75,22 @@ def test_non_finite_states_are_reset(tiny_pool):
     bad[0] = float("nan")
     pool.tell(idx, type(state)(bad, state.p))
     assert torch.isfinite(pool.a).all()
+
+
+def test_runaway_states_are_reset(tiny_pool):
+    """A stored state faster than RUNAWAY max_speed (a diverged network rollout) is reset to rest
+    with a new scene; one just below the bound is kept."""
+    from fishsim.learn.pool import RUNAWAY
+
+    pool = ScenePool(tiny_pool, batch=2, seed=2)
+    idx, state, _, _ = pool.ask(2)
+    scenes = [pool.scenes[i] for i in idx.tolist()]
+    y = torch.arange(tiny_pool.H + 1, dtype=torch.float32).view(1, 1, -1, 1) * tiny_pool.dx
+    a = (y * RUNAWAY * tiny_pool.max_speed * torch.tensor([1.01, 0.99]).view(2, 1, 1, 1)).expand_as(state.a)
+    pool.tell(idx, type(state)(a.contiguous(), state.p + 1.0))      # uniform vx = 4.04 / 3.96 max_speed
+    i, j = idx.tolist()
+    assert pool.a[i].abs().max() == 0 and pool.p[i].abs().max() == 0 and pool.scenes[i] is not scenes[0]
+    assert torch.equal(pool.a[j], a[1]) and pool.scenes[j] is scenes[1]
 
 
 def test_warm_ages_every_scene_by_its_own_count_of_steps(tiny_pool):
