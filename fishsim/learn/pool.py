@@ -347,16 +347,17 @@ def inflow_speed(scene: Scene) -> float:
     return scene.inflow * (1 - math.exp(-scene.t / scene.inflow_ramp))
 
 
-def scene_boundaries(scenes: list[Scene], grid: Grid, device=None) -> Boundary:
+def scene_boundaries(scenes: list[Scene], grid: Grid, device=None, refinement: int = 1) -> Boundary:
     """Walls (+ inflow) united with every body, for each scene at its own time:
-    b [B,1,H,W], v_d [B,2,H,W]."""
+    b [B,1,H,W], v_d [B,2,H,W] on ``grid``, the pool's grid or one ``refinement`` times finer
+    (the walls' thickness, counted in pool cells, scaled to its cells)."""
     x = grid.cell_centres(device=device)
     fish = [(n, b) for n, s in enumerate(scenes) for b in s.bodies if isinstance(b, Fish)]
     fish_bd = fish_boundaries([f for _, f in fish], [scenes[n].t for n, _ in fish],
                               [scenes[n].sigma for n, _ in fish], grid, device)
     parts = []
     for n, scene in enumerate(scenes):
-        out = channel(grid, inflow_speed(scene), scene.wall[0], scene.wall[1], 1, device)
+        out = channel(grid, inflow_speed(scene), refinement * scene.wall[0], refinement * scene.wall[1], 1, device)
         for body in scene.bodies:
             if not isinstance(body, Fish):
                 out = union(out, rigid_boundary(body, x, scene.sigma))
@@ -402,6 +403,13 @@ class ScenePool:
         for i in ids:
             self.scenes[i] = advance(self.scenes[i], self.cfg, self.rng)
         return scene_boundaries([self.scenes[i] for i in ids], self.grid, self.device)
+
+    def boundaries(self, idx: Tensor, refinement: int) -> Boundary:
+        """The scenes ``idx``'s boundaries now, sampled on the ``refinement`` times finer grid (a
+        refined teacher's)."""
+        g = self.grid
+        fine = Grid(g.H * refinement, g.W * refinement, g.dx / refinement)
+        return scene_boundaries([self.scenes[i] for i in idx.tolist()], fine, self.device, refinement)
 
     def _batch(self, idx: np.ndarray) -> tuple[Tensor, FluidState, Boundary, FluidParams]:
         scenes = [self.scenes[i] for i in idx]

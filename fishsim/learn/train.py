@@ -115,7 +115,8 @@ def train_step(run: Run, cfg: TrainConfig, net: nn.Module) -> LossTerms:
                                        params.mu, params.h))
         if run.teacher is not None:
             with torch.no_grad():
-                target = run.teacher.step(FluidState(target.a.float(), target.p.float()), boundary, params)
+                fine = boundary if cfg.teacher_refinement == 1 else run.pool.boundaries(idx, cfg.teacher_refinement)
+                target = run.teacher.step(target, fine, params)
             terms = with_teacher(terms, cfg, target, new, boundary, params)
         steps.append(terms)
     objective = torch.stack([t.objective for t in steps]).mean()
@@ -146,12 +147,13 @@ def with_teacher(terms: LossTerms, cfg: TrainConfig, target: FluidState, new: Fl
 
 
 def make_teacher(cfg: TrainConfig):
-    """The numerical solver at its defaults on the training grid, or None when ``teacher == 0``."""
+    """The numerical solver at its defaults on the training grid (refined ``teacher_refinement``
+    times), or None when ``teacher == 0``."""
     if cfg.teacher == 0:
         return None
     from fishsim.fluid.numerical import NumericalFluid
 
-    return NumericalFluid(cfg.pool.grid)
+    return NumericalFluid(cfg.pool.grid, refinement=cfg.teacher_refinement)
 
 
 @torch.no_grad()
@@ -175,7 +177,9 @@ def validate(model: HydroNet, cfg: TrainConfig, seed: int = 12345) -> float:
             loss_cfg = LossConfig(cfg.beta, cfg.gamma, scheme=cfg.advection)
             terms = hydronet_loss(state, new, boundary, params, grid, loss_cfg)
             if teacher is not None:
-                target = teacher.step(FluidState(state.a.float(), state.p.float()), boundary, params)
+                r = cfg.teacher_refinement
+                fine = boundary if r == 1 else scene_boundaries(scenes, teacher.boundary_grid, dev, r)
+                target = teacher.step(FluidState(state.a.float(), state.p.float()), fine, params)
                 terms = with_teacher(terms, cfg, target, new, boundary, params)
             losses.append(terms.objective.item())
         state = new

@@ -29,6 +29,22 @@ def _motion(**kw):
     return Motion(**{**base, **kw})
 
 
+def test_boundaries_on_a_refined_grid_hold_the_same_bodies_and_walls(tiny_pool):
+    """ScenePool.boundaries(idx, 2): the scenes sampled on cells half as wide: the walls as thick
+    in metres, the bodies' area (sum of b, away from the walls) within 5 % of the pool grid's."""
+    pool = ScenePool(tiny_pool, batch=4, seed=5)
+    idx, _, coarse, _ = pool.ask(4)
+    fine = pool.boundaries(idx, 2)
+    assert fine.mask.shape[-2:] == (2 * tiny_pool.H, 2 * tiny_pool.W)
+    for n, i in enumerate(idx.tolist()):
+        rows, cols = pool.scenes[i].wall
+        assert fine.mask[n, 0, : 2 * rows].min() == 1 and fine.mask[n, 0, 2 * rows, 2 * cols:-2 * cols].max() < 1
+    interior = (slice(None), 0, slice(6, -6), slice(6, -6))         # away from every wall band
+    area = coarse.mask.new_tensor([1.0, 0.25]) * torch.stack(
+        [coarse.mask[interior].sum((1, 2)), fine.mask[(slice(None), 0, slice(12, -12), slice(12, -12))].sum((1, 2))], 1)
+    assert torch.allclose(area[:, 1], area[:, 0], rtol=0.05, atol=0.5)
+
+
 def test_ask_shapes_and_ranges(tiny_pool):
     """ask: B distinct scenes, soft masks in [0, 1] with partial cells, |v_d| <= max_speed."""
     pool = ScenePool(tiny_pool, batch=4, seed=0)

@@ -350,6 +350,35 @@ def test_an_unrolled_step_advances_its_scenes_and_follows_the_solvers_rollout(cf
         replace(cfg, unroll=0).validate()
 
 
+def test_a_refined_teacher_steps_its_own_fine_rollout_on_fine_boundaries(cfg):
+    """teacher_refinement=2: the teacher is the r = 2 solver; it reads the scenes' bodies sampled
+    on its fine cells, keeps its own rollout fine across the unrolled steps, and its targets are
+    restricted to the training grid (the pool's states and L_t stay there)."""
+    from fishsim.fluid.numerical import RefinedState
+
+    torch.manual_seed(0)
+    c = replace(cfg, batch_size=2, teacher=1.0, unroll=3, teacher_refinement=2)
+    run, net = T.build(c, 0, 1, torch.device("cpu"))
+    assert run.teacher.refinement == 2
+    calls, step = [], run.teacher.step
+
+    def spy(state, boundary, params):
+        out = step(state, boundary, params)
+        calls.append((state, boundary.mask.shape, out))
+        return out
+
+    run.teacher.step = spy
+    terms = T.train_step(run, c, net)
+    H, W = c.pool.H, c.pool.W
+    assert [shape for _, shape, _ in calls] == [(2, 1, 2 * H, 2 * W)] * 3
+    assert not isinstance(calls[0][0], RefinedState)                       # the pool's state, prolonged
+    for (state, _, _), (_, _, previous) in zip(calls[1:], calls[:-1]):
+        assert state is previous and state.fine_a.shape[-2:] == (2 * H + 1, 2 * W + 1)
+    assert calls[-1][2].a.shape[-2:] == (H + 1, W + 1) and torch.isfinite(terms.objective)
+    with pytest.raises(Exception, match="teacher_refinement"):
+        replace(cfg, teacher_refinement=0).validate()
+
+
 def test_energy_term_adds_to_the_teachers_objective_and_its_log_column(cfg, tmp_path):
     """energy=w (with a teacher): L = L_p + L_b + teacher L_t + w L_E, L_E logged; without a
     teacher the config is refused; a log.csv from before the L_E column is resumed with the column

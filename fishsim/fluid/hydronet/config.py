@@ -112,6 +112,9 @@ class TrainConfig:
     iterations: total optimiser steps; batch_size: scenes per step (per rank); lr: Adam step size.
     beta, gamma: loss weights; advection: "koren" | "central" scheme of the loss's residual.
     teacher: weight of L_t, the numerical solver's one-step target (0: physics only, the paper).
+    teacher_refinement: r of that solver: it steps on the r times finer grid (the scenes' bodies
+        sampled on its cells, the pool's state prolonged, its own rollout kept fine) and its step
+        is restricted to the training grid (1: the training grid itself).
     energy: weight of L_E, the step's relative kinetic-energy error against the solver's (needs a
         teacher; 0: off).
     unroll: network steps per iteration, back-propagated through together (1: Wandel's one step);
@@ -147,6 +150,7 @@ class TrainConfig:
     beta: float = 1.0
     gamma: float = 20.0
     teacher: float = 0.0
+    teacher_refinement: int = 1
     energy: float = 0.0
     unroll: int = 1
     advection: str = "koren"
@@ -181,6 +185,8 @@ class TrainConfig:
         _check(self.iterations >= 1 and self.batch_size >= 1, "iterations and batch_size must be >= 1")
         _check(self.lr > 0 and self.beta > 0 and self.gamma >= 0 and self.teacher >= 0,
                "lr and beta must be > 0, gamma and teacher >= 0")
+        _check(self.teacher_refinement >= 1,
+               f"teacher_refinement must be a positive integer (1: the training grid), got {self.teacher_refinement}")
         _check(self.energy >= 0 and (self.energy == 0 or self.teacher > 0),
                f"energy must be >= 0 and needs the solver's step (teacher > 0), got energy={self.energy}")
         _check(self.warm_pool >= 0, f"warm_pool must be >= 0 steps (0: off), got {self.warm_pool}")
