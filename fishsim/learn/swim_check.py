@@ -8,7 +8,8 @@ study (``fishsim.swim_study.episode``: the default tank and fish, B = one fish p
 
     e = max_f |d_net(f) / d_ref(f) - 1|      (d: head x displacement; e = inf if a fish fails)
 
-against the numerical fluid's d_ref (run once per training folder, ``swim_reference.json``) is
+against the numerical fluid's d_ref (at refinement ``swim_refinement``; run once per training
+folder, ``swim_reference.json``) is
 logged to ``swim.csv``; ``best_swim.pt`` keeps the weights of the lowest e. One check costs one
 HydroNet episode (~50 s for 5 fish x 120 frames on one CPU thread).
 """
@@ -31,15 +32,16 @@ def _episode(overrides: list[str], cfg: TrainConfig) -> list[float]:
 
 
 def reference(out: Path, cfg: TrainConfig) -> list[float]:
-    """The numerical fluid's displacements [mm] for the check, computed once per folder."""
+    """The numerical fluid's displacements [mm] for the check (refined ``swim_refinement``
+    times), computed once per folder (again when the study or the refinement changes)."""
     path = out / "swim_reference.json"
+    study = {"frequencies": list(cfg.swim_frequencies), "frames": cfg.swim_frames, "refinement": cfg.swim_refinement}
     if path.exists():
         stored = json.loads(path.read_text())
-        if stored["frequencies"] == list(cfg.swim_frequencies) and stored["frames"] == cfg.swim_frames:
+        if {k: stored.get(k, 1) for k in study} == study:      # a file without "refinement": r = 1
             return stored["displacement_mm"]
-    d = _episode(["fluid=numerical"], cfg)
-    atomic_text(path, json.dumps({"frequencies": list(cfg.swim_frequencies), "frames": cfg.swim_frames,
-                                  "displacement_mm": d}) + "\n")
+    d = _episode(["fluid=numerical", f"fluid.refinement={cfg.swim_refinement}"], cfg)
+    atomic_text(path, json.dumps(study | {"displacement_mm": d}) + "\n")
     return d
 
 

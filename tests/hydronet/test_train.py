@@ -441,6 +441,29 @@ def test_swim_check_keeps_the_weights_that_swim_closest_to_the_numerical_fluid(c
     load_hydronet(out / "best_swim.pt")                       # a model file like best.pt
 
 
+def test_swim_reference_is_recomputed_when_the_study_or_its_refinement_changes(cfg, tmp_path, monkeypatch):
+    """swim_reference.json is the numerical fluid's at ``swim_refinement`` (fluid.refinement=r),
+    reused while the study is the same (a file from before the key counts as r = 1), recomputed
+    when the frames, frequencies or refinement change."""
+    import json
+
+    from fishsim.learn import swim_check
+
+    runs = []
+    monkeypatch.setattr(swim_check, "_episode", lambda overrides, c: runs.append(overrides) or [float(len(runs))] * 2)
+    c = replace(cfg, swim_frames=3, swim_frequencies=(4.0, 6.0))
+    assert swim_check.reference(tmp_path, c) == [1.0, 1.0]
+    assert runs[-1] == ["fluid=numerical", "fluid.refinement=1"]
+    old = json.loads((tmp_path / "swim_reference.json").read_text())
+    del old["refinement"]
+    (tmp_path / "swim_reference.json").write_text(json.dumps(old))
+    assert swim_check.reference(tmp_path, c) == [1.0, 1.0] and len(runs) == 1
+    assert swim_check.reference(tmp_path, replace(c, swim_refinement=2)) == [2.0, 2.0]
+    assert runs[-1] == ["fluid=numerical", "fluid.refinement=2"]
+    assert swim_check.reference(tmp_path, replace(c, swim_refinement=2)) == [2.0, 2.0] and len(runs) == 2
+    assert swim_check.reference(tmp_path, replace(c, swim_refinement=2, swim_frames=4)) == [3.0, 3.0]
+
+
 def test_bf16_auto_is_on_only_where_it_is_fast(tmp_path):
     """bf16=auto: on a CPU with AMX (its ``amx_bf16`` flag) bfloat16, elsewhere float32 (without
     AMX the U-Net runs ~10x slower in bf16); true and false are kept as given."""

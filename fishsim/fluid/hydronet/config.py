@@ -131,8 +131,9 @@ class TrainConfig:
     model files (best.pt, best_swim.pt) then hold the average, which follows the run over ~1 / (1 -
     d) iterations without the iterate's step-to-step scatter; ckpt.pt keeps both.
     swim_every: every this many iterations the network swims the frequency study (swim_frequencies
-    [Hz], swim_frames) against the numerical fluid, logged to swim.csv; best_swim.pt keeps the
-    closest (``swim_check``; 0: off).
+    [Hz], swim_frames) against the numerical fluid (refined ``swim_refinement`` times: 2 is the
+    reference of ``fishsim validate suite=swim``, ~10 min once per folder on one thread), logged
+    to swim.csv; best_swim.pt keeps the closest (``swim_check``; 0: off).
     out_dir: the run's folder; null: a new outputs/train-hydronet/<time> (``fishsim.io.outdir``).
     resume: continue from ``out_dir/ckpt.pt`` exactly (its lr replaced by ``lr``); needs out_dir.
     overwrite: start a new run in an out_dir that holds one (else refused: a run is never lost).
@@ -173,6 +174,7 @@ class TrainConfig:
     ema: float = 0.0
     swim_every: int = 0
     swim_frames: int = 120
+    swim_refinement: int = 1
     swim_frequencies: tuple[float, ...] = (3.0, 4.0, 5.0, 6.0, 7.0)
     resume: bool = False
     overwrite: bool = False
@@ -192,6 +194,7 @@ class TrainConfig:
         _check(self.warm_pool >= 0, f"warm_pool must be >= 0 steps (0: off), got {self.warm_pool}")
         _check(0 <= self.ema < 1, f"ema must be a decay in [0, 1) (0: off), got {self.ema}")
         _check(self.unroll >= 1, f"unroll must be >= 1 network steps per iteration, got {self.unroll}")
+        _check(self.swim_refinement >= 1, f"swim_refinement must be a positive integer, got {self.swim_refinement}")
         _check(self.swim_every >= 0 and self.swim_frames >= 1 and len(self.swim_frequencies) >= 1
                and all(f > 0 for f in self.swim_frequencies),
                "swim_every must be >= 0 (0: off), swim_frames >= 1 and swim_frequencies positive values [Hz]")
