@@ -368,6 +368,11 @@ def scene_boundaries(scenes: list[Scene], grid: Grid, device=None, refinement: i
     return Boundary(torch.cat([b.mask for b in parts]), torch.cat([b.velocity for b in parts]))
 
 
+def max_speeds(a: Tensor, dx: float) -> Tensor:
+    """max |v| [B] (m/s) over the faces of each sample's v = curl a (NaN where a is not finite)."""
+    return torch.stack([c.abs().flatten(1).amax(1) for c in curl(a, dx)]).amax(0)
+
+
 # ------------------------------------------------------------------------------------ pool
 
 
@@ -455,7 +460,7 @@ class ScenePool:
         sub-steps)."""
         a, p = state.a.detach().to(self.device, torch.float32), state.p.detach().to(self.device, torch.float32)
         self.a[idx], self.p[idx] = a, p
-        speed = torch.stack([c.abs().flatten(1).amax(1) for c in curl(a, self.grid.dx)]).amax(0)
+        speed = max_speeds(a, self.grid.dx)
         sane = (speed <= RUNAWAY * self.cfg.max_speed) & torch.isfinite(p).flatten(1).all(1)   # NaN a: not <=
         bad = idx[~sane].tolist()
         for i in bad:

@@ -37,9 +37,9 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.distributed as dist
-from torch import nn
+from torch import Tensor, nn
 
-from fishsim.errors import ConfigError, Terminated
+from fishsim.errors import ConfigError, SimulationBlowUp, Terminated
 from fishsim.fields import Boundary, FluidParams, FluidState, Grid, rest_state
 from fishsim.fluid.hydronet.config import RESUME_NEEDS_OUT_DIR, TrainConfig, resolve_bf16
 from fishsim.fluid.hydronet.loss import EPS, LossConfig, LossTerms, energy_loss, hydronet_loss, teacher_loss
@@ -48,7 +48,7 @@ from fishsim.fluid.hydronet.trained_range import stored_range, training_range
 from fishsim.fluid.hydronet.unet import HydroNet
 from fishsim.io.atomic import atomic_save, atomic_text
 from fishsim.learn import swim_check
-from fishsim.learn.pool import ScenePool, advance, random_scene, scene_boundaries
+from fishsim.learn.pool import RUNAWAY, ScenePool, advance, max_speeds, random_scene, scene_boundaries
 
 
 @dataclass
@@ -99,26 +99,26 @@ def network_forward(net: nn.Module, state: FluidState, boundary: Boundary, param
                                params.h))
 
 
+TEACHER_RETRIES = 10
+
+
 def train_step(run: Run, cfg: TrainConfig, net: nn.Module) -> LossTerms:
     """ask -> ``unroll`` steps -> loss -> Adam -> tell; returns the detached loss terms of the
     batch (means over the unrolled steps). With a teacher, step j's target is the solver's own
     j-step rollout from the same start, so the objective also sees the drift of the network's
-    rollout; the gradient flows through all ``unroll`` network steps."""
-    idx, state, boundary, params = run.pool.ask(cfg.batch_size)
-    new, target, steps = state, state, []
-    for j in range(cfg.unroll):
-        if j:
-            boundary = run.pool.advance(idx)
-        old = new
-        new = network_forward(net, old, boundary, params, run.pool.grid, cfg.bf16)
-        terms = LossTerms(*run.loss_fn(old.a, old.p, new.a, new.p, boundary.mask, boundary.velocity, params.rho,
-                                       params.mu, params.h))
-        if run.teacher is not None:
-            with torch.no_grad():
-                fine = boundary if cfg.teacher_refinement == 1 else run.pool.boundaries(idx, cfg.teacher_refinement)
-                target = run.teacher.step(target, fine, params)
-            terms = with_teacher(terms, cfg, target, new, boundary, params)
-        steps.append(terms)
+    rollout; the gradient flows through all ``unroll`` network steps. A batch the teacher cannot
+    step (``SimulationBlowUp``: a body grazing a wall can drive the flow in the gap past any
+    sub-step count) is dropped, its scenes reset, and another drawn (``TEACHER_RETRIES`` times)."""
+    for attempt in range(TEACHER_RETRIES):
+        idx, state, boundary, params = run.pool.ask(cfg.batch_size)
+        try:
+            new, steps = unrolled_steps(run, cfg, net, idx, state, boundary, params)
+            break
+        except SimulationBlowUp:
+            if attempt == TEACHER_RETRIES - 1:
+                raise
+            for i in idx.tolist():
+                run.pool.reset(i)
     objective = torch.stack([t.objective for t in steps]).mean()
     run.opt.zero_grad(set_to_none=True)
     objective.backward()
@@ -135,6 +135,29 @@ def train_step(run: Run, cfg: TrainConfig, net: nn.Module) -> LossTerms:
                      mean("energy"))
 
 
+def unrolled_steps(run: Run, cfg: TrainConfig, net: nn.Module, idx: Tensor, state: FluidState,
+                   boundary: Boundary, params: FluidParams) -> tuple[FluidState, list[LossTerms]]:
+    """The network's ``unroll`` steps from the pool's ``state`` of the scenes ``idx`` (advanced
+    between steps), each step's loss terms (with the teacher's j-step rollout as its target)."""
+    new, target, steps = state, state, []
+    for j in range(cfg.unroll):
+        if j:
+            boundary = run.pool.advance(idx)
+        old = new
+        new = network_forward(net, old, boundary, params, run.pool.grid, cfg.bf16)
+        terms = LossTerms(*run.loss_fn(old.a, old.p, new.a, new.p, boundary.mask, boundary.velocity, params.rho,
+                                       params.mu, params.h))
+        if run.teacher is not None:
+            with torch.no_grad():
+                fine = boundary if cfg.teacher_refinement == 1 else run.pool.boundaries(idx, cfg.teacher_refinement)
+                target = run.teacher.step(target, fine, params)
+                if not max_speeds(target.a, run.pool.grid.dx).max() <= RUNAWAY * cfg.pool.max_speed:
+                    raise SimulationBlowUp("the teacher's step ran away (faster than RUNAWAY pool.max_speed)")
+            terms = with_teacher(terms, cfg, target, new, boundary, params)
+        steps.append(terms)
+    return new, steps
+
+
 def with_teacher(terms: LossTerms, cfg: TrainConfig, target: FluidState, new: FluidState, boundary: Boundary,
                  params: FluidParams) -> LossTerms:
     """``terms`` with L_t (and, with ``cfg.energy``, L_E) of ``new`` against the solver's
@@ -147,13 +170,18 @@ def with_teacher(terms: LossTerms, cfg: TrainConfig, target: FluidState, new: Fl
 
 
 def make_teacher(cfg: TrainConfig):
-    """The numerical solver at its defaults on the training grid (refined ``teacher_refinement``
-    times), or None when ``teacher == 0``."""
+    """The numerical solver at `fishsim simulate`'s defaults (``NumericalConfig``: the joint stage
+    the references are measured with) on the training grid, refined ``teacher_refinement`` times;
+    None when ``teacher == 0``. (Until 2026-11-30 it took ``NumericalFluid``'s own keyword
+    defaults, the split passes at 8 x 3: on the frequency study 45.2 / 79.2 / 127.1 / 181.5 /
+    246.9 mm at 3-7 Hz against the joint stage's 45.4 / 80.2 / 128.3 / 184.0 / 249.2.)"""
     if cfg.teacher == 0:
         return None
+    from fishsim.config import NumericalConfig
+    from fishsim.fluid.factory import numerical_stepping
     from fishsim.fluid.numerical import NumericalFluid
 
-    return NumericalFluid(cfg.pool.grid, refinement=cfg.teacher_refinement)
+    return NumericalFluid(cfg.pool.grid, refinement=cfg.teacher_refinement, **numerical_stepping(NumericalConfig()))
 
 
 @torch.no_grad()

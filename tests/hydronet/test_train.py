@@ -334,6 +334,48 @@ def test_teacher_training_moves_the_network_towards_the_solver(cfg):
     assert error() < 0.5 * before
 
 
+def test_the_teacher_is_the_simulate_default_numerical_fluid(cfg):
+    """The teacher steps as `fishsim simulate`'s numerical fluid does (the joint stage, its
+    sub-steps and CFL bound), the fluid the frequency study's references are measured with."""
+    from fishsim.config import NumericalConfig
+    from fishsim.fluid.factory import numerical_stepping
+
+    teacher = T.make_teacher(replace(cfg, teacher=1.0))
+    assert teacher.implicit and teacher.refinement == 1
+    assert {k: getattr(teacher, k) for k in numerical_stepping(NumericalConfig())} == numerical_stepping(NumericalConfig())
+
+
+def test_a_batch_the_teacher_cannot_step_is_replaced(cfg):
+    """A SimulationBlowUp in the teacher's rollout, or a target faster than RUNAWAY max_speed,
+    drops the batch (its scenes reset to rest at t = 0) and draws another; the iteration then
+    runs once. TEACHER_RETRIES failures in a row raise."""
+    from fishsim.errors import SimulationBlowUp
+
+    torch.manual_seed(0)
+    c = replace(cfg, batch_size=2, teacher=1.0)
+    run, net = T.build(c, 0, 1, torch.device("cpu"))
+    run.pool.a.fill_(1e-6)
+    step, calls = run.teacher.step, []
+
+    def flaky(state, boundary, params):
+        calls.append(1)
+        out = step(state, boundary, params)
+        if len(calls) == 1:
+            raise SimulationBlowUp("test")
+        if len(calls) == 2:
+            return FluidState(out.a * 1e6, out.p)        # a runaway target
+        return out
+
+    run.teacher.step = flaky
+    terms = T.train_step(run, c, net)
+    assert len(calls) == 3 and run.iteration == 1 and torch.isfinite(terms.objective)
+    reset = [i for i, s in enumerate(run.pool.scenes) if s.t == 0.0 and run.pool.a[i].abs().max() == 0]
+    assert len(reset) >= 2                                   # fresh scenes at rest in place of the dropped
+    run.teacher.step = lambda *args: (_ for _ in ()).throw(SimulationBlowUp("always"))
+    with pytest.raises(SimulationBlowUp):
+        T.train_step(run, c, net)
+
+
 def test_an_unrolled_step_advances_its_scenes_and_follows_the_solvers_rollout(cfg):
     """unroll=3: each iteration steps its scenes 3 h forward (the pool's scene clocks) and its
     teacher targets are the solver's own 3-step rollout from the start state; unroll=1 is the
