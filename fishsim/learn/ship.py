@@ -4,7 +4,8 @@ frequency studies of the shipped model re-measured since: ``python -m fishsim.le
 SWIM_DIR ...`` (``record_swim_studies``).
 
 * ``fishsim/assets/hydronet.pt``: the weights of CHECKPOINT (a ckpt.pt or best.pt;
-  ``export_model``), the model ``fishsim simulate fluid=hydronet`` uses by default;
+  ``export_model``: the moving average of an ``ema`` run's ckpt.pt), the model ``fishsim simulate
+  fluid=hydronet`` uses by default;
 * ``fishsim/assets/hydronet.json``: its metadata: net and training config, the commands that
   produced it (LINEAGE.json: every training command in order, with the iterations and wall time
   of runs before CHECKPOINT's, which started from their weights), iterations, wall time, the

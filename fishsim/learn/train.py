@@ -276,8 +276,17 @@ def save_weights(model: HydroNet, run: Run, path: Path, cfg: TrainConfig, score:
                  "val": score, "training_range": training_range(cfg.pool)}, path)
 
 
+def checkpoint_weights(sd: dict) -> dict:
+    """The weights a checkpoint or model file stands for: the moving average where a ckpt.pt
+    keeps one (an ``ema`` run validates, swims and saves the average, so its model is that), else
+    its model's."""
+    if "average" not in sd:
+        return sd["model"]
+    return {k.removeprefix("module."): v for k, v in sd["average"].items() if k.startswith("module.")}
+
+
 def export_model(checkpoint: str | Path, dest: str | Path, metadata: dict) -> Path:
-    """Ship a trained model: the weights and net config of ``checkpoint`` (best.pt or ckpt.pt,
+    """Ship a trained model: the weights (``checkpoint_weights``) and net config of ``checkpoint`` (best.pt or ckpt.pt,
     no optimiser or pool) and the fluid range it was trained for to ``dest``, and ``metadata``
     (config, command, losses, evaluation) with that range to ``dest`` with suffix .json. Returns ``dest``; ``load_hydronet(dest)`` reads it back."""
     import json
@@ -288,7 +297,7 @@ def export_model(checkpoint: str | Path, dest: str | Path, metadata: dict) -> Pa
     trained = stored_range(sd, Path(checkpoint))
     if trained is None and "train_config" in metadata:
         trained = training_range(metadata["train_config"]["pool"])
-    atomic_save({"model": sd["model"], "net": sd["net"], "iteration": sd["iteration"],
+    atomic_save({"model": checkpoint_weights(sd), "net": sd["net"], "iteration": sd["iteration"],
                  "val": sd.get("val", sd.get("best_val")), "training_range": trained}, dest)
     meta = {**metadata, "training_range": trained}
     dest.with_suffix(".json").write_text(json.dumps(meta, indent=2, default=str) + "\n")

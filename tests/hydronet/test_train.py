@@ -79,6 +79,9 @@ def test_ema_averages_the_iterates_and_resumes_exactly(cfg, tmp_path, monkeypatc
         assert torch.equal(a1[k], a2[k]), k
     best = torch.load(tmp_path / "resumed" / "best.pt", weights_only=False)["model"]
     assert all(torch.equal(best[k], a2["module." + k]) for k in best)      # the last validation's average
+    shipped = torch.load(T.export_model(tmp_path / "resumed" / "ckpt.pt", tmp_path / "ship.pt", {}),
+                         weights_only=False)["model"]                    # exported: the average, not the iterate
+    assert shipped.keys() == best.keys() and all(torch.equal(shipped[k], a2["module." + k]) for k in shipped)
 
 
 def test_trained_weights_on_a_fresh_pool_warm_it_first(cfg, tmp_path, monkeypatch):
