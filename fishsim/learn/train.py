@@ -149,7 +149,7 @@ def unrolled_steps(run: Run, cfg: TrainConfig, net: nn.Module, idx: Tensor, stat
                                        params.mu, params.h))
         if run.teacher is not None:
             with torch.no_grad():
-                fine = boundary if cfg.teacher_refinement == 1 else run.pool.boundaries(idx, cfg.teacher_refinement)
+                fine = boundary if cfg.teacher_refinement == 1 else run.pool.boundaries(idx, run.teacher.boundary_grid)
                 target = run.teacher.step(target, fine, params)
                 if not max_speeds(target.a, run.pool.grid.dx).max() <= RUNAWAY * cfg.pool.max_speed:
                     raise SimulationBlowUp("the teacher's step ran away (faster than RUNAWAY pool.max_speed)")
