@@ -409,12 +409,6 @@ class ScenePool:
             self.scenes[i] = advance(self.scenes[i], self.cfg, self.rng)
         return scene_boundaries([self.scenes[i] for i in ids], self.grid, self.device)
 
-    def boundaries(self, idx: Tensor, grid: Grid) -> Boundary:
-        """The scenes ``idx``'s boundaries now, sampled on ``grid``, an integer number of times
-        finer than the pool's (a refined teacher's ``boundary_grid``)."""
-        r = grid.H // self.grid.H
-        return scene_boundaries([self.scenes[i] for i in idx.tolist()], grid, self.device, r)
-
     def _batch(self, idx: np.ndarray) -> tuple[Tensor, FluidState, Boundary, FluidParams]:
         scenes = [self.scenes[i] for i in idx]
         boundary = scene_boundaries(scenes, self.grid, self.device)

@@ -149,13 +149,20 @@ def unrolled_steps(run: Run, cfg: TrainConfig, net: nn.Module, idx: Tensor, stat
                                        params.mu, params.h))
         if run.teacher is not None:
             with torch.no_grad():
-                fine = boundary if cfg.teacher_refinement == 1 else run.pool.boundaries(idx, run.teacher.boundary_grid)
+                fine = teacher_boundary(run.teacher, cfg, [run.pool.scenes[i] for i in idx.tolist()], boundary)
                 target = run.teacher.step(target, fine, params)
                 if not max_speeds(target.a, run.pool.grid.dx).max() <= RUNAWAY * cfg.pool.max_speed:
                     raise SimulationBlowUp("the teacher's step ran away (faster than RUNAWAY pool.max_speed)")
             terms = with_teacher(terms, cfg, target, new, boundary, params)
         steps.append(terms)
     return new, steps
+
+
+def teacher_boundary(teacher, cfg: TrainConfig, scenes: list, boundary: Boundary) -> Boundary:
+    """The ``scenes``' bodies as the teacher reads them: ``boundary`` itself at r = 1, else sampled
+    on its ``boundary_grid`` (the walls r times as many cells thick)."""
+    r = cfg.teacher_refinement
+    return boundary if r == 1 else scene_boundaries(scenes, teacher.boundary_grid, boundary.mask.device, r)
 
 
 def with_teacher(terms: LossTerms, cfg: TrainConfig, target: FluidState, new: FluidState, boundary: Boundary,
@@ -205,8 +212,7 @@ def validate(model: HydroNet, cfg: TrainConfig, seed: int = 12345) -> float:
             loss_cfg = LossConfig(cfg.beta, cfg.gamma, scheme=cfg.advection)
             terms = hydronet_loss(state, new, boundary, params, grid, loss_cfg)
             if teacher is not None:
-                r = cfg.teacher_refinement
-                fine = boundary if r == 1 else scene_boundaries(scenes, teacher.boundary_grid, dev, r)
+                fine = teacher_boundary(teacher, cfg, scenes, boundary)
                 target = teacher.step(FluidState(state.a.float(), state.p.float()), fine, params)
                 terms = with_teacher(terms, cfg, target, new, boundary, params)
             losses.append(terms.objective.item())

@@ -30,14 +30,15 @@ def _motion(**kw):
 
 
 def test_boundaries_on_a_refined_grid_hold_the_same_bodies_and_walls(tiny_pool):
-    """ScenePool.boundaries on a grid twice as fine: the scenes sampled on cells half as wide, the
-    walls as thick in metres, the bodies' area (sum of b, away from the walls) within 5 % of the
-    pool grid's."""
+    """scene_boundaries on a grid twice as fine (refinement 2): the scenes sampled on cells half as
+    wide, the walls as thick in metres, the bodies' area (sum of b, away from the walls) within 5 %
+    of the pool grid's."""
     from fishsim.fields import Grid
 
     pool = ScenePool(tiny_pool, batch=4, seed=5)
     idx, _, coarse, _ = pool.ask(4)
-    fine = pool.boundaries(idx, Grid(2 * tiny_pool.H, 2 * tiny_pool.W, tiny_pool.dx / 2))
+    fine = scene_boundaries([pool.scenes[i] for i in idx.tolist()],
+                            Grid(2 * tiny_pool.H, 2 * tiny_pool.W, tiny_pool.dx / 2), refinement=2)
     assert fine.mask.shape[-2:] == (2 * tiny_pool.H, 2 * tiny_pool.W)
     for n, i in enumerate(idx.tolist()):
         rows, cols = pool.scenes[i].wall
