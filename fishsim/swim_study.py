@@ -11,13 +11,16 @@ and the rest of its batch carries on.
 
 from __future__ import annotations
 
+import json
 import math
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 import torch
 
+from fishsim.errors import ConfigError
 from fishsim.swim_study_config import FLUIDS, ConvergenceStudyConfig, SwimStudyConfig
 
 # The paper's Table 1 (300 frames, their hardware) and Fig. 4 (mean mismatch, argmax).
@@ -88,15 +91,40 @@ def compare(result: dict, reference: dict, frequencies) -> dict:
             "mean_mismatch_mm": mismatch, "mean_mismatch_cells": mismatch / result["dx_mm"]}
 
 
+def reusable(cfg: SwimStudyConfig) -> dict:
+    """The fluids of ``cfg.reuse`` (an earlier study's metrics.json) this study takes as they are,
+    each marked ``reused_from``: every fluid of the stored study if its frequencies, frames and
+    overrides are this one's (else a ConfigError: its numbers answer another question), less the
+    HydroNet fluids whose hydronet_overrides differ (another model). {} without reuse."""
+    if not cfg.reuse:
+        return {}
+    path = Path(cfg.reuse)
+    try:
+        stored = json.loads(path.read_text())
+        study, fluids = stored["swim"], stored["fluids"]
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise ConfigError(f"swim.reuse={path}: not the metrics.json of a `fishsim validate suite=swim` run "
+                          f"({type(e).__name__}: {e})") from e
+    for key in ("frequencies", "frames", "overrides"):
+        if study.get(key) != getattr(cfg, key):
+            raise ConfigError(f"swim.reuse={path}: that study ran with {key}={study.get(key)}, this one with "
+                              f"{getattr(cfg, key)}; reuse a study with the same frequencies, frames and overrides")
+    same_model = study.get("hydronet_overrides") == cfg.hydronet_overrides
+    return {name: {**res, "reused_from": str(path)} for name, res in fluids.items()
+            if name in FLUIDS and (same_model or "fluid=hydronet" not in FLUIDS[name])}
+
+
 def frequency_study(cfg: SwimStudyConfig, device: str = "cpu",
                     progress: Callable[[str], None] | None = None) -> dict:
-    """Every fluid of ``cfg`` (reference first), compared with the reference."""
+    """Every fluid of ``cfg`` (reference first), compared with the reference; those ``reusable``
+    from ``cfg.reuse`` are read, not re-run."""
     order = [cfg.reference] + [f for f in cfg.fluids if f != cfg.reference]
+    stored = reusable(cfg)
     results = {}
     for name in order:
         if progress:
             progress(name)
-        results[name] = run_fluid(name, cfg, device)
+        results[name] = stored[name] if name in stored else run_fluid(name, cfg, device)
     for name, res in results.items():
         res.update(compare(res, results[cfg.reference], cfg.frequencies))
     return results

@@ -25,7 +25,10 @@ class SwimStudyConfig:
     one the others are compared with; overrides: more `fishsim simulate` overrides for every run
     (e.g. a smaller tank); hydronet_overrides: more for the HydroNet runs only (``fishsim
     validate`` puts its hydronet node's model_file, bf16, pressure_tol and strict_range before
-    them; the fluid's own pressure stays)."""
+    them; the fluid's own pressure stays); reuse: the metrics.json of an earlier study with the
+    same frequencies, frames and overrides, whose fluids are read from it instead of re-run
+    (HydroNet fluids only if their hydronet_overrides match too: another model_file is re-run),
+    e.g. to judge a new model against a stored r = 2 reference (10-15 min on a 2-core CPU)."""
 
     frequencies: list[float] = field(default_factory=lambda: [3.0, 4.0, 5.0, 6.0, 7.0])
     frames: int = 120
@@ -33,6 +36,7 @@ class SwimStudyConfig:
     reference: str = "numerical_r2"
     overrides: list[str] = field(default_factory=list)
     hydronet_overrides: list[str] = field(default_factory=list)
+    reuse: str | None = None
 
     def validate(self) -> None:
         if len(self.frequencies) < 2 or not all(f > 0 for f in self.frequencies):

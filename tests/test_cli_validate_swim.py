@@ -61,3 +61,35 @@ def test_validate_swim_judges_the_given_model_file(tmp_path):
                                     "swim.fluids=[numerical]", "swim.reference=numerical", f"swim.overrides={small}",
                                     f"hydronet.model_file={tmp_path / 'missing.pt'}", f"out_dir={tmp_path / 'n'}"])
     assert numerical.exit_code == 0, numerical.output                 # the numerical runs do not take it
+
+
+def test_validate_swim_reuses_a_stored_reference(tmp_path):
+    """swim.reuse= reads the fluids of an earlier study with the same frequencies, frames and
+    overrides (the stored numbers, here altered by hand, are what the new study compares with),
+    re-runs a HydroNet fluid whose model differs, and refuses a study that asked another question."""
+    small = "['tank.H=32','tank.W=96','fish.length=0.06','fish.edge_length=4e-3','origin=[0.05,0.04]']"
+    study = ["validate", "suite=swim", "swim.frequencies=[4,8]", "swim.frames=2", "swim.reference=numerical",
+             f"swim.overrides={small}"]
+    first = runner.invoke(app, [*study, "swim.fluids=[numerical]", f"out_dir={tmp_path / 'a'}"])
+    assert first.exit_code == 0, first.output
+    stored = json.loads((tmp_path / "a" / "metrics.json").read_text())
+    stored["fluids"]["numerical"]["displacement_mm"] = [1.0, 3.0]
+    (tmp_path / "a" / "metrics.json").write_text(json.dumps(stored))
+    both = [*study, "swim.fluids=[numerical,hydronet]", f"swim.reuse={tmp_path / 'a' / 'metrics.json'}"]
+    second = runner.invoke(app, [*both, f"out_dir={tmp_path / 'b'}"])
+    assert second.exit_code == 0, second.output
+    fluids = json.loads((tmp_path / "b" / "metrics.json").read_text())["fluids"]
+    assert fluids["numerical"]["displacement_mm"] == [1.0, 3.0] and "reused_from" in fluids["numerical"]
+    net = fluids["hydronet"]
+    assert "reused_from" not in net and np.isfinite(net["displacement_mm"]).all()
+    assert net["mean_mismatch_mm"] == np.mean(np.abs(np.asarray(net["displacement_mm"]) - [1.0, 3.0]))
+    third = runner.invoke(app, [*study, "swim.fluids=[numerical,hydronet]", f"out_dir={tmp_path / 'c'}",
+                                f"swim.reuse={tmp_path / 'b' / 'metrics.json'}"])          # the same model: both read
+    assert third.exit_code == 0, third.output
+    again = json.loads((tmp_path / "c" / "metrics.json").read_text())["fluids"]
+    assert again["hydronet"]["displacement_mm"] == net["displacement_mm"] and "reused_from" in again["hydronet"]
+    longer = runner.invoke(app, [*both, "swim.frames=3", f"out_dir={tmp_path / 'd'}"])
+    assert longer.exit_code == 2 and "frames" in longer.output, longer.output
+    missing = runner.invoke(app, [*study, "swim.fluids=[numerical]", f"swim.reuse={tmp_path / 'none.json'}",
+                                  f"out_dir={tmp_path / 'e'}"])
+    assert missing.exit_code == 2 and "none.json" in missing.output, missing.output
