@@ -423,6 +423,8 @@ def build(cfg: TrainConfig, rank: int, world: int, device: torch.device) -> tupl
     step calls (DDP wrapper and/or compiled module)."""
     torch.manual_seed(cfg.seed)
     model = HydroNet(cfg.net).to(device)
+    model.freeze_norm = cfg.freeze_norm
+    model.train()
     if cfg.channels_last:
         model = model.to(memory_format=torch.channels_last)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)

@@ -109,6 +109,30 @@ def test_trained_weights_on_a_fresh_pool_warm_it_first(cfg, tmp_path, monkeypatc
     assert all(torch.equal(before[k], v) for k, v in run.model.state_dict().items())   # BatchNorm's stats too
 
 
+def test_freeze_norm_trains_the_map_inference_runs(cfg):
+    """freeze_norm=true: a training step normalises by the running statistics (its forward is the
+    eval-mode forward), leaves them as they were and still trains the weights, BatchNorm's scale
+    and shift included; without it the step normalises by the batch and moves the statistics."""
+    for frozen in (False, True):
+        c = replace(cfg, freeze_norm=frozen)
+        run, net = T.build(c, 0, 1, torch.device("cpu"))
+        T.train_step(run, c, net)             # running statistics off their initial (0, 1)
+        buffers = {k: v.clone() for k, v in run.model.named_buffers()}
+        weights = {k: v.detach().clone() for k, v in run.model.named_parameters()}
+        idx, state, boundary, params = run.pool.ask(c.batch_size)
+        out = T.network_forward(net, state, boundary, params, run.pool.grid, c.bf16).a
+        run.model.eval()
+        with torch.no_grad():
+            inference = T.network_forward(net, state, boundary, params, run.pool.grid, c.bf16).a
+        run.model.train()
+        assert torch.equal(out, inference) == frozen
+        T.train_step(run, c, net)
+        moved = [k for k, v in run.model.named_buffers() if not torch.equal(v, buffers[k])]
+        assert moved == [] if frozen else any("running_mean" in k for k in moved), moved
+        bn = [k for k in weights if ".1.weight" in k or ".4.weight" in k]
+        assert bn and all(not torch.equal(run.model.get_parameter(k), weights[k]) for k in bn)
+
+
 def test_compact_checkpoint_resumes_model_and_optimiser(cfg, tmp_path):
     """A pool-less checkpoint (the one committed between sittings) is ~3x smaller and resumes
     the counters, weights and Adam state; training then goes on."""

@@ -155,6 +155,18 @@ class HydroNet(nn.Module):
         super().__init__()
         self.cfg = cfg
         self.unet = UNet(cfg.in_channels, 2, cfg.hidden, cfg.depth)
+        self.freeze_norm = False
+
+    def train(self, mode: bool = True) -> HydroNet:
+        """nn.Module.train, except that with ``freeze_norm`` the BatchNorm layers stay in eval
+        mode: normalised by their running statistics, which then never change, the map trained
+        is the map inference runs (``TrainConfig.freeze_norm``)."""
+        super().train(mode)
+        if self.freeze_norm:
+            for m in self.modules():
+                if isinstance(m, nn.BatchNorm2d):
+                    m.eval()
+        return self
 
     def forward(self, a: Tensor, p: Tensor, b: Tensor, v_d: Tensor, rho: Tensor, mu: Tensor,
                 dx: float, h: float) -> tuple[Tensor, Tensor]:
