@@ -119,7 +119,7 @@ def test_freeze_norm_trains_the_map_inference_runs(cfg):
         T.train_step(run, c, net)             # running statistics off their initial (0, 1)
         buffers = {k: v.clone() for k, v in run.model.named_buffers()}
         weights = {k: v.detach().clone() for k, v in run.model.named_parameters()}
-        idx, state, boundary, params = run.pool.ask(c.batch_size)
+        _, state, boundary, params = run.pool.ask(c.batch_size)
         out = T.network_forward(net, state, boundary, params, run.pool.grid, c.bf16).a
         run.model.eval()
         with torch.no_grad():
