@@ -16,6 +16,12 @@ SWIM_DIR ...`` (``record_swim_studies``).
   against;
 * ``training/hydronet/ckpt.pt`` + ``log.csv``: the compact checkpoint to continue training from
   in a later sitting (``compact_checkpoint``; see the metadata's "continue" entry).
+
+CHECKPOINT may also be a model file a run kept (``best_swim.pt``, or a swim check's weights copied
+aside) in its run folder: the config and log are then that run's (its ckpt.pt and log.csv, up to
+the model's iteration), no optimiser state goes with it (training/hydronet/ckpt.pt is removed, the
+log kept up to the model's iteration) and training continues from the shipped weights
+(``init_from``, a fresh optimiser, ``freeze_norm``).
 """
 
 from __future__ import annotations
@@ -45,9 +51,14 @@ TARGETS = {  # the fidelity targets of the surrogate (README, "The shipped Hydro
 }
 
 
-def final_losses(log: Path, last: int = 200) -> dict:
-    """Means over the last ``last`` logged iterations of the training loss terms."""
-    rows = list(csv.DictReader(log.open()))[-last:]
+def log_rows(log: Path, until: int) -> list[dict]:
+    """The rows of a training log.csv up to iteration ``until``."""
+    return [r for r in csv.DictReader(log.open()) if int(r["iteration"]) <= until]
+
+
+def final_losses(log: Path, until: int, last: int = 200) -> dict:
+    """Means over the last ``last`` logged iterations up to ``until`` of the training loss terms."""
+    rows = log_rows(log, until)[-last:]
     mean = lambda k: float(np.mean([float(r[k]) for r in rows if r.get(k) not in (None, "")]))
     out = {"iterations_averaged": f"{rows[0]['iteration']}-{rows[-1]['iteration']}", "log_loss": mean("loss"),
            "L_p": mean("L_p"), "L_b": mean("L_b"), "last_validation_log_loss": float(rows[-1]["val"]),
@@ -57,16 +68,27 @@ def final_losses(log: Path, last: int = 200) -> dict:
     return out
 
 
-def continue_command(lineage: list) -> str:
-    """The last training command, resumed from the committed compact checkpoint."""
+def continue_command(lineage: list, training: Path = TRAINING, model: Path | None = None) -> str:
+    """The last training command, resumed from the committed compact checkpoint in ``training``,
+    or, when a model file was shipped (``model``), started from its weights."""
     last = re.sub(r"out_dir=\S+", "out_dir=runs/hydronet", lineage[-1]["command"])
-    last = re.sub(r" (init_from|resume)=\S+", "", last)
-    return f"mkdir -p runs/hydronet && cp {TRAINING}/ckpt.pt runs/hydronet/ && {last} resume=true"
+    last = re.sub(r" (init_from|resume|overwrite|freeze_norm)=\S+", "", last)
+    if model is not None:
+        return f"{last} init_from={model} freeze_norm=true"
+    return f"mkdir -p runs/hydronet && cp {training}/ckpt.pt runs/hydronet/ && {last} resume=true"
 
 
-def ship(checkpoint: Path, validate_dir: Path, lineage: list, swim_dirs: tuple[Path, ...] = ()) -> dict:
+def ship(checkpoint: Path, validate_dir: Path, lineage: list, swim_dirs: tuple[Path, ...] = (),
+         asset: Path = SHIPPED_HYDRONET, training: Path = TRAINING) -> dict:
+    """Write ``asset`` (+ .json) and the training state under ``training`` (module docstring)."""
     ckpt = torch.load(checkpoint, map_location="cpu", weights_only=False)
-    config = ckpt.get("config") or {}
+    model_file = "optimizer" not in ckpt
+    run = ckpt if not model_file else torch.load(checkpoint.parent / "ckpt.pt", map_location="cpu",
+                                                 weights_only=False)
+    config = run.get("config") or {}
+    log = checkpoint.parent / "log.csv"
+    iteration = int(ckpt["iteration"])
+    elapsed = float(log_rows(log, iteration)[-1]["seconds"]) if model_file else float(ckpt.get("elapsed", 0.0))
     earlier = sum(r.get("iterations", 0) for r in lineage)
     swims = {}
     for d in swim_dirs:
@@ -78,24 +100,28 @@ def ship(checkpoint: Path, validate_dir: Path, lineage: list, swim_dirs: tuple[P
         "train_config": config,
         "lineage": lineage,
         "commands": [r["command"] for r in lineage],
-        "iterations": int(ckpt["iteration"]) + earlier,
-        "iterations_last_run": int(ckpt["iteration"]),
-        "wall_time_s": float(ckpt.get("elapsed", 0.0)) + sum(r.get("wall_time_s", 0) for r in lineage),
-        "final_losses": final_losses(checkpoint.parent / "log.csv"),
+        "iterations": iteration + earlier,
+        "iterations_last_run": iteration,
+        "wall_time_s": elapsed + sum(r.get("wall_time_s", 0) for r in lineage),
+        "final_losses": final_losses(log, iteration),
         "evaluation": json.loads((validate_dir / "metrics.json").read_text()),
         "swim_studies": swims,
         "targets": TARGETS,
         "machine": {"cpu": platform.processor() or platform.machine(), "torch": torch.__version__,
                     "threads": config.get("threads")},
         "date": time.strftime("%Y-%m-%d"),
-        "continue": continue_command(lineage),
+        "continue": continue_command(lineage, training, asset if model_file else None),
         "shipped_by": f"python -m fishsim.learn.ship {checkpoint} {validate_dir} LINEAGE.json "
                       + " ".join(str(d) for d in swim_dirs),
     }
-    export_model(checkpoint, SHIPPED_HYDRONET, meta)
-    if checkpoint.resolve() != (TRAINING / "ckpt.pt").resolve():
-        compact_checkpoint(checkpoint, TRAINING / "ckpt.pt")
-        (TRAINING / "log.csv").write_text((checkpoint.parent / "log.csv").read_text())
+    export_model(checkpoint, asset, meta)
+    if model_file:                              # no optimiser state: the shipped weights are the start
+        (training / "ckpt.pt").unlink(missing_ok=True)
+    elif checkpoint.resolve() != (training / "ckpt.pt").resolve():
+        compact_checkpoint(checkpoint, training / "ckpt.pt")
+    if log.resolve() != (training / "log.csv").resolve():
+        rows = log.read_text().splitlines(keepends=True)
+        (training / "log.csv").write_text("".join(rows[:1 + len(log_rows(log, iteration))]))
     return meta
 
 

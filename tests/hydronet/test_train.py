@@ -4,6 +4,7 @@ import os
 import signal
 import socket
 from dataclasses import replace
+from pathlib import Path
 
 import pytest
 import torch
@@ -160,6 +161,37 @@ def _signalling_step(monkeypatch, at: int, times: int) -> None:
         return real(run, c, net)
 
     monkeypatch.setattr(T, "train_step", step)
+
+
+def test_shipping_a_model_file_takes_its_runs_config_and_log_up_to_its_iteration(cfg, tmp_path):
+    """ship(a model file the run kept): its weights become the asset, the config is the run's,
+    the losses, wall time and log stop at the model's iteration, no optimiser state is left
+    beside it (a stale ckpt.pt is removed) and training continues from the asset's weights."""
+    import json
+
+    from fishsim.learn.ship import ship
+
+    T.run(replace(cfg, iterations=6, val_every=2))
+    run_dir = Path(cfg.out_dir)
+    kept = run_dir / "kept.pt"
+    torch.save({**torch.load(run_dir / "best.pt", weights_only=False), "iteration": 4}, kept)
+    (tmp_path / "val").mkdir()
+    (tmp_path / "val" / "metrics.json").write_text(json.dumps({"summary": {}}))
+    training = tmp_path / "training"
+    training.mkdir()
+    (training / "ckpt.pt").write_text("stale")
+    lineage = [{"run": "x", "command": f"fishsim train-hydronet out_dir={run_dir} teacher=10 resume=true"}]
+    meta = ship(kept, tmp_path / "val", lineage, asset=tmp_path / "hydronet.pt", training=training)
+    assert meta["iterations"] == meta["iterations_last_run"] == 4 and meta["train_config"]["batch_size"] == 3
+    assert meta["final_losses"]["iterations_averaged"] == "1-4"
+    log = (training / "log.csv").read_text().splitlines()
+    assert log[0].startswith("iteration") and [int(r.split(",")[0]) for r in log[1:]] == [1, 2, 3, 4]
+    assert meta["wall_time_s"] == float(log[-1].split(",")[1])
+    assert not (training / "ckpt.pt").exists()
+    assert "resume" not in meta["continue"] and f"init_from={tmp_path / 'hydronet.pt'} freeze_norm=true" in meta["continue"]
+    shipped = load_hydronet(tmp_path / "hydronet.pt")
+    for k, v in torch.load(kept, weights_only=False)["model"].items():
+        assert torch.equal(shipped.state_dict()[k], v), k
 
 
 def test_a_stop_signal_finishes_the_iteration_then_saves(cfg, monkeypatch):
