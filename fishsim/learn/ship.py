@@ -74,6 +74,8 @@ def continue_command(lineage: list, training: Path = TRAINING, model: Path | Non
     last = re.sub(r"out_dir=\S+", "out_dir=runs/hydronet", lineage[-1]["command"])
     last = re.sub(r" (init_from|resume|overwrite|freeze_norm)=\S+", "", last)
     if model is not None:
+        here = Path.cwd()
+        model = model.resolve().relative_to(here) if model.resolve().is_relative_to(here) else model
         return f"{last} init_from={model} freeze_norm=true"
     return f"mkdir -p runs/hydronet && cp {training}/ckpt.pt runs/hydronet/ && {last} resume=true"
 

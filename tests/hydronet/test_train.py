@@ -519,7 +519,6 @@ def test_swim_check_keeps_the_weights_that_swim_closest_to_the_numerical_fluid(c
     import csv
     import json
     import math
-    from pathlib import Path
 
     from fishsim.fluid.factory import SHIPPED_HYDRONET
     from fishsim.fluid.hydronet.config import NetConfig
