@@ -271,6 +271,8 @@ class HydroNetConfig(WaterConfig):
     pressure_tol: relative residual of the pressure recovery's PCG solve.
     strict_range: refuse a run whose rho, mu, dx or h lies outside the range the model was
         trained for (default: a one-line warning; fishsim/fluid/hydronet/trained_range.py).
+    symmetric: average the network's step with its mirror image in y (exact y-reflection
+        equivariance, no sideways drift of its own; ~1.6x the cost; ``HydroNetFluid``).
     """
 
     model: str = "hydronet"
@@ -279,6 +281,7 @@ class HydroNetConfig(WaterConfig):
     pressure: str = "network"
     pressure_tol: float = 1e-6
     strict_range: bool = False
+    symmetric: bool = False
 
     def validate(self, key: str = "fluid") -> None:
         super().validate(key)

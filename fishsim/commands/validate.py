@@ -98,13 +98,13 @@ def run_convergence(cfg: ValidateConfig) -> dict:
 
 def hydronet_overrides(cfg: ValidateConfig, pressure: bool = False) -> list[str]:
     """`fishsim simulate` overrides that make a study's HydroNet runs (``fluid=hydronet``) run the
-    HydroNet being judged, the ``hydronet`` node: its model_file (when set), bf16, pressure_tol and
-    strict_range, and with ``pressure`` its pressure (suite=solid; suite=swim's fluids set their
+    HydroNet being judged, the ``hydronet`` node: its model_file (when set), bf16, pressure_tol,
+    strict_range and symmetric, and with ``pressure`` its pressure (suite=solid; suite=swim's fluids set their
     own). Not its rho, mu or dtype: the runs' fluid is the study's (``ValidateConfig``)."""
     net = cfg.hydronet
     out = [f"fluid.model_file={net.model_file}"] if net.model_file else []
     out += [f"fluid.bf16={str(net.bf16).lower()}", f"fluid.pressure_tol={net.pressure_tol!r}",
-            f"fluid.strict_range={str(net.strict_range).lower()}"]
+            f"fluid.strict_range={str(net.strict_range).lower()}", f"fluid.symmetric={str(net.symmetric).lower()}"]
     return out + ([f"fluid.pressure={net.pressure}"] if pressure else [])
 
 

@@ -46,7 +46,7 @@ def make_fluid(cfg, tank, device=None) -> FluidModel:
 
         model = load_hydronet(hydronet_file(cfg), device=device or "cpu").to(fluid_dtype(cfg))
         return HydroNetFluid(model, tank.grid, bf16=cfg.bf16, pressure=cfg.pressure,
-                             recovery=RecoveryConfig(tol=cfg.pressure_tol))
+                             recovery=RecoveryConfig(tol=cfg.pressure_tol), symmetric=cfg.symmetric)
     raise ValueError(f"unknown fluid model {cfg.model!r}")
 
 
