@@ -201,9 +201,8 @@ def run_hydronet(cfg: ValidateConfig) -> dict:
     """suite=hydronet: evaluate, write metrics.json and the comparison picture, print the table."""
     import torch
 
-    from fishsim.fluid.factory import hydronet_file, make_fluid
+    from fishsim.fluid.factory import hydronet_file, make_fluid, reference_fluid
     from fishsim.fluid.hydronet.trained_range import check_fluid
-    from fishsim.fluid.numerical import NumericalFluid
     from fishsim.learn.evaluate import energy_checks, evaluate, summarise
     from fishsim.render.plots import plot_fluid_comparison
 
@@ -217,10 +216,10 @@ def run_hydronet(cfg: ValidateConfig) -> dict:
     columns = (TextColumn("validate hydronet"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
     with Progress(*columns, console=Console(stderr=True), transient=True) as bar:
         task = bar.add_task("steps", total=None)
-        result = evaluate(net, NumericalFluid(grid), s, device,
+        result = evaluate(net, reference_fluid(grid), s, device,
                           progress=lambda done, total: bar.update(task, completed=done, total=total))
         bar.update(task, description="validate hydronet: still fish, kinetic energy")
-        checks = energy_checks(net, NumericalFluid(grid), s, device)
+        checks = energy_checks(net, reference_fluid(grid), s, device)
     summary = {"model_file": str(path), "scenes": asdict(s), "metrics": result.metrics,
                "summary": {**summarise(result.metrics), **checks}}
     (out_dir / "metrics.json").write_text(json.dumps(summary, indent=2))

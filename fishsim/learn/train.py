@@ -184,11 +184,9 @@ def make_teacher(cfg: TrainConfig):
     246.9 mm at 3-7 Hz against the joint stage's 45.4 / 80.2 / 128.3 / 184.0 / 249.2.)"""
     if cfg.teacher == 0:
         return None
-    from fishsim.config import NumericalConfig
-    from fishsim.fluid.factory import numerical_stepping
-    from fishsim.fluid.numerical import NumericalFluid
+    from fishsim.fluid.factory import reference_fluid
 
-    return NumericalFluid(cfg.pool.grid, refinement=cfg.teacher_refinement, **numerical_stepping(NumericalConfig()))
+    return reference_fluid(cfg.pool.grid, cfg.teacher_refinement)
 
 
 @torch.no_grad()

@@ -47,12 +47,23 @@ def test_scenes_move_as_prescribed():
     assert bd.mask.shape == (2, 1, SMALL.tank.H, SMALL.tank.W) and math.isclose(bd.mask.max().item(), 1.0, abs_tol=1e-6)
 
 
-def test_validate_command_writes_metrics_and_picture(tmp_path):
+def test_validate_command_writes_metrics_and_picture(tmp_path, monkeypatch):
+    """... and judges against `fishsim simulate`'s numerical fluid (the joint stage), the one the
+    frequency study's references and train-hydronet's teacher are."""
+    import fishsim.learn.evaluate as E
+    from fishsim.config import NumericalConfig
+    from fishsim.fluid.factory import numerical_stepping
     from tests.test_cli_simulate import _tiny_hydronet
 
+    references = []
+    for name in ("evaluate", "energy_checks"):
+        real = getattr(E, name)
+        monkeypatch.setattr(E, name, lambda net, ref, *a, _f=real, **k: references.append(ref) or _f(net, ref, *a, **k))
     model = _tiny_hydronet(tmp_path / "net.pt")
     result = CliRunner().invoke(app, ["validate", f"hydronet.model_file={model}", *SMALL_ARGS, f"out_dir={tmp_path}"])
     assert result.exit_code == 0, result.output
+    stepping = numerical_stepping(NumericalConfig())
+    assert len(references) == 2 and all({k: getattr(r, k) for k in stepping} == stepping for r in references)
     data = json.loads((tmp_path / "metrics.json").read_text())
     assert set(data["metrics"]) == {"cylinder_0.2", "fish_5Hz"}
     values = [v for m in data["metrics"].values() for v in m.values()]
