@@ -1,5 +1,6 @@
 """HydroNet speed: inference ms/step at the paper's 100 x 300 grid (B = 1, 16; fp32, bf16
-autocast; hidden 16 (our default) and 20 (Wandel's UNet2)), forward + backward ms/step, the bf16
+autocast; hidden 16 (our default) and 20 (Wandel's UNet2); the network alone, and the default
+symmetric step, network and mirror image), forward + backward ms/step, the bf16
 error, and training iterations/s (pool + step + loss + Adam) for the default TrainConfig.
 All CPU runs use channels_last; the step is the network alone (its own pressure output: the
 recovered pressure's PCG is timed in the coupled rollout, bench_rollout). Target: <= 20 ms
@@ -41,10 +42,18 @@ def _ms(fn, reps: int) -> float:
     return 1e3 * (time.perf_counter() - t0) / reps
 
 
-def _fluid(hidden: int, bf16: bool) -> HydroNetFluid:
+def _fluid(hidden: int, bf16: bool, symmetric: bool = False) -> HydroNetFluid:
     torch.manual_seed(0)
     model = HydroNet(NetConfig(hidden=hidden))          # HydroNetFluid runs it channels_last on the CPU
-    return HydroNetFluid(model, GRID, bf16=bf16, pressure=NETWORK)   # the network alone
+    return HydroNetFluid(model, GRID, bf16=bf16, pressure=NETWORK, symmetric=symmetric)   # the network alone
+
+
+def inference_symmetric(hidden: int, batch: int) -> float:
+    """ms per fish of the default HydroNet step, the network and its mirror image (``symmetric``),
+    fp32, under no_grad."""
+    fluid, (state, boundary, params) = _fluid(hidden, False, symmetric=True), _inputs(batch)
+    with torch.no_grad():
+        return _ms(lambda: fluid.step(state, boundary, params), 10 if batch == 1 else 3) / batch
 
 
 def inference(hidden: int, batch: int, bf16: bool) -> float:
@@ -104,6 +113,8 @@ def run() -> dict:
                         "forward_ms_per_sample_B16": inference(hidden, 16, bf16) / 16,
                         "forward_backward_ms_B1": forward_backward(hidden, bf16)}
         out[f"hidden{hidden}_bf16"]["relative_error_vs_fp32"] = bf16_error(hidden)
+    out["hidden16_fp32_symmetric"] = {"forward_ms_B1": inference_symmetric(16, 1),
+                                      "forward_ms_per_sample_B16": inference_symmetric(16, 16)}
     out["training"] = training()
     return out
 

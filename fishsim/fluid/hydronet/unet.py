@@ -254,7 +254,7 @@ class HydroNetFluid:
     threads_per_sample = True
 
     def __init__(self, model: HydroNet, grid: Grid, bf16: bool = False, pressure: str = NETWORK,
-                 recovery: RecoveryConfig | None = None, symmetric: bool = False):
+                 recovery: RecoveryConfig | None = None, symmetric: bool = True):
         if pressure not in PRESSURES:
             raise ValueError(f"pressure must be one of {PRESSURES}, got {pressure!r}")
         self.model = inference_copy(model)
