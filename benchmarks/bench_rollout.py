@@ -67,7 +67,8 @@ def _peak_mib() -> float:
 
 
 VARIANTS = {"hydronet-bf16": ["fluid=hydronet", "fluid.bf16=true"],
-            "hydronet-recovered-pressure": ["fluid=hydronet", "fluid.pressure=recovered"]}
+            "hydronet-recovered-pressure": ["fluid=hydronet", "fluid.pressure=recovered"],
+            "hydronet-network-alone": ["fluid=hydronet", "fluid.symmetric=false"]}
 
 
 def _episode(fluid: str, batch: int, frequencies=None, tunnel: bool = False):
@@ -214,6 +215,7 @@ def run() -> dict:
                       f"Adam iteration, {FRAMES_LONG} frames": optimizer_timing(fluid, "adam"),
                       f"CMA-ES generation, 16 x {FRAMES_LONG} frames": optimizer_timing(fluid, "cma")}
     out["hydronet"][f"B=1, {FRAMES_LONG} frames"] = _recorded(episode_timing, "hydronet", 1, FRAMES_LONG)
+    out["hydronet-network-alone"] = {"B=1": _recorded(episode_timing, "hydronet-network-alone", 1, FRAMES)}
     out["hydronet-bf16"] = {"B=1": _recorded(episode_timing, "hydronet-bf16", 1, FRAMES)}
     out["hydronet-recovered-pressure"] = {"B=1": _recorded(episode_timing, "hydronet-recovered-pressure", 1, FRAMES),
                                           "distance_1.2s_m": _recorded(distance_sweep, "hydronet-recovered-pressure")}
