@@ -3,7 +3,8 @@ amplitude C negated after the episode is built: the fish first beats the other w
 and the numerical fluid: a y-symmetric fluid mirrors the lateral drift, an asymmetric one keeps
 its sign.
 
-    python results/hydronet_shipped/2026-11-30/mirror_stroke.py [plain|flip] [more simulate overrides]
+    python results/hydronet_shipped/2026-11-30/mirror_stroke.py plain|flip [more overrides for HydroNet, e.g.
+    fluid.symmetric=false: the network alone, as measured on 2026-11-30]
 """
 import dataclasses
 import sys
@@ -24,7 +25,8 @@ if __name__ == "__main__":
 
     if sys.argv[1] == "flip":
         E.build_episode = flipped
-    for fluid in ("fluid=hydronet", "fluid=numerical"):
-        r = S.episode([fluid, *sys.argv[2:]], [3.0, 5.0, 7.0], 120)
+    for overrides in (["fluid=hydronet", *sys.argv[2:]], ["fluid=numerical"]):
+        r = S.episode(overrides, [3.0, 5.0, 7.0], 120)
+        fluid = " ".join(overrides)
         print(sys.argv[1], fluid, "displacement", [round(x, 1) for x in r["displacement_mm"]],
               "drift", [round(x, 1) for x in r["lateral_drift_mm"]], flush=True)
