@@ -201,9 +201,9 @@ def run_hydronet(cfg: ValidateConfig) -> dict:
     """suite=hydronet: evaluate, write metrics.json and the comparison picture, print the table."""
     import torch
 
-    from fishsim.fluid.factory import hydronet_file, make_fluid, reference_fluid
+    from fishsim.fluid.factory import hydronet_file, make_fluid
     from fishsim.fluid.hydronet.trained_range import check_fluid
-    from fishsim.learn.evaluate import energy_checks, evaluate, summarise
+    from fishsim.learn.evaluate import energy_checks, evaluate, reference_fluid, summarise
     from fishsim.render.plots import plot_fluid_comparison
 
     out_dir = make_out_dir("validate", cfg.out_dir)

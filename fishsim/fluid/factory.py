@@ -26,16 +26,6 @@ def numerical_stepping(cfg) -> dict:
             "implicit": cfg.implicit}
 
 
-def reference_fluid(grid, refinement: int = 1):
-    """The numerical fluid at `fishsim simulate`'s defaults (``NumericalConfig``: the joint stage)
-    on ``grid``, refined ``refinement`` times: the reference HydroNet is trained against
-    (train-hydronet's teacher) and judged against (``fishsim validate suite=hydronet``)."""
-    from fishsim.config import NumericalConfig
-    from fishsim.fluid.numerical import NumericalFluid
-
-    return NumericalFluid(grid, refinement=refinement, **numerical_stepping(NumericalConfig()))
-
-
 def make_fluid(cfg, tank, device=None) -> FluidModel:
     """The ``FluidModel`` of a fluid config (fishsim.config.FLUID_MODELS; ``model=none``: the
     Vacuum) in the tank of a ``TankConfig``, on ``device``.

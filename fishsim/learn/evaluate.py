@@ -95,6 +95,17 @@ class Scenes:
         return out
 
 
+def reference_fluid(grid, refinement: int = 1):
+    """The numerical fluid at `fishsim simulate`'s defaults (``NumericalConfig``: the joint stage)
+    on ``grid``, refined ``refinement`` times: the reference HydroNet is trained against
+    (train-hydronet's teacher) and judged against (``fishsim validate suite=hydronet``)."""
+    from fishsim.config import NumericalConfig
+    from fishsim.fluid.factory import numerical_stepping
+    from fishsim.fluid.numerical import NumericalFluid
+
+    return NumericalFluid(grid, refinement=refinement, **numerical_stepping(NumericalConfig()))
+
+
 def relative_errors(net: FluidState, ref: FluidState, mask: Tensor, dx: float) -> tuple[Tensor, Tensor]:
     """(e_v, e_p) [B]: fluid-weighted relative L2 errors of v and of the mean-free p."""
     wv = fluid_face_masks(mask)

@@ -184,7 +184,7 @@ def make_teacher(cfg: TrainConfig):
     246.9 mm at 3-7 Hz against the joint stage's 45.4 / 80.2 / 128.3 / 184.0 / 249.2.)"""
     if cfg.teacher == 0:
         return None
-    from fishsim.fluid.factory import reference_fluid
+    from fishsim.learn.evaluate import reference_fluid
 
     return reference_fluid(cfg.pool.grid, cfg.teacher_refinement)
 

@@ -187,8 +187,9 @@ def test_hydronet_pressure_gives_a_thin_bodys_added_mass():
     thin body: 0.27); the shipped HydroNet's own pressure 1.385 (+12 %; the network alone 1.378;
     the model shipped 2026-11-26 gave 1.239, the one before it 0.26), its recovered pressure
     0.640 (measured 2026-11-30)."""
-    from fishsim.fluid.factory import SHIPPED_HYDRONET, reference_fluid
+    from fishsim.fluid.factory import SHIPPED_HYDRONET
     from fishsim.fluid.hydronet import HydroNetFluid, load_hydronet
+    from fishsim.learn.evaluate import reference_fluid
 
     g = Grid(100, 300, 2.5e-3)
     net = load_hydronet(SHIPPED_HYDRONET)
