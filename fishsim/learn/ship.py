@@ -56,9 +56,9 @@ def log_rows(log: Path, until: int) -> list[dict]:
     return [r for r in csv.DictReader(log.open()) if int(r["iteration"]) <= until]
 
 
-def final_losses(log: Path, until: int, last: int = 200) -> dict:
-    """Means over the last ``last`` logged iterations up to ``until`` of the training loss terms."""
-    rows = log_rows(log, until)[-last:]
+def final_losses(rows: list[dict], last: int = 200) -> dict:
+    """Means over the last ``last`` of a training log's ``rows`` (``log_rows``) of the loss terms."""
+    rows = rows[-last:]
     mean = lambda k: float(np.mean([float(r[k]) for r in rows if r.get(k) not in (None, "")]))
     out = {"iterations_averaged": f"{rows[0]['iteration']}-{rows[-1]['iteration']}", "log_loss": mean("loss"),
            "L_p": mean("L_p"), "L_b": mean("L_b"), "last_validation_log_loss": float(rows[-1]["val"]),
@@ -90,7 +90,8 @@ def ship(checkpoint: Path, validate_dir: Path, lineage: list, swim_dirs: tuple[P
     config = run.get("config") or {}
     log = checkpoint.parent / "log.csv"
     iteration = int(ckpt["iteration"])
-    elapsed = float(log_rows(log, iteration)[-1]["seconds"]) if model_file else float(ckpt.get("elapsed", 0.0))
+    rows = log_rows(log, iteration)
+    elapsed = float(rows[-1]["seconds"]) if model_file else float(ckpt.get("elapsed", 0.0))
     earlier = sum(r.get("iterations", 0) for r in lineage)
     swims = {}
     for d in swim_dirs:
@@ -105,7 +106,7 @@ def ship(checkpoint: Path, validate_dir: Path, lineage: list, swim_dirs: tuple[P
         "iterations": iteration + earlier,
         "iterations_last_run": iteration,
         "wall_time_s": elapsed + sum(r.get("wall_time_s", 0) for r in lineage),
-        "final_losses": final_losses(log, iteration),
+        "final_losses": final_losses(rows),
         "evaluation": json.loads((validate_dir / "metrics.json").read_text()),
         "swim_studies": swims,
         "targets": TARGETS,
@@ -122,8 +123,8 @@ def ship(checkpoint: Path, validate_dir: Path, lineage: list, swim_dirs: tuple[P
     elif checkpoint.resolve() != (training / "ckpt.pt").resolve():
         compact_checkpoint(checkpoint, training / "ckpt.pt")
     if log.resolve() != (training / "log.csv").resolve():
-        rows = log.read_text().splitlines(keepends=True)
-        (training / "log.csv").write_text("".join(rows[:1 + len(log_rows(log, iteration))]))
+        lines = log.read_text().splitlines(keepends=True)
+        (training / "log.csv").write_text("".join(lines[:1 + len(rows)]))
     return meta
 
 

@@ -44,6 +44,7 @@ from fishsim.fluid.grid import curl
 from fishsim.fluid.hydronet.config import NETWORK, PRESSURES, RECOVERED, NetConfig
 from fishsim.fluid.hydronet.scales import scales_of
 from fishsim.fluid.pressure import RecoveryConfig, recover_pressure
+from fishsim.fluid.residual import per_sample
 
 A_IN = 32.0
 RHO_MID, RHO_HALF = 30.0, 20.0
@@ -280,8 +281,7 @@ class HydroNetFluid:
             B = state.a.shape[0]
             inputs = tuple(torch.cat([x.expand(B, *x.shape[1:]), y.expand(B, *y.shape[1:])])
                            for x, y in zip(inputs, mirrored(*inputs)))
-            rho, mu = (torch.as_tensor(q, device=state.a.device, dtype=q.dtype if torch.is_tensor(q) else state.a.dtype)
-                       .reshape(-1).expand(B).repeat(2) for q in (rho, mu))
+            rho, mu = (per_sample(q, state.a).reshape(-1).expand(B).repeat(2) for q in (rho, mu))
         with torch.autocast(dev, dtype=torch.bfloat16, enabled=self.bf16):
             a, p = self.model(*inputs, rho, mu, self.grid.dx, params.h)
         if self.symmetric:
