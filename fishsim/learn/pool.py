@@ -17,6 +17,12 @@ bodies, described by plain frozen dataclasses and advanced analytically:
 
   applied laterally to the surface nodes, optionally translating; mask and v_d come from the
   coupling itself (``soft_mask`` / ``boundary_velocity``), exactly as in the coupled simulation.
+* ``Replay``: a fish of a coupled simulation (a ``fishsim simulate`` trajectory on the training
+  grid itself, ``pool.replay``) played back from its first frame, the fluid at rest as the
+  simulation's was: its recorded surface nodes and velocities through the same coupling calls,
+  in the simulation's tank (its walls). These are the swimming task's own boundaries: the PD
+  fish's shapes, recoil and forward speed, which the prescribed ``Fish`` only imitates. A scene
+  whose recording is about to run out is reset (``ScenePool.ask``).
 
 Bodies are merged with the walls by ``fishsim.fluid.grid.union``. All speeds stay below
 ``max_speed`` (0.5 m/s: the paper's tail speed). New scenes start at rest (a = p = 0); one scene is
@@ -28,7 +34,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
-from functools import lru_cache
+from functools import cache, lru_cache
 
 import numpy as np
 import torch
@@ -111,6 +117,36 @@ class Fish:
 
 
 @dataclass(frozen=True)
+class Replay:
+    """Member ``member`` of the trajectory file ``path`` (``replay_track``), played back."""
+
+    path: str
+    member: int
+
+
+@dataclass(frozen=True)
+class Track:
+    """A recorded fish: surface nodes q and velocities qdot [T, S, 2] (m, m/s) at times
+    (k + 1) h, k = 0..T-1 (a trajectory's frames), on a tank of H x W cells of dx (m) with walls
+    (rows, cols) cells thick, mask softness sigma (m^2); ``moving``: the fish was held or the tank
+    moved (tunnel, inflow)."""
+
+    q: np.ndarray
+    qdot: np.ndarray
+    h: float
+    H: int
+    W: int
+    dx: float
+    wall: tuple[int, int]
+    sigma: float
+    moving: bool = False
+
+    @property
+    def frames(self) -> int:
+        return len(self.q)
+
+
+@dataclass(frozen=True)
 class Scene:
     """One training scene at time t (s): wall thickness (rows, cols) in cells, inflow speed (m/s)
     reached with time constant ``inflow_ramp`` (s), bodies, mask softness sigma (m^2), fluid."""
@@ -184,7 +220,10 @@ def random_fish(rng: np.random.Generator, cfg: PoolConfig, wall: tuple[int, int]
 
 
 def random_scene(rng: np.random.Generator, cfg: PoolConfig) -> Scene:
-    """A new scene at t = 0: walls, maybe an inflow, a fish and/or rigid obstacles, a fluid."""
+    """A new scene at t = 0: walls, maybe an inflow, a fish and/or rigid obstacles, a fluid; or,
+    with probability ``p_replay``, a recorded fish in its own tank (``replay_scene``)."""
+    if cfg.p_replay > 0 and rng.random() < cfg.p_replay:
+        return replay_scene(rng, cfg)
     wall = (int(rng.integers(cfg.wall[0], cfg.wall[1] + 1)), int(rng.integers(cfg.wall[0], cfg.wall[1] + 1)))
     inflow = 0.0
     if rng.random() < cfg.p_inflow:
@@ -200,6 +239,79 @@ def random_scene(rng: np.random.Generator, cfg: PoolConfig) -> Scene:
     rho = float(rng.uniform(*cfg.rho))
     mu = _log_uniform(rng, *cfg.mu) if cfg.mu[1] > cfg.mu[0] else cfg.mu[0]
     return Scene(0.0, wall, inflow, float(rng.uniform(0.0, 0.5)), tuple(bodies), sigma, rho, mu)
+
+
+def replay_scene(rng: np.random.Generator, cfg: PoolConfig) -> Scene:
+    """A recorded fish drawn uniformly from every member of the ``cfg.replay`` files, at its
+    first frame, in its simulation's tank and mask softness; the fluid's (rho, mu) drawn as
+    for any scene."""
+    sources = replay_sources(cfg)
+    path, member = sources[int(rng.integers(len(sources)))]
+    track = replay_track(path, member)
+    check_replay(path, track, cfg.grid, cfg.h)
+    rho = float(rng.uniform(*cfg.rho))
+    mu = _log_uniform(rng, *cfg.mu) if cfg.mu[1] > cfg.mu[0] else cfg.mu[0]
+    return Scene(0.0, track.wall, 0.0, 0.0, (Replay(path, member),), track.sigma, rho, mu)
+
+
+def replay_sources(cfg: PoolConfig) -> list[tuple[str, int]]:
+    """(path, member) of every fish in the ``cfg.replay`` trajectory files."""
+    return [(path, m) for path in cfg.replay for m in range(_members(path))]
+
+
+@cache
+def _members(path: str) -> int:
+    from fishsim.io.trajectory import read_trajectory
+
+    with read_trajectory(path, load_fluid=False, lazy=True) as tr:
+        return int(tr["solid/q"].shape[1])
+
+
+@lru_cache(maxsize=64)
+def replay_track(path: str, member: int) -> Track:
+    """Member ``member`` of a ``fishsim simulate`` trajectory as a ``Track``: its surface nodes
+    (the mesh's surface polyline) over the flushed frames."""
+    import yaml
+
+    from fishsim.io.trajectory import read_trajectory
+
+    with read_trajectory(path, load_fluid=False, lazy=True) as tr:
+        cfg = yaml.safe_load(tr.config_yaml)
+        tank, T = cfg["tank"], tr.n_frames
+        surface = np.asarray(tr["mesh/surface"])
+        q = np.asarray(tr["solid/q"][:T, member])[:, surface]
+        qdot = np.asarray(tr["solid/qdot"][:T, member])[:, surface]
+    moving = bool(cfg.get("hold_x") or cfg.get("hold_y") or cfg.get("tunnel") or tank.get("inflow", 0.0))
+    return Track(q.astype(np.float32), qdot.astype(np.float32), float(cfg["h"]), int(tank["H"]), int(tank["W"]),
+                 float(tank["dx"]), (int(tank["wall_y"]), int(tank["wall_x"])), float(cfg["coupling"]["sigma"]),
+                 moving)
+
+
+def check_replay(path: str, track: Track, grid: Grid, h: float) -> None:
+    """ConfigError unless the recorded simulation ran on ``grid`` with frames of ``h`` seconds in
+    a fixed tank (not held, no tunnel, no inflow) for at least 2 frames: else its fish would not
+    be where the training grid's walls and fluid put it."""
+    from fishsim.errors import ConfigError
+
+    same_grid = (track.H, track.W) == (grid.H, grid.W) and math.isclose(track.dx, grid.dx)
+    if not (same_grid and math.isclose(track.h, h) and not track.moving and track.frames >= 2):
+        raise ConfigError(
+            f"pool.replay: {path} ran on {track.H} x {track.W} cells of {track.dx} m, h = {track.h} s, "
+            f"{track.frames} frames{', a held fish or a moving tank' if track.moving else ''}; a replayed fish needs "
+            f"the pool's grid ({grid.H} x {grid.W} of {grid.dx} m: pool.H, pool.W, pool.dx), its h (pool.h), a "
+            "fixed tank and at least 2 frames: simulate it so, or set pool.H/W/dx to its tank")
+
+
+def replay_frame(track: Track, t: float) -> int:
+    """The recorded frame at scene time t: frame k holds time (k + 1) h (clamped to the record)."""
+    return min(max(round(t / track.h) - 1, 0), track.frames - 1)
+
+
+def frames_left(scene: Scene, cfg: PoolConfig) -> float:
+    """Steps of h the scene can still advance before a replayed fish runs out (inf without one)."""
+    left = [replay_track(b.path, b.member).frames - 1 - round(scene.t / cfg.h)
+            for b in scene.bodies if isinstance(b, Replay)]
+    return min(left, default=math.inf)
 
 
 # --------------------------------------------------------------------------------- motion
@@ -243,7 +355,8 @@ def advance_motion(m: Motion, cfg: PoolConfig, wall, rng: np.random.Generator) -
 
 def advance(scene: Scene, cfg: PoolConfig, rng: np.random.Generator) -> Scene:
     """The scene one step h later (bodies moved, t + h); the input is not modified."""
-    bodies = tuple(replace(b, motion=advance_motion(b.motion, cfg, scene.wall, rng)) for b in scene.bodies)
+    bodies = tuple(b if isinstance(b, Replay) else replace(b, motion=advance_motion(b.motion, cfg, scene.wall, rng))
+                   for b in scene.bodies)
     return replace(scene, t=scene.t + cfg.h, bodies=bodies)
 
 
@@ -321,16 +434,29 @@ def fish_surface(fish: Fish, t: float) -> tuple[np.ndarray, np.ndarray]:
     return q, qdot
 
 
-def fish_boundaries(fish: list[Fish], times: list[float], sigma: list[float], grid: Grid,
+def body_surface(body: Fish | Replay, t: float) -> tuple[np.ndarray, np.ndarray]:
+    """Surface nodes q^k and velocities qdot^k [S, 2] of a prescribed or a replayed fish at t."""
+    if isinstance(body, Fish):
+        return fish_surface(body, t)
+    track = replay_track(body.path, body.member)
+    k = replay_frame(track, t)
+    return track.q[k], track.qdot[k]
+
+
+def fish_boundaries(fish: list[Fish | Replay], times: list[float], sigma: list[float], grid: Grid,
                     device) -> list[Boundary]:
     """The coupling's soft masks and boundary velocities of several fish, [1,1|2,H,W] each.
 
-    Fish sharing a softness sigma are batched through one ``surface_band`` call.
+    Fish sharing a softness sigma and a surface node count are batched through one
+    ``surface_band`` call.
     """
     out: list = [None] * len(fish)
-    for sig in sorted(set(sigma)):
-        ids = [k for k, s in enumerate(sigma) if s == sig]
-        qq = [fish_surface(fish[k], times[k]) for k in ids]
+    surfaces = [body_surface(f, t) for f, t in zip(fish, times)]
+    groups = [(sig, len(z[0])) for sig, z in zip(sigma, surfaces)]
+    for group in sorted(set(groups)):
+        sig = group[0]
+        ids = [k for k, g in enumerate(groups) if g == group]
+        qq = [surfaces[k] for k in ids]
         q = torch.as_tensor(np.stack([z[0] for z in qq]), dtype=torch.float32, device=device)
         qdot = torch.as_tensor(np.stack([z[1] for z in qq]), dtype=torch.float32, device=device)
         band = surface_band(q, grid, band_margin(sig, grid.dx))
@@ -352,14 +478,14 @@ def scene_boundaries(scenes: list[Scene], grid: Grid, device=None, refinement: i
     b [B,1,H,W], v_d [B,2,H,W] on ``grid``, the pool's grid or one ``refinement`` times finer
     (the walls' thickness, counted in pool cells, scaled to its cells)."""
     x = grid.cell_centres(device=device)
-    fish = [(n, b) for n, s in enumerate(scenes) for b in s.bodies if isinstance(b, Fish)]
+    fish = [(n, b) for n, s in enumerate(scenes) for b in s.bodies if isinstance(b, (Fish, Replay))]
     fish_bd = fish_boundaries([f for _, f in fish], [scenes[n].t for n, _ in fish],
                               [scenes[n].sigma for n, _ in fish], grid, device)
     parts = []
     for n, scene in enumerate(scenes):
         out = channel(grid, inflow_speed(scene), refinement * scene.wall[0], refinement * scene.wall[1], 1, device)
         for body in scene.bodies:
-            if not isinstance(body, Fish):
+            if isinstance(body, Rigid):
                 out = union(out, rigid_boundary(body, x, scene.sigma))
         for (m, _), bd in zip(fish, fish_bd):
             if m == n:
@@ -393,11 +519,15 @@ class ScenePool:
         self.p = torch.zeros(cfg.size, 1, g.H, g.W, device=self.device, dtype=torch.float32)
         self.told, self.next_reset = 0, 0
 
-    def ask(self, batch: int) -> tuple[Tensor, FluidState, Boundary, FluidParams]:
+    def ask(self, batch: int, steps: int = 1) -> tuple[Tensor, FluidState, Boundary, FluidParams]:
         """Draw ``batch`` distinct scenes, advance them by h and return (indices [B], state at t,
-        boundary at t + h, params): the inputs of one training step."""
+        boundary at t + h, params): the inputs of one training step. A scene whose replayed fish
+        cannot advance ``steps`` more frames (the step and an unrolled step's ``advance`` calls)
+        is reset first."""
         idx = np.sort(self.rng.choice(self.cfg.size, batch, replace=False))
         for i in idx:
+            if frames_left(self.scenes[i], self.cfg) < steps:
+                self.reset(i)
             self.scenes[i] = advance(self.scenes[i], self.cfg, self.rng)
         return self._batch(idx)
 
@@ -442,6 +572,8 @@ class ScenePool:
             live = np.flatnonzero(ages >= t)
             for chunk in np.array_split(live, -(-len(live) // batch)) if len(live) else ():
                 for i in chunk:
+                    if frames_left(self.scenes[i], self.cfg) < 1:     # a replay's end: from rest again
+                        self.reset(i)
                     self.scenes[i] = advance(self.scenes[i], self.cfg, self.rng)
                 idx, state, boundary, params = self._batch(chunk)
                 ages[self._store(idx, step(state, boundary, params))] = 0

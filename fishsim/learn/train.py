@@ -110,7 +110,7 @@ def train_step(run: Run, cfg: TrainConfig, net: nn.Module) -> LossTerms:
     step (``SimulationBlowUp``: a body grazing a wall can drive the flow in the gap past any
     sub-step count) is dropped, its scenes reset, and another drawn (``TEACHER_RETRIES`` times)."""
     for attempt in range(TEACHER_RETRIES):
-        idx, state, boundary, params = run.pool.ask(cfg.batch_size)
+        idx, state, boundary, params = run.pool.ask(cfg.batch_size, cfg.unroll)
         try:
             new, steps = unrolled_steps(run, cfg, net, idx, state, boundary, params)
             break

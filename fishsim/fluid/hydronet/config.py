@@ -9,6 +9,7 @@ with its network's ``NetConfig`` (unet.py) and its scene pool's ``PoolConfig``
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 from fishsim.errors import ConfigError
@@ -72,6 +73,9 @@ class PoolConfig:
         fish_speed (m/s): range of the translation speed of the half of the fish that translates.
     obstacle_cells: range of obstacle half-sizes in cells; tau_motion: OU correlation time (s) of
         the target velocities.
+    replay: ``fishsim simulate`` trajectory files (on this grid, h, a fixed tank) whose fish are
+        replayed (``fishsim.learn.pool.Replay``); p_replay: probability of a replayed fish
+        instead of a random scene.
     """
 
     size: int = 256
@@ -96,6 +100,8 @@ class PoolConfig:
     fish_speed: tuple[float, float] = (0.0, 0.15)
     obstacle_cells: tuple[float, float] = (3.0, 14.0)
     tau_motion: float = 1.0
+    replay: tuple[str, ...] = ()
+    p_replay: float = 0.0
 
     @property
     def grid(self) -> Grid:
@@ -220,6 +226,11 @@ class TrainConfig:
         for name in ("fish_amp", "fish_speed"):  # fish_amp 0: a fish that holds still (still a boundary to learn)
             lo, hi = getattr(p, name)
             _check(0 <= lo <= hi, f"pool.{name} must be a range 0 <= low <= high, got [{lo}, {hi}]")
+        _check(0 <= p.p_replay <= 1 and (p.p_replay == 0 or len(p.replay) > 0),
+               f"pool.p_replay must be a probability in [0, 1] and > 0 needs pool.replay files (got {p.p_replay}, "
+               f"{len(p.replay)} files)")
+        for path in p.replay:
+            _check(Path(path).is_file(), f"pool.replay: no such trajectory file {path} (make one with fishsim simulate)")
         _check(self.net.condition or (p.rho[0] == p.rho[1] and p.mu[0] == p.mu[1]),
                "a fluid range (pool.rho / pool.mu low < high) needs net.condition=true")
         _check(not self.resume or bool(self.out_dir), RESUME_NEEDS_OUT_DIR)
