@@ -104,3 +104,18 @@ def test_a_mixed_pool_draws_both_kinds(replay_pool):
     assert 4 <= sum(kinds) <= 20
     bd = scene_boundaries(pool.scenes, replay_pool.grid)
     assert bd.mask.shape == (24, 1, H, W) and torch.isfinite(bd.velocity).all()
+
+
+def test_a_replayed_fish_on_the_teachers_refined_grid(replay_pool):
+    """scene_boundaries at refinement 2 (the r = 2 teacher's cells): the record's walls twice as many
+    cells thick, the disc's area (sum of b dx^2 off the walls) within 3 % of the pool grid's."""
+    from fishsim.fields import Grid
+
+    pool = ScenePool(replay_pool, batch=2, seed=0)
+    idx, _, coarse, _ = pool.ask(2)
+    fine = scene_boundaries([pool.scenes[i] for i in idx.tolist()], Grid(2 * H, 2 * W, DX / 2), refinement=2)
+    assert fine.mask[:, 0, :6].min() == 1 and fine.mask[:, 0, :, :8].min() == 1
+    area_coarse = coarse.mask[:, 0, 4:-4, 5:-5].sum((1, 2)) * DX**2
+    area_fine = fine.mask[:, 0, 8:-8, 10:-10].sum((1, 2)) * (DX / 2) ** 2
+    assert torch.allclose(area_fine, area_coarse, rtol=0.03)
+    assert torch.allclose(area_fine, torch.full_like(area_fine, math.pi * 0.01**2), rtol=0.05)
