@@ -144,7 +144,8 @@ def unrolled_steps(run: Run, cfg: TrainConfig, net: nn.Module, idx: Tensor, stat
         if j:
             boundary = run.pool.advance(idx)
         old = new
-        new = network_forward(net, old, boundary, params, run.pool.grid, cfg.bf16)
+        new = network_forward(net, dropped_pressure(old, cfg.pressure_dropout), boundary, params, run.pool.grid,
+                              cfg.bf16)
         terms = LossTerms(*run.loss_fn(old.a, old.p, new.a, new.p, boundary.mask, boundary.velocity, params.rho,
                                        params.mu, params.h))
         if run.teacher is not None:
@@ -156,6 +157,16 @@ def unrolled_steps(run: Run, cfg: TrainConfig, net: nn.Module, idx: Tensor, stat
             terms = with_teacher(terms, cfg, target, new, boundary, params)
         steps.append(terms)
     return new, steps
+
+
+def dropped_pressure(state: FluidState, probability: float) -> FluidState:
+    """``state`` as the network's input with p_t zeroed in each sample with ``probability``
+    (``TrainConfig.pressure_dropout``; the network carried p_t forward: its step's p changed by
+    0.2-0.5 of the solver's on the held-out fish)."""
+    if probability == 0:
+        return state
+    keep = (torch.rand(state.p.shape[0], 1, 1, 1, device=state.p.device) >= probability).to(state.p.dtype)
+    return FluidState(state.a, state.p * keep)
 
 
 def teacher_boundary(teacher, cfg: TrainConfig, scenes: list, boundary: Boundary) -> Boundary:

@@ -577,3 +577,26 @@ def test_bf16_auto_is_on_only_where_it_is_fast(tmp_path):
     assert resolve_bf16("auto", "cpu") == cpu_has_amx_bf16()
     assert resolve_bf16(True, "cpu") is True and resolve_bf16(False, "cuda") is False
     assert TrainConfig().bf16 == "auto"
+
+
+def test_pressure_dropout_zeroes_the_inputs_pressure_of_some_samples_only(cfg, monkeypatch):
+    """pressure_dropout=q: each unrolled step hands the network p_t = 0 in about a share q of its
+    samples and the true p_t in the rest (the loss's own p_t untouched); q = 0 hands it over as it
+    is; a probability of 1 or more is refused."""
+    seen = []
+    forward = T.network_forward
+    monkeypatch.setattr(T, "network_forward", lambda net, state, *a: seen.append(state.p.clone()) or forward(net, state, *a))
+    state = FluidState(torch.zeros(64, 1, 5, 5), torch.ones(64, 1, 4, 4))
+    assert T.dropped_pressure(state, 0.0) is state
+    torch.manual_seed(0)
+    zeroed = (T.dropped_pressure(state, 0.5).p.flatten(1).amax(1) == 0).float().mean().item()
+    assert 0.3 < zeroed < 0.7
+    c = replace(cfg, batch_size=3, unroll=2, pressure_dropout=0.9)
+    run, net = T.build(c, 0, 1, torch.device("cpu"))
+    run.pool.p += 1.0                                          # a nonzero pressure in every stored scene
+    torch.manual_seed(1)
+    T.train_step(run, c, net)
+    first = seen[0].flatten(1).abs().amax(1)
+    assert len(seen) == 2 and ((first == 0) | (first == 1)).all() and (first == 0).any()
+    with pytest.raises(Exception, match="pressure_dropout"):
+        replace(cfg, pressure_dropout=1.0).validate()

@@ -125,6 +125,9 @@ class TrainConfig:
         teacher; 0: off).
     unroll: network steps per iteration, back-propagated through together (1: Wandel's one step);
         with a teacher, step j is compared with the solver's own j-step rollout.
+    pressure_dropout: probability that a training step's sample gets p_t = 0 as its input (the
+        loss still sees the true p_t): the network must then make p_t+1 from the flow and the
+        bodies, not carry p_t forward (0: off).
     device: "cpu" | "cuda"; threads: torch CPU threads (0: default).
     bf16: bfloat16 autocast for the U-Net trunk: true | false | "auto" (``resolve_bf16``: on where
     it is fast, a GPU with bf16 or a CPU with AMX; elsewhere float32, since without AMX bf16 runs
@@ -165,6 +168,7 @@ class TrainConfig:
     teacher_refinement: int = 1
     energy: float = 0.0
     unroll: int = 1
+    pressure_dropout: float = 0.0
     advection: str = "koren"
     net: NetConfig = field(default_factory=lambda: NetConfig(hidden=16))
     pool: PoolConfig = field(default_factory=PoolConfig)
@@ -206,6 +210,7 @@ class TrainConfig:
         _check(self.warm_pool >= 0, f"warm_pool must be >= 0 steps (0: off), got {self.warm_pool}")
         _check(0 <= self.ema < 1, f"ema must be a decay in [0, 1) (0: off), got {self.ema}")
         _check(self.unroll >= 1, f"unroll must be >= 1 network steps per iteration, got {self.unroll}")
+        _check(0 <= self.pressure_dropout < 1, f"pressure_dropout must be a probability in [0, 1), got {self.pressure_dropout}")
         _check(self.swim_refinement >= 1, f"swim_refinement must be a positive integer, got {self.swim_refinement}")
         _check(self.swim_every >= 0 and self.swim_frames >= 1 and len(self.swim_frequencies) >= 1
                and all(f > 0 for f in self.swim_frequencies),
