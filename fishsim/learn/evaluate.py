@@ -129,6 +129,17 @@ def body_forces(scenes: Scenes, state: FluidState, boundary: Boundary, k: int) -
     return torch.cat(out)
 
 
+def common_start(reference: FluidModel, scenes: Scenes, params: FluidParams, each_step=None) -> FluidState:
+    """S_0: the ``reference``'s ``warmup`` steps from rest on every scene, the state all models step
+    from; ``each_step(k)`` after step k (progress)."""
+    state = reference.initial_state(len(scenes.names), device=scenes.device)
+    for k in range(1, scenes.cfg.warmup + 1):
+        state = reference.step(state, scenes.boundary(k), params)
+        if each_step:
+            each_step(k)
+    return state
+
+
 @dataclass
 class Evaluation:
     """metrics: {scene: {metric: value}}; final: the last rollout states' pressure and vorticity
@@ -147,13 +158,9 @@ def evaluate(net: FluidModel, reference: FluidModel, cfg: EvalConfig = EvalConfi
     scenes = Scenes(cfg, device)
     B, grid = len(scenes.names), scenes.grid
     params = FluidParams(torch.full((B,), cfg.rho, device=device), torch.full((B,), cfg.mu, device=device), cfg.h)
-    total, done = cfg.warmup + 1 + 2 * cfg.steps, 0
-    s0 = reference.initial_state(B, device=device)
-    for k in range(cfg.warmup):
-        s0 = reference.step(s0, scenes.boundary(k + 1), params)
-        done += 1
-        if progress:
-            progress(done, total)
+    total = cfg.warmup + 1 + 2 * cfg.steps
+    s0 = common_start(reference, scenes, params, lambda k: progress and progress(k, total))
+    done = cfg.warmup
     bd = scenes.boundary(cfg.warmup + 1)
     one_v, one_p = relative_errors(net.step(s0, bd, params), reference.step(s0, bd, params), bd.mask, grid.dx)
     runs = {}

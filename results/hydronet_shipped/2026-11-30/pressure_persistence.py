@@ -20,7 +20,7 @@ from fishsim.fields import FluidParams, FluidState
 from fishsim.fluid.hydronet.config import EvalConfig
 from fishsim.fluid.hydronet.model_file import load_hydronet
 from fishsim.fluid.hydronet.unet import HydroNetFluid
-from fishsim.learn.evaluate import Scenes, reference_fluid
+from fishsim.learn.evaluate import Scenes, common_start, reference_fluid
 
 torch.set_num_threads(1)
 model_file = sys.argv[1] if len(sys.argv) > 1 else "fishsim/assets/hydronet.pt"
@@ -30,9 +30,7 @@ grid, B = scenes.grid, len(scenes.names)
 net, ref = HydroNetFluid(load_hydronet(model_file), grid), reference_fluid(grid)
 params = FluidParams(torch.full((B,), cfg.rho), torch.full((B,), cfg.mu), cfg.h)
 with torch.no_grad():
-    s = ref.initial_state(B)
-    for k in range(cfg.warmup):
-        s = ref.step(s, scenes.boundary(k + 1), params)
+    s = common_start(ref, scenes, params)
     bd = scenes.boundary(cfg.warmup + 1)
     n, r = net.step(s, bd, params), ref.step(s, bd, params)
     n0 = net.step(FluidState(s.a, torch.zeros_like(s.p)), bd, params)
