@@ -308,8 +308,9 @@ def replay_frame(track: Track, t: float) -> int:
 
 
 def frames_left(scene: Scene, cfg: PoolConfig) -> float:
-    """Steps of h the scene can still advance before a replayed fish runs out (inf without one)."""
-    left = [replay_track(b.path, b.member).frames - 1 - round(scene.t / cfg.h)
+    """Steps of h the scene can still advance before a replayed fish runs out (inf without one):
+    at time t the record has given frames up to t / h - 1 of its T."""
+    left = [replay_track(b.path, b.member).frames - round(scene.t / cfg.h)
             for b in scene.bodies if isinstance(b, Replay)]
     return min(left, default=math.inf)
 

@@ -66,8 +66,8 @@ def test_a_replayed_fish_is_the_coupling_boundary_of_its_recorded_frame(replay_p
 
 
 def test_replays_reset_before_their_record_runs_out(replay_pool):
-    """Unrolled asks of 3 steps never step a scene past the record's last frame: each scene's
-    remaining frames stay >= 0 and scenes restart from rest at t = h."""
+    """Unrolled asks of 3 steps play a 6-frame record to its end and never past it: each scene's
+    remaining frames stay >= 0, and every scene restarts from rest (t = h) on every other ask."""
     pool = ScenePool(replay_pool, batch=4, seed=1)
     restarts = 0
     for _ in range(6):
@@ -77,7 +77,7 @@ def test_replays_reset_before_their_record_runs_out(replay_pool):
             pool.advance(idx)
         assert all(frames_left(pool.scenes[i], replay_pool) >= 0 for i in idx.tolist())
         pool.tell(idx, state)
-    assert restarts >= 8                  # a 6-frame record holds two 3-step asks: restarts on every other
+    assert restarts == 12                 # a 6-frame record holds two 3-step asks: each scene restarts every other
 
 
 def test_a_record_from_another_grid_or_a_moving_tank_is_refused(tmp_path, replay_pool):
