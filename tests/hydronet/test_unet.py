@@ -70,7 +70,9 @@ def test_fluid_model_contract(grid, tiny_net):
 
 def test_step_is_differentiable(grid, tiny_net):
     """Gradients reach the state and the boundary velocity; the inference copy's weights are
-    frozen (no weight gradients computed in a rollout's backward)."""
+    frozen (no weight gradients computed in a rollout's backward). Seeded: some initial draws of the
+    tiny net have all-dead ReLUs, through which v_d reaches nothing (order-dependent under xdist)."""
+    torch.manual_seed(0)
     fluid = HydroNetFluid(HydroNet(tiny_net), grid)
     state, boundary = _random_inputs(grid)
     a = state.a.clone().requires_grad_()
