@@ -43,22 +43,17 @@ def _ms(fn, reps: int) -> float:
 
 
 def _fluid(hidden: int, bf16: bool, symmetric: bool = False) -> HydroNetFluid:
+    """A fresh network as HydroNetFluid steps it (its own pressure; the network alone, or with its
+    mirror image if ``symmetric``)."""
     torch.manual_seed(0)
     model = HydroNet(NetConfig(hidden=hidden))          # HydroNetFluid runs it channels_last on the CPU
-    return HydroNetFluid(model, GRID, bf16=bf16, pressure=NETWORK, symmetric=symmetric)   # the network alone
+    return HydroNetFluid(model, GRID, bf16=bf16, pressure=NETWORK, symmetric=symmetric)
 
 
-def inference_symmetric(hidden: int, batch: int) -> float:
-    """ms per fish of the default HydroNet step, the network and its mirror image (``symmetric``),
-    fp32, under no_grad."""
-    fluid, (state, boundary, params) = _fluid(hidden, False, symmetric=True), _inputs(batch)
-    with torch.no_grad():
-        return _ms(lambda: fluid.step(state, boundary, params), 10 if batch == 1 else 3) / batch
-
-
-def inference(hidden: int, batch: int, bf16: bool) -> float:
-    """ms per HydroNetFluid.step under no_grad (eval mode)."""
-    fluid, (state, boundary, params) = _fluid(hidden, bf16), _inputs(batch)
+def inference(hidden: int, batch: int, bf16: bool, symmetric: bool = False) -> float:
+    """ms per HydroNetFluid.step under no_grad (eval mode); ``symmetric``: the default step, the
+    network and its mirror image."""
+    fluid, (state, boundary, params) = _fluid(hidden, bf16, symmetric), _inputs(batch)
     with torch.no_grad():
         return _ms(lambda: fluid.step(state, boundary, params), 10 if batch == 1 else 3)
 
@@ -113,8 +108,8 @@ def run() -> dict:
                         "forward_ms_per_sample_B16": inference(hidden, 16, bf16) / 16,
                         "forward_backward_ms_B1": forward_backward(hidden, bf16)}
         out[f"hidden{hidden}_bf16"]["relative_error_vs_fp32"] = bf16_error(hidden)
-    out["hidden16_fp32_symmetric"] = {"forward_ms_B1": inference_symmetric(16, 1),
-                                      "forward_ms_per_sample_B16": inference_symmetric(16, 16)}
+    out["hidden16_fp32_symmetric"] = {"forward_ms_B1": inference(16, 1, False, symmetric=True),
+                                      "forward_ms_per_sample_B16": inference(16, 16, False, symmetric=True) / 16}
     out["training"] = training()
     return out
 
