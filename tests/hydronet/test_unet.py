@@ -156,6 +156,21 @@ def test_residual_update_is_identity_for_zero_output(grid, tiny_net):
     torch.testing.assert_close(new.a, a0, rtol=1e-4, atol=1e-9)
 
 
+def test_without_pressure_input_the_step_does_not_see_p_t(grid):
+    """pressure_input=False: the step is the same for any p_t (p_t is neither a channel nor the
+    update's base); with it (Wandel's), p_t changes both a_t+1 and p_t+1. Seeded (dead-ReLU draws,
+    below)."""
+    state, boundary = _random_inputs(grid)
+    other = FluidState(state.a, 3.0 * torch.randn_like(state.p))
+    for pressure_input in (False, True):
+        torch.manual_seed(0)
+        model = HydroNet(NetConfig(hidden=4, depth=2, pressure_input=pressure_input)).eval()
+        fluid = HydroNetFluid(model, grid)
+        one, two = fluid.step(state, boundary, paper_params(2)), fluid.step(other, boundary, paper_params(2))
+        same = torch.equal(one.a, two.a) and torch.equal(one.p, two.p)
+        assert same is not pressure_input
+
+
 def test_conditioning_changes_the_step(grid):
     """condition=True: 15 input channels, and (rho, mu) change the output. The initial weights
     are seeded: with hidden = 4 some draws (2 of 40 seeds) give a net whose ReLUs are all dead on

@@ -44,13 +44,17 @@ class EvalConfig:
 @dataclass(frozen=True)
 class NetConfig:
     """U-Net hyper-parameters. hidden: channels of the first level (Wandel: 20); depth: number of
-    down/up levels (Wandel: 4); bound_a, bound_p: A, P in grid units; condition: (rho, nu*) inputs."""
+    down/up levels (Wandel: 4); bound_a, bound_p: A, P in grid units; condition: (rho, nu*) inputs;
+    pressure_input: p_t is an input and p_t+1 = p_t + the net's update (Wandel); false: p_t+1 is
+    the net's output from (a_t, b, v_d) alone, as the solver's pressure is (the Lagrange multiplier
+    of v_t+1's divergence: no p_t in it), so it cannot carry p_t forward."""
 
     hidden: int = 20
     depth: int = 4
     bound_a: float = 400.0
     bound_p: float = 64.0
     condition: bool = False
+    pressure_input: bool = True
 
     @property
     def in_channels(self) -> int:

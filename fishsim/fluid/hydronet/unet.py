@@ -27,6 +27,10 @@ A = 400 A* (0.25 m^2/s at 2.5 mm / 0.01 s): the mean-free potential of a 0.5 m/s
 the identity there. P = 64 P* (200 Pa at rho = 50): the dynamic pressure of 0.5 m/s is 2 P* and
 the inertial pressure of the tail (0.5 m/s * 2 pi 8 Hz over ~2 cm) ~ 8 P*; larger values only arise
 from impulsive starts, which the bound clips (Wandel: "avoid filling the pool with diverged data").
+
+With ``NetConfig.pressure_input=False`` the network reads p_t as zero, in its channels and as the
+update's base: p_t+1 = P tanh(dp / P) - mean, a function of (a_t, b, v_d) alone, like the solver's
+pressure (the multiplier that makes v_t+1 divergence-free; p_t enters it nowhere).
 """
 
 from __future__ import annotations
@@ -173,7 +177,8 @@ class HydroNet(nn.Module):
                 dx: float, h: float) -> tuple[Tensor, Tensor]:
         grid = Grid(p.shape[-2], p.shape[-1], dx)
         s = scales_of(grid, FluidParams(rho=rho, mu=mu, h=h))
-        a_g, p_g, vd_g = a / s.potential, p / s.pressure, v_d / s.velocity
+        a_g, vd_g = a / s.potential, v_d / s.velocity
+        p_g = p / s.pressure if self.cfg.pressure_input else torch.zeros_like(p)
         v_g = curl(a_g, 1.0)
         cond = self._condition(rho, s.nu) if self.cfg.condition else None
         x = network_inputs(a_g, p_g, b, vd_g, v_g, cond)
