@@ -181,7 +181,7 @@ def with_teacher(terms: LossTerms, cfg: TrainConfig, target: FluidState, new: Fl
     """``terms`` with L_t (and, with ``cfg.energy``, L_E) of ``new`` against the solver's
     ``target`` added to L and the objective."""
     new = FluidState(new.a.float(), new.p.float())
-    lt = teacher_loss(new, target, params, cfg.pool.grid)
+    lt = teacher_loss(new, target, params, cfg.pool.grid, boundary, cfg.teacher_pressure)
     le = energy_loss(new, target, boundary, params, cfg.pool.grid) if cfg.energy else None
     total = terms.total + cfg.teacher * lt + (0 if le is None else cfg.energy * le)
     return LossTerms(terms.momentum, terms.boundary, total, torch.log(total + EPS).mean(), lt, le)

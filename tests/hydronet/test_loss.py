@@ -156,6 +156,36 @@ def test_teacher_term_is_zero_on_the_solvers_own_step_and_counts_cells_per_step(
                           rtol=1e-4)
 
 
+def test_pressure_value_term_sees_a_large_scale_error_the_gradient_term_hardly_does(grid):
+    """L_P: zero on the solver's own step and for a constant offset of p (a pressure is defined up
+    to one); for p* + P* s with s a ramp from -1 to 1 across the tank (mean-free on the fluid
+    cells) it is sum w s^2 / N, while the gradient term sees only the ramp's slope, 2 / W per
+    cell: under 5 % of it."""
+    from fishsim.fluid.grid import union
+    from fishsim.fluid.hydronet.loss import pressure_value_loss
+    from fishsim.fluid.numerical import NumericalFluid
+
+    tank = closed_tank(grid, 2, 3, 1)
+    yy, xx = torch.meshgrid(torch.arange(grid.H), torch.arange(grid.W), indexing="ij")
+    disc = (((xx - grid.W / 2) ** 2 + (yy - grid.H / 2) ** 2) < 9).float()[None, None]
+    boundary = union(tank, Boundary(disc, torch.stack([0.1 * disc[:, 0], 0.05 * disc[:, 0]], 1)))
+    params = paper_params(1)
+    target = NumericalFluid(grid).step(_rest(grid, 1), boundary, params)
+    p_star = 50.0 * (grid.dx / params.h) ** 2
+    assert pressure_value_loss(target, target, boundary, params, grid).abs().max() == 0
+    offset = FluidState(target.a, target.p + 7.0 * p_star)
+    assert pressure_value_loss(offset, target, boundary, params, grid).abs().max() < 1e-10
+    w = 1 - boundary.mask
+    sign = (2 * xx / (grid.W - 1) - 1).float()[None, None]
+    sign = sign - (w * sign).sum() / w.sum()           # mean-free on the fluid cells
+    step = FluidState(target.a, target.p + p_star * sign)
+    expected = (w * sign**2).mean()
+    assert torch.allclose(pressure_value_loss(step, target, boundary, params, grid), expected.reshape(1), rtol=1e-4)
+    with_value = teacher_loss(step, target, params, grid, boundary, pressure=10.0)
+    assert torch.allclose(with_value - teacher_loss(step, target, params, grid), 10 * expected.reshape(1), rtol=1e-4)
+    assert teacher_loss(step, target, params, grid) < 0.05 * expected
+
+
 def test_energy_term_is_the_relative_kinetic_energy_error_of_the_step(grid):
     """L_E vanishes on the solver's own step (a moving body in the tank); the same flow 1 % faster
     everywhere has (1.01^2 - 1)^2 / (1 + E_0 / E*)^2 with E* its fluid faces' mean (v / U*)^2, a

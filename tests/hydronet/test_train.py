@@ -600,3 +600,10 @@ def test_pressure_dropout_zeroes_the_inputs_pressure_of_some_samples_only(cfg, m
     assert len(seen) == 2 and ((first == 0) | (first == 1)).all() and (first == 0).any()
     with pytest.raises(Exception, match="pressure_dropout"):
         replace(cfg, pressure_dropout=1.0).validate()
+
+
+def test_the_pressure_value_term_needs_a_teacher(cfg):
+    """teacher_pressure weighs a term of L_t: without the solver's step it is refused (one line)."""
+    replace(cfg, teacher=1.0, teacher_pressure=1.0).validate()
+    with pytest.raises(Exception, match="teacher_pressure"):
+        replace(cfg, teacher=0.0, teacher_pressure=1.0).validate()

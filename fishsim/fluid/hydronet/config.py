@@ -125,6 +125,8 @@ class TrainConfig:
     teacher_refinement: r of that solver: it steps on the r times finer grid (the scenes' bodies
         sampled on its cells, the pool's state prolonged, its own rollout kept fine) and its step
         is restricted to the training grid (1: the training grid itself).
+    teacher_pressure: weight kappa of L_P, the mean-free pressure's own error on the fluid cells,
+        added to L_t (the gradient term hardly sees a large-scale error; needs a teacher; 0: off).
     energy: weight of L_E, the step's relative kinetic-energy error against the solver's (needs a
         teacher; 0: off).
     unroll: network steps per iteration, back-propagated through together (1: Wandel's one step);
@@ -170,6 +172,7 @@ class TrainConfig:
     gamma: float = 20.0
     teacher: float = 0.0
     teacher_refinement: int = 1
+    teacher_pressure: float = 0.0
     energy: float = 0.0
     unroll: int = 1
     pressure_dropout: float = 0.0
@@ -209,6 +212,8 @@ class TrainConfig:
                "lr and beta must be > 0, gamma and teacher >= 0")
         _check(self.teacher_refinement >= 1,
                f"teacher_refinement must be a positive integer (1: the training grid), got {self.teacher_refinement}")
+        _check(self.teacher_pressure >= 0 and (self.teacher_pressure == 0 or self.teacher > 0),
+               f"teacher_pressure must be >= 0 and needs the solver's step (teacher > 0), got {self.teacher_pressure}")
         _check(self.energy >= 0 and (self.energy == 0 or self.teacher > 0),
                f"energy must be >= 0 and needs the solver's step (teacher > 0), got energy={self.energy}")
         _check(self.warm_pool >= 0, f"warm_pool must be >= 0 steps (0: off), got {self.warm_pool}")
