@@ -125,7 +125,7 @@ class TrainConfig:
     teacher_refinement: r of that solver: it steps on the r times finer grid (the scenes' bodies
         sampled on its cells, the pool's state prolonged, its own rollout kept fine) and its step
         is restricted to the training grid (1: the training grid itself).
-    teacher_pressure: weight kappa of L_P, the mean-free pressure's own error on the fluid cells,
+    teacher_pressure: weight kappa of L_P, the mean-free pressure's squared relative error on the fluid cells,
         added to L_t (the gradient term hardly sees a large-scale error; needs a teacher; 0: off).
     energy: weight of L_E, the step's relative kinetic-energy error against the solver's (needs a
         teacher; 0: off).
