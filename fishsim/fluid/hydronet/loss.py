@@ -145,8 +145,8 @@ def hydronet_loss(old: FluidState, new: FluidState, boundary: Boundary, params: 
 def teacher_loss(new: FluidState, target: FluidState, params: FluidParams, grid: Grid,
                  boundary: Boundary | None = None, pressure: float = 0.0) -> Tensor:
     """L_t [B]: squared velocity and pressure-gradient errors on all faces of ``new`` against the
-    solver's ``target`` step, in grid units, plus ``pressure`` times L_P, the mean-free pressure's
-    own error on the fluid cells of ``boundary`` (module docstring)."""
+    solver's ``target`` step, in grid units, plus ``pressure`` times L_P, the pressure's squared
+    relative error on the fluid cells of ``boundary`` (module docstring)."""
     s = scales_of(grid, params)
     dv = tuple(((x - y) / s.velocity) ** 2 for x, y in zip(curl(new.a, grid.dx), curl(target.a, grid.dx)))
     dg = tuple((g * grid.dx / s.pressure) ** 2 for g in gradient(new.p - target.p, grid.dx))
