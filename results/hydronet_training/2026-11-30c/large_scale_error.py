@@ -1,17 +1,20 @@
-#!/usr/bin/env python
 """Share of the one-step pressure error (net - solver, mean-free on fluid cells) at large scales:
 energy of the error blurred by a Gaussian of std 8 cells over the error's energy, per held-out scene,
 from `fishsim validate suite=hydronet`'s common start (the solver's warm-up), one step.
 
     python results/hydronet_training/2026-11-30c/large_scale_error.py MODEL_FILE [MODEL_FILE ...]
 """
-import sys, torch
+import sys
+
+import torch
 import torch.nn.functional as F
+
 from fishsim.fields import FluidParams
 from fishsim.fluid.hydronet.config import EvalConfig
 from fishsim.fluid.hydronet.model_file import load_hydronet
 from fishsim.fluid.hydronet.unet import HydroNetFluid
 from fishsim.learn.evaluate import Scenes, common_start, reference_fluid
+
 torch.set_num_threads(1)
 cfg = EvalConfig(); scenes = Scenes(cfg); grid, B = scenes.grid, len(scenes.names)
 ref = reference_fluid(grid)
