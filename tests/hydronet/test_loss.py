@@ -156,13 +156,10 @@ def test_teacher_term_is_zero_on_the_solvers_own_step_and_counts_cells_per_step(
                           rtol=1e-4)
 
 
-def test_pressure_value_term_sees_a_large_scale_error_the_gradient_term_hardly_does(grid):
-    """L_P: zero on the solver's own step and for a constant offset of p (a pressure is defined up
-    to one); for p* + P* s with s a ramp from -1 to 1 across the tank (mean-free on the fluid
-    cells) it is sum w s^2 / (sum w p~*^2 + P_0 sum w), the squared relative error, while the
-    gradient term sees only the ramp's slope, 2 / W per cell: under 5 % of it."""
+def _moving_disc_step(grid):
+    """A disc of radius 3 cells moving at (0.1, 0.05) m/s in the closed tank: its boundary, the
+    paper's fluid and the numerical solver's first step from rest."""
     from fishsim.fluid.grid import union
-    from fishsim.fluid.hydronet.loss import pressure_value_loss
     from fishsim.fluid.numerical import NumericalFluid
 
     tank = closed_tank(grid, 2, 3, 1)
@@ -170,7 +167,18 @@ def test_pressure_value_term_sees_a_large_scale_error_the_gradient_term_hardly_d
     disc = (((xx - grid.W / 2) ** 2 + (yy - grid.H / 2) ** 2) < 9).float()[None, None]
     boundary = union(tank, Boundary(disc, torch.stack([0.1 * disc[:, 0], 0.05 * disc[:, 0]], 1)))
     params = paper_params(1)
-    target = NumericalFluid(grid).step(_rest(grid, 1), boundary, params)
+    return boundary, params, NumericalFluid(grid).step(_rest(grid, 1), boundary, params)
+
+
+def test_pressure_value_term_sees_a_large_scale_error_the_gradient_term_hardly_does(grid):
+    """L_P: zero on the solver's own step and for a constant offset of p (a pressure is defined up
+    to one); for p* + P* s with s a ramp from -1 to 1 across the tank (mean-free on the fluid
+    cells) it is sum w s^2 / (sum w p~*^2 + P_0 sum w), the squared relative error, while the
+    gradient term sees only the ramp's slope, 2 / W per cell: under 5 % of it."""
+    from fishsim.fluid.hydronet.loss import pressure_value_loss
+
+    boundary, params, target = _moving_disc_step(grid)
+    xx = torch.arange(grid.W)[None, :].expand(grid.H, grid.W)
     p_star = 50.0 * (grid.dx / params.h) ** 2
     assert pressure_value_loss(target, target, boundary, params, grid).abs().max() == 0
     offset = FluidState(target.a, target.p + 7.0 * p_star)
@@ -193,15 +201,9 @@ def test_energy_term_is_the_relative_kinetic_energy_error_of_the_step(grid):
     """L_E vanishes on the solver's own step (a moving body in the tank); the same flow 1 % faster
     everywhere has (1.01^2 - 1)^2 / (1 + E_0 / E*)^2 with E* its fluid faces' mean (v / U*)^2, a
     sign-blind squared gain; a still target leaves only the floor."""
-    from fishsim.fluid.grid import curl, union
-    from fishsim.fluid.numerical import NumericalFluid
+    from fishsim.fluid.grid import curl
 
-    tank = closed_tank(grid, 2, 3, 1)
-    yy, xx = torch.meshgrid(torch.arange(grid.H), torch.arange(grid.W), indexing="ij")
-    disc = (((xx - grid.W / 2) ** 2 + (yy - grid.H / 2) ** 2) < 9).float()[None, None]
-    boundary = union(tank, Boundary(disc, torch.stack([0.1 * disc[:, 0], 0.05 * disc[:, 0]], 1)))
-    params = paper_params(1)
-    target = NumericalFluid(grid).step(_rest(grid, 1), boundary, params)
+    boundary, params, target = _moving_disc_step(grid)
     assert energy_loss(target, target, boundary, params, grid).abs().max() == 0
     u = grid.dx / params.h
     w = fluid_face_masks(boundary.mask)
