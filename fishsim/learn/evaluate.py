@@ -42,7 +42,7 @@ from fishsim.fields import Boundary, FluidModel, FluidParams, FluidState
 from fishsim.fluid.factory import make_walls
 from fishsim.fluid.grid import curl, divergence, union, vorticity
 from fishsim.fluid.hydronet.config import EvalConfig
-from fishsim.fluid.hydronet.loss import momentum_loss
+from fishsim.fluid.hydronet.loss import mean_free, momentum_loss
 from fishsim.fluid.residual import fluid_face_masks
 from fishsim.learn.pool import Fish, Motion, fish_boundaries, fish_surface, mask_from_distance
 
@@ -113,9 +113,7 @@ def relative_errors(net: FluidState, ref: FluidState, mask: Tensor, dx: float) -
     num = sum((w * (a - b) ** 2).flatten(1).sum(1) for a, b, w in zip(vn, vr, wv))
     den = sum((w * b**2).flatten(1).sum(1) for b, w in zip(vr, wv))
     wp = 1 - mask
-    def free(p):
-        return p - (wp * p).flatten(1).sum(1).view(-1, 1, 1, 1) / wp.flatten(1).sum(1).view(-1, 1, 1, 1)
-    pn, pr = free(net.p), free(ref.p)
+    pn, pr = mean_free(net.p, wp), mean_free(ref.p, wp)
     e_p = ((wp * (pn - pr) ** 2).flatten(1).sum(1) / (wp * pr**2).flatten(1).sum(1)).sqrt()
     return (num / den).sqrt(), e_p
 

@@ -155,6 +155,11 @@ def teacher_loss(new: FluidState, target: FluidState, params: FluidParams, grid:
     return lt if pressure == 0 else lt + pressure * pressure_value_loss(new, target, boundary, params, grid)
 
 
+def mean_free(p: Tensor, w: Tensor) -> Tensor:
+    """p [B, 1, H, W] less its w-weighted mean over each sample's cells (w = 1 - b: the fluid's)."""
+    return p - (w * p).sum(dim=(-2, -1), keepdim=True) / w.sum(dim=(-2, -1), keepdim=True).clamp_min(1.0)
+
+
 PRESSURE_FLOOR = 1e-4  # P_0: a pressure of 0.01 P* on every fluid cell
 
 
@@ -164,8 +169,7 @@ def pressure_value_loss(new: FluidState, target: FluidState, boundary: Boundary,
     sum_c w_c dp~_c^2 / (sum_c w_c p~*_c^2 + P_0 sum_c w_c), in units of P* (module docstring)."""
     w = 1.0 - boundary.mask
     s = scales_of(grid, params)
-    free = lambda p: p - (w * p).sum(dim=(-2, -1), keepdim=True) / w.sum(dim=(-2, -1), keepdim=True).clamp_min(1.0)
-    dp, ref = free(new.p - target.p) / s.pressure, free(target.p) / s.pressure
+    dp, ref = mean_free(new.p - target.p, w) / s.pressure, mean_free(target.p, w) / s.pressure
     total = lambda x: (w * x).flatten(1).sum(1)
     return total(dp**2) / (total(ref**2) + PRESSURE_FLOOR * total(torch.ones_like(w)))
 
