@@ -139,6 +139,32 @@ def common_start(reference: FluidModel, scenes: Scenes, params: FluidParams, eac
 
 
 @dataclass
+class HeldOutStep:
+    """The held-out scenes at S_0 (``common_start``), the step's boundary and the reference's step
+    from S_0, ``reference``: what every model's one-step error is measured against."""
+
+    scenes: Scenes
+    params: FluidParams
+    start: FluidState
+    boundary: Boundary
+    reference: FluidState
+
+
+@torch.no_grad()
+def held_out_step(reference: FluidModel | None = None, cfg: EvalConfig = EvalConfig(), device=None,
+                  each_step=None) -> HeldOutStep:
+    """``cfg``'s scenes, their common start S_0 by ``reference`` (None: ``reference_fluid`` on the
+    scenes' grid) and its one step from there; ``each_step(k)`` after warm-up step k."""
+    scenes = Scenes(cfg, device)
+    B = len(scenes.names)
+    reference = reference_fluid(scenes.grid) if reference is None else reference
+    params = FluidParams(torch.full((B,), cfg.rho, device=device), torch.full((B,), cfg.mu, device=device), cfg.h)
+    start = common_start(reference, scenes, params, each_step)
+    boundary = scenes.boundary(cfg.warmup + 1)
+    return HeldOutStep(scenes, params, start, boundary, reference.step(start, boundary, params))
+
+
+@dataclass
 class Evaluation:
     """metrics: {scene: {metric: value}}; final: the last rollout states' pressure and vorticity
     [B, H, W] of "net" and "ref" and the mask, for pictures."""
@@ -153,14 +179,12 @@ def evaluate(net: FluidModel, reference: FluidModel, cfg: EvalConfig = EvalConfi
     """Every metric of the module docstring, per scene, and the final fields.
 
     ``progress``: optional callable(step_done, steps_total) for a progress bar."""
-    scenes = Scenes(cfg, device)
-    B, grid = len(scenes.names), scenes.grid
-    params = FluidParams(torch.full((B,), cfg.rho, device=device), torch.full((B,), cfg.mu, device=device), cfg.h)
     total = cfg.warmup + 1 + 2 * cfg.steps
-    s0 = common_start(reference, scenes, params, lambda k: progress and progress(k, total))
+    first = held_out_step(reference, cfg, device, lambda k: progress and progress(k, total))
+    scenes, params, s0, grid = first.scenes, first.params, first.start, first.scenes.grid
     done = cfg.warmup
-    bd = scenes.boundary(cfg.warmup + 1)
-    one_v, one_p = relative_errors(net.step(s0, bd, params), reference.step(s0, bd, params), bd.mask, grid.dx)
+    bd = first.boundary
+    one_v, one_p = relative_errors(net.step(s0, bd, params), first.reference, bd.mask, grid.dx)
     runs = {}
     for name, model in (("net", net), ("ref", reference)):
         s, forces, residual, div = s0, [], [], []

@@ -10,22 +10,15 @@ import sys
 import torch
 from scipy.ndimage import distance_transform_edt
 
-from fishsim.fields import FluidParams
-from fishsim.fluid.hydronet.config import EvalConfig
+from fishsim.fluid.hydronet.loss import mean_free
 from fishsim.fluid.hydronet.model_file import load_hydronet
 from fishsim.fluid.hydronet.unet import HydroNetFluid
-from fishsim.learn.evaluate import Scenes, common_start, reference_fluid
+from fishsim.learn.evaluate import held_out_step
 
 torch.set_num_threads(1)
-cfg = EvalConfig()
-scenes = Scenes(cfg)
-grid, B = scenes.grid, len(scenes.names)
-ref = reference_fluid(grid)
-params = FluidParams(torch.full((B,), cfg.rho), torch.full((B,), cfg.mu), cfg.h)
-with torch.no_grad():
-    s = common_start(ref, scenes, params)
-    bd = scenes.boundary(cfg.warmup + 1)
-    r = ref.step(s, bd, params)
+first = held_out_step()
+scenes, grid, params, s, bd, r = first.scenes, first.scenes.grid, first.params, first.start, first.boundary, first.reference
+B = len(scenes.names)
 w = 1 - bd.mask
 tank = bd.mask.amin(0, keepdim=True)            # the walls: solid in every scene
 body = ((bd.mask - tank) > 0.5).numpy()
@@ -33,15 +26,10 @@ dist = torch.stack([torch.as_tensor(distance_transform_edt(~body[i, 0]), dtype=t
                     for i in range(B)])
 bands = {"< 32": dist < 32, "32-64": (dist >= 32) & (dist < 64), ">= 64": dist >= 64}
 
-
-def free(p):
-    return p - (w * p).flatten(1).sum(1).view(-1, 1, 1, 1) / w.flatten(1).sum(1).view(-1, 1, 1, 1)
-
-
 for m in sys.argv[1:]:
     with torch.no_grad():
         n = HydroNetFluid(load_hydronet(m), grid).step(s, bd, params)
-    e, q = free(n.p - r.p), free(r.p)
+    e, q = mean_free(n.p - r.p, w), mean_free(r.p, w)
     total = (w * e**2).flatten(1).sum(1)
     print(f"model {m}\n| band | " + " | ".join(scenes.names) + " |\n|---|" + "---|" * B)
     for name, sel in bands.items():

@@ -9,32 +9,25 @@ import sys
 import torch
 import torch.nn.functional as F
 
-from fishsim.fields import FluidParams
-from fishsim.fluid.hydronet.config import EvalConfig
+from fishsim.fluid.hydronet.loss import mean_free
 from fishsim.fluid.hydronet.model_file import load_hydronet
 from fishsim.fluid.hydronet.unet import HydroNetFluid
-from fishsim.learn.evaluate import Scenes, common_start, reference_fluid
+from fishsim.learn.evaluate import held_out_step
 
 torch.set_num_threads(1)
-cfg = EvalConfig(); scenes = Scenes(cfg); grid, B = scenes.grid, len(scenes.names)
-ref = reference_fluid(grid)
-params = FluidParams(torch.full((B,), cfg.rho), torch.full((B,), cfg.mu), cfg.h)
+first = held_out_step()
+grid, params, s, bd, r = first.scenes.grid, first.params, first.start, first.boundary, first.reference
 with torch.no_grad():
-    s = common_start(ref, scenes, params)
-    bd = scenes.boundary(cfg.warmup + 1)
-    r = ref.step(s, bd, params)
     w = 1 - bd.mask
     x = torch.arange(-24, 25, dtype=torch.float32)
     g = torch.exp(-x**2 / (2 * 8.0**2)); g = g / g.sum()
     def blur(f):
         f = F.conv2d(F.pad(f, (24, 24, 0, 0), mode="replicate"), g.view(1, 1, 1, -1))
         return F.conv2d(F.pad(f, (0, 0, 24, 24), mode="replicate"), g.view(1, 1, -1, 1))
-    def free(p):
-        return p - (w * p).flatten(1).sum(1).view(-1, 1, 1, 1) / w.flatten(1).sum(1).view(-1, 1, 1, 1)
     for m in sys.argv[1:]:
         n = HydroNetFluid(load_hydronet(m), grid).step(s, bd, params)
-        e = free(n.p - r.p)
-        eb = free(blur(e))
+        e = mean_free(n.p - r.p, w)
+        eb = mean_free(blur(e), w)
         tot = (w * e**2).flatten(1).sum(1); low = (w * eb**2).flatten(1).sum(1)
-        ep = (tot / (w * free(r.p)**2).flatten(1).sum(1)).sqrt()
+        ep = (tot / (w * mean_free(r.p, w)**2).flatten(1).sum(1)).sqrt()
         print(m, "e_p", " ".join(f"{v:.3f}" for v in ep.tolist()), "| large-scale share", " ".join(f"{v:.2f}" for v in (low / tot).tolist()))
