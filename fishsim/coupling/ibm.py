@@ -293,16 +293,23 @@ def ibm_force(qs: Tensor, p: Tensor, mask: Tensor, grid: Grid, sigma_prime: floa
     wall: for fit "wall", (the nodes' accelerations [B, S, 2] m/s^2 (of the polyline's nodes, or
     of all mesh nodes with ``surface``), rho [B] or scalar kg/m^3): the imposed slope -rho a.n.
     Differentiable in every tensor input; sampling runs in p.dtype, the result is in qs.dtype.
-    On the CPU the defaults (weight "outside", area "chord", no traction) run compiled, in
-    float64 (fishsim.coupling.kernels.OutsidePressureForce); ``torch_ibm_force`` is the reference.
+    On the CPU the defaults (weight "outside", area "chord", no traction; any fit, the wall's with
+    a constant rho) run compiled, in float64 (fishsim.coupling.kernels.OutsidePressureForce);
+    ``torch_ibm_force`` is the reference.
     """
-    if qs.device.type == "cpu" and weight == OUTSIDE and area == CHORD and viscous is None and fit != WALL:
-        from fishsim.coupling.kernels import OutsidePressureForce  # the same formulas, compiled
+    constant_rho = wall is None or not (torch.is_tensor(wall[1]) and wall[1].requires_grad)
+    if qs.device.type == "cpu" and weight == OUTSIDE and area == CHORD and viscous is None and constant_rho:
+        from fishsim.coupling import kernels  # the same formulas, compiled
 
-        if fit not in (LINEAR, MEAN):
+        fits = {MEAN: kernels.MEAN_FIT, LINEAR: kernels.LINEAR_FIT, WALL: kernels.WALL_FIT}
+        if fit not in fits:
             raise ValueError(f"fit must be 'mean', 'linear' or 'wall', got {fit!r}")
-        return OutsidePressureForce.apply(qs, p, mask, None if surface is None else surface.numpy(), OUTSIDE_MASK,
-                                          grid.dx, sigma_prime, kernel_radius(sigma_prime, grid.dx), fit == LINEAR)
+        if fit == WALL and wall is None:
+            raise ValueError("fit 'wall' needs wall=(the nodes' accelerations, rho)")
+        acc, rho = (None, 0.0) if fit != WALL else wall
+        return kernels.OutsidePressureForce.apply(qs, p, mask, None if surface is None else surface.numpy(),
+                                                  OUTSIDE_MASK, grid.dx, sigma_prime,
+                                                  kernel_radius(sigma_prime, grid.dx), fits[fit], acc, rho)
     if surface is not None:
         qs = qs[:, surface]
         wall = None if wall is None else (wall[0][:, surface], wall[1])

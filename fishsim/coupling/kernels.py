@@ -724,6 +724,10 @@ def _samples(q, k, nx, ny, mask, outside, shape, dx, sigma_prime, radius, cell, 
     return total, m
 
 
+#: The IBM fits the compiled force knows (ibm.py's "mean", "linear" and "wall").
+MEAN_FIT, LINEAR_FIT, WALL_FIT = 0, 1, 2
+
+
 @jit
 def _fit(p, cell, ox, oy, wn, m, sigma_prime, linear, d):
     """p_k (ibm.fit_at_node) from the first m samples' normalised weights wn; with ``linear``
@@ -752,28 +756,85 @@ def _fit(p, cell, ox, oy, wn, m, sigma_prime, linear, d):
 
 
 @jit
-def _fish_ibm(q, p, mask, outside, shape, dx, sigma_prime, radius, linear, f):
-    """f [S, 2] = -p_k a_k of one fish (p, mask: its flat [H W] fields)."""
+def _wall_fit(p, cell, ox, oy, wn, m, nx, ny, slope, sigma_prime, y, s):
+    """p_k of the "wall" fit (ibm.fit_at_node): the line y ~ c + g s through the samples y = p - G h
+    (h = n.o, s = n x o the offsets along the normal and the tangent, G = ``slope`` the imposed
+    dp/dn), weighted by wn, regularised as ibm._wall_fit; fills y and s and returns (p_k, ybar,
+    sbar, g, den) (g = num / den the line's slope)."""
+    ybar, sbar = 0.0, 0.0
+    for c in range(m):
+        s[c] = nx * oy[c] - ny * ox[c]
+        y[c] = p[cell[c]] - slope * (nx * ox[c] + ny * oy[c])
+        ybar += wn[c] * y[c]
+        sbar += wn[c] * s[c]
+    num, den = 0.0, 1e-6 * sigma_prime
+    for c in range(m):
+        ds = s[c] - sbar
+        num += wn[c] * ds * (y[c] - ybar)
+        den += wn[c] * ds * ds
+    g = num / den
+    return ybar - g * sbar, ybar, sbar, g, den
+
+
+@jit
+def _fish_ibm(q, p, mask, outside, shape, dx, sigma_prime, radius, fit, acc, rho, f):
+    """f [S, 2] = -p_k a_k of one fish (p, mask: its flat [H W] fields; fit: MEAN_FIT, LINEAR_FIT
+    or WALL_FIT, the last with the nodes' accelerations acc [S, 2] and the fluid's density rho)."""
     M = (2 * radius + 1) ** 2
     cell, ox, oy, wn, d = np.empty(M, np.int64), np.empty(M), np.empty(M), np.empty(M), np.empty(M)
+    tangential = np.empty(M)
     for k in range(q.shape[0]):
         ax, ay, _, _ = _chord(q, k)
         norm = math.sqrt(ax * ax + ay * ay)
-        raw, m = _samples(q, k, ax / norm, ay / norm, mask, outside, shape, dx, sigma_prime, radius, cell, ox, oy, wn)
+        nx, ny = ax / norm, ay / norm
+        raw, m = _samples(q, k, nx, ny, mask, outside, shape, dx, sigma_prime, radius, cell, ox, oy, wn)
         total = max(raw, np.finfo(np.float64).tiny)
         for c in range(m):
             wn[c] /= total
-        p_k = _fit(p, cell, ox, oy, wn, m, sigma_prime, linear, d)[0]
+        if fit == WALL_FIT:
+            slope = -rho * (acc[k, 0] * nx + acc[k, 1] * ny)
+            p_k = _wall_fit(p, cell, ox, oy, wn, m, nx, ny, slope, sigma_prime, d, tangential)[0]
+        else:
+            p_k = _fit(p, cell, ox, oy, wn, m, sigma_prime, fit == LINEAR_FIT, d)[0]
         f[k, 0], f[k, 1] = -p_k * ax, -p_k * ay
 
 
 @jit
-def _fish_ibm_backward(q, p, mask, outside, shape, dx, sigma_prime, radius, linear, gf, gq, gp, gmask):
-    """gq [S, 2], gp and gmask [H W] += the adjoint of _fish_ibm for the cotangent gf [S, 2]."""
+def _wall_fit_adjoint(p, cell, ox, oy, wn, m, nx, ny, slope, sigma_prime, y, s, g_pk, gp, g_wn, g_ox, g_oy):
+    """The adjoint of ``_wall_fit`` for the cotangent g_pk of its p_k: adds to gp [H W] and to the
+    samples' g_wn, g_ox, g_oy; returns (the p_k, the cotangents of n_x, n_y and of the slope)."""
+    p_k, ybar, sbar, g, den = _wall_fit(p, cell, ox, oy, wn, m, nx, ny, slope, sigma_prime, y, s)
+    g_num, g_sbar, g_ybar = -g_pk * sbar / den, -g_pk * g, g_pk       # p_k = ybar - (num / den) sbar
+    g_den = -g_num * g
+    for c in range(m):                                   # num, den = sum wn ds dy (+ eps), sum wn ds^2
+        ds, dy = s[c] - sbar, y[c] - ybar
+        g_sbar -= wn[c] * (g_num * dy + 2.0 * g_den * ds)
+        g_ybar -= g_num * wn[c] * ds
+    g_nx, g_ny, g_slope = 0.0, 0.0, 0.0
+    for c in range(m):
+        ds, dy = s[c] - sbar, y[c] - ybar
+        g_wn[c] += g_num * ds * dy + g_den * ds * ds + g_sbar * s[c] + g_ybar * y[c]
+        g_s = wn[c] * (g_num * dy + 2.0 * g_den * ds) + g_sbar * wn[c]
+        g_y = g_num * wn[c] * ds + g_ybar * wn[c]
+        gp[cell[c]] += g_y                                   # y = p - slope h, h = n.o, s = n x o
+        g_h = -slope * g_y
+        g_slope -= g_y * (nx * ox[c] + ny * oy[c])
+        g_ox[c] += g_h * nx - g_s * ny
+        g_oy[c] += g_h * ny + g_s * nx
+        g_nx += g_h * ox[c] + g_s * oy[c]
+        g_ny += g_h * oy[c] - g_s * ox[c]
+    return p_k, g_nx, g_ny, g_slope
+
+
+@jit
+def _fish_ibm_backward(q, p, mask, outside, shape, dx, sigma_prime, radius, fit, acc, rho, gf, gq, gp, gmask, gacc):
+    """gq [S, 2], gp and gmask [H W] (and with WALL_FIT gacc [S, 2]) += the adjoint of _fish_ibm for
+    the cotangent gf [S, 2]."""
     M = (2 * radius + 1) ** 2
     cell, ox, oy, wn, d = np.empty(M, np.int64), np.empty(M), np.empty(M), np.empty(M), np.empty(M)
-    g_wn, g_ox, g_oy = np.empty(M), np.empty(M), np.empty(M)
+    g_wn, g_ox, g_oy, tangential = np.empty(M), np.empty(M), np.empty(M), np.empty(M)
     inner, outer = (radius - 1) * dx, (radius + 0.5) * dx
+    linear = fit == LINEAR_FIT
     for k in range(q.shape[0]):
         ax, ay, after, before = _chord(q, k)
         norm = math.sqrt(ax * ax + ay * ay)
@@ -782,12 +843,22 @@ def _fish_ibm_backward(q, p, mask, outside, shape, dx, sigma_prime, radius, line
         total = max(raw, np.finfo(np.float64).tiny)
         for c in range(m):
             wn[c] /= total
-        p_k, pbar, rx, ry, ux, uy, det, cxx, cyy, cxy = _fit(p, cell, ox, oy, wn, m, sigma_prime, linear, d)
-        g_pk = -(gf[k, 0] * ax + gf[k, 1] * ay)                     # f = -p_k a
-        g_ax, g_ay = -p_k * gf[k, 0], -p_k * gf[k, 1]
         g_wn[:m] = 0.0
         g_ox[:m] = 0.0
         g_oy[:m] = 0.0
+        g_nx, g_ny = 0.0, 0.0
+        g_pk = -(gf[k, 0] * ax + gf[k, 1] * ay)                     # f = -p_k a
+        if fit == WALL_FIT:                                         # slope = -rho acc . n
+            slope = -rho * (acc[k, 0] * nx + acc[k, 1] * ny)
+            p_k, g_nx, g_ny, g_slope = _wall_fit_adjoint(p, cell, ox, oy, wn, m, nx, ny, slope, sigma_prime, d,
+                                                         tangential, g_pk, gp, g_wn, g_ox, g_oy)
+            gacc[k, 0] -= rho * g_slope * nx
+            gacc[k, 1] -= rho * g_slope * ny
+            g_nx -= rho * g_slope * acc[k, 0]
+            g_ny -= rho * g_slope * acc[k, 1]
+        else:
+            p_k, pbar, rx, ry, ux, uy, det, cxx, cyy, cxy = _fit(p, cell, ox, oy, wn, m, sigma_prime, linear, d)
+        g_ax, g_ay = -p_k * gf[k, 0], -p_k * gf[k, 1]
         g_pbar = g_pk
         if linear:                                                  # p_k = pbar + sum d (p - pbar)
             g_ux, g_uy, g_rx, g_ry = 0.0, 0.0, 0.0, 0.0
@@ -835,12 +906,14 @@ def _fish_ibm_backward(q, p, mask, outside, shape, dx, sigma_prime, radius, line
                 g_wn[c] += g_rx * ox[c] + g_ry * oy[c]
                 g_ox[c] += g_rx * wn[c]
                 g_oy[c] += g_ry * wn[c]
+        if fit != WALL_FIT:
+            for c in range(m):                                      # pbar = sum wn p
+                g_wn[c] += g_pbar * p[cell[c]]
+                gp[cell[c]] += g_pbar * wn[c]
         mean = 0.0
-        for c in range(m):                                          # pbar = sum wn p
-            g_wn[c] += g_pbar * p[cell[c]]
-            gp[cell[c]] += g_pbar * wn[c]
+        for c in range(m):
             mean += g_wn[c] * wn[c]
-        g_nx, g_ny, g_qx, g_qy = 0.0, 0.0, 0.0, 0.0
+        g_qx, g_qy = 0.0, 0.0
         for c in range(m):                                          # wn = W / Z, W = g S(b) H(h)
             if wn[c] == 0.0:                                        # (S, H and their slopes vanish there)
                 continue
@@ -875,16 +948,17 @@ def _fish_ibm_backward(q, p, mask, outside, shape, dx, sigma_prime, radius, line
 
 
 @jit(parallel=True)
-def _ibm_parallel(q, p, mask, outside, shape, dx, sigma_prime, radius, linear, f):
+def _ibm_parallel(q, p, mask, outside, shape, dx, sigma_prime, radius, fit, acc, rho, f):
     for n in prange(q.shape[0]):
-        _fish_ibm(q[n], p[n], mask[n], outside, shape, dx, sigma_prime, radius, linear, f[n])
+        _fish_ibm(q[n], p[n], mask[n], outside, shape, dx, sigma_prime, radius, fit, acc[n], rho[n], f[n])
 
 
 @jit(parallel=True)
-def _ibm_backward_parallel(q, p, mask, outside, shape, dx, sigma_prime, radius, linear, gf, gq, gp, gmask):
+def _ibm_backward_parallel(q, p, mask, outside, shape, dx, sigma_prime, radius, fit, acc, rho, gf, gq, gp, gmask,
+                           gacc):
     for n in prange(q.shape[0]):
-        _fish_ibm_backward(q[n], p[n], mask[n], outside, shape, dx, sigma_prime, radius, linear, gf[n], gq[n], gp[n],
-                           gmask[n])
+        _fish_ibm_backward(q[n], p[n], mask[n], outside, shape, dx, sigma_prime, radius, fit, acc[n], rho[n], gf[n],
+                           gq[n], gp[n], gmask[n], gacc[n])
 
 
 class OutsidePressureForce(torch.autograd.Function):
@@ -892,38 +966,48 @@ class OutsidePressureForce(torch.autograd.Function):
     q's dtype from the surface polyline q [B, S, 2] (m) or, with ``surface`` [S] (numpy), the mesh
     nodes q [B, N, 2] of which those make it, the pressure p and mask b [B, 1, H, W] (Pa, 1) on the
     grid (H, W) of cells dx (m), the mask level above which cells are not sampled (``outside``,
-    ibm.OUTSIDE_MASK), the kernel variance sigma_prime (m^2) and window radius (cells), ``linear``
-    or mean fit; CPU tensors. Differentiable in q, p and b."""
+    ibm.OUTSIDE_MASK), the kernel variance sigma_prime (m^2) and window radius (cells), and the
+    fit: ``MEAN_FIT``, ``LINEAR_FIT`` or ``WALL_FIT``, the last with the nodes' accelerations acc
+    (shaped as q, m/s^2) and the fluid's density rho [B] (kg/m^3; a constant here); CPU tensors.
+    Differentiable in q, p, b and acc."""
 
     @staticmethod
-    def arrays(q: Tensor, p: Tensor, b: Tensor, surface: np.ndarray | None, settings: tuple) -> tuple:
+    def arrays(q: Tensor, p: Tensor, b: Tensor, surface: np.ndarray | None, acc: Tensor | None, rho: np.ndarray,
+               settings: tuple) -> tuple:
         """The kernels' arguments: a float64 copy of the polyline's nodes, p and b as flat arrays
         [B, H W] in their own dtype (a float32 value reads exactly into the float64 arithmetic:
-        no copies of two whole grids), then the settings."""
+        no copies of two whole grids), then the settings, the polyline's accelerations (float64,
+        [B, S, 2]; zeros of one node without the wall fit) and rho."""
         B, H, W = p.shape[0], p.shape[-2], p.shape[-1]
-        return _surface_f64(q, surface), _flat_grid(p, B, H * W), _flat_grid(b, B, H * W), *settings
+        acc = np.zeros((B, 1, 2)) if acc is None else _surface_f64(acc, surface)
+        return _surface_f64(q, surface), _flat_grid(p, B, H * W), _flat_grid(b, B, H * W), *settings, acc, rho
 
     @staticmethod
     def forward(ctx, q: Tensor, p: Tensor, b: Tensor, surface: np.ndarray | None, outside: float, dx: float,
-                sigma_prime: float, radius: int, linear: bool):
-        settings = (float(outside), (p.shape[-2], p.shape[-1]), float(dx), float(sigma_prime), int(radius),
-                    bool(linear))
-        args = OutsidePressureForce.arrays(q, p, b, surface, settings)
+                sigma_prime: float, radius: int, fit: int, acc: Tensor | None = None, rho: Tensor | float = 0.0):
+        if fit == WALL_FIT and (acc is None or torch.is_tensor(rho) and rho.requires_grad):
+            raise ValueError("OutsidePressureForce: the wall fit needs the nodes' accelerations and a constant rho")
+        settings = (float(outside), (p.shape[-2], p.shape[-1]), float(dx), float(sigma_prime), int(radius), int(fit))
+        rho = np.broadcast_to(np.asarray(torch.as_tensor(rho, dtype=torch.float64).detach().reshape(-1)),
+                              (p.shape[0],)).copy()
+        args = OutsidePressureForce.arrays(q, p, b, surface, acc if fit == WALL_FIT else None, rho, settings)
         f = np.empty(args[0].shape)
         _each_fish(_fish_ibm, _ibm_parallel, *args, f)
         # the tensors, not their float64 copies (two whole grids a frame), wait for the backward
-        ctx.save_for_backward(q, p, b)
-        ctx.surface, ctx.settings = surface, settings
+        ctx.save_for_backward(q, p, b, acc if fit == WALL_FIT else None)
+        ctx.surface, ctx.settings, ctx.rho = surface, settings, rho
         return torch.from_numpy(f).to(q.dtype)
 
     @staticmethod
     def backward(ctx, gf: Tensor):
-        q_in, p_in, b_in = ctx.saved_tensors
-        args = OutsidePressureForce.arrays(q_in, p_in, b_in, ctx.surface, ctx.settings)
-        qs, p = args[0], args[1]
-        gqs, gp, gmask = np.zeros(qs.shape), np.zeros(p.shape), np.zeros(p.shape)
-        _each_fish(_fish_ibm_backward, _ibm_backward_parallel, *args, _f64(gf), gqs, gp, gmask)
+        q_in, p_in, b_in, acc_in = ctx.saved_tensors
+        args = OutsidePressureForce.arrays(q_in, p_in, b_in, ctx.surface, acc_in, ctx.rho, ctx.settings)
+        qs, p, acc = args[0], args[1], args[-2]
+        gqs, gp, gmask, gacc = np.zeros(qs.shape), np.zeros(p.shape), np.zeros(p.shape), np.zeros(acc.shape)
+        _each_fish(_fish_ibm_backward, _ibm_backward_parallel, *args, _f64(gf), gqs, gp, gmask, gacc)
         H, W = args[4]
+        g_acc = None if acc_in is None else torch.from_numpy(_on_nodes(gacc, ctx.surface, acc_in.shape)).to(acc_in.dtype)
         return (torch.from_numpy(_on_nodes(gqs, ctx.surface, q_in.shape)).to(q_in.dtype),
                 torch.from_numpy(gp).to(p_in.dtype).view(-1, 1, H, W),
-                torch.from_numpy(gmask).to(b_in.dtype).view(-1, 1, H, W), None, None, None, None, None, None)
+                torch.from_numpy(gmask).to(b_in.dtype).view(-1, 1, H, W), None, None, None, None, None, None,
+                g_acc, None)

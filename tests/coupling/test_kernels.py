@@ -12,7 +12,7 @@ from torch.autograd import gradcheck
 from fishsim.coupling import CouplingConfig, solid_to_fluid
 from fishsim.coupling.band import band_margin, surface_band, torch_nearest_and_inside
 from fishsim.coupling.ibm import ibm_force, torch_ibm_force
-from fishsim.coupling.kernels import BandBoundary, OutsidePressureForce, _nearest
+from fishsim.coupling.kernels import LINEAR_FIT, WALL_FIT, BandBoundary, OutsidePressureForce, _nearest
 from fishsim.coupling.mask import SIGMA, band_boundary, boundary_velocity, element_distances, soft_mask
 from fishsim.fields import Grid
 
@@ -122,11 +122,12 @@ def test_solid_to_fluid_in_float32_matches_the_float64_torch_reference():
     assert ((out.velocity.double() - v) * near).abs().max() < 1e-6 * v.abs().max()
 
 
-@pytest.mark.parametrize("fit", ["linear", "mean"])
+@pytest.mark.parametrize("fit", ["linear", "mean", "wall"])
 def test_ibm_force_and_its_adjoint_equal_the_torch_formulas(fit):
     """The compiled IBM pressure force (outside weights, chord elements) and its vector-Jacobian
-    products w.r.t. the surface, the pressure and the mask, against ibm.py's torch formulas
-    (float64), for two fish, one of them partly outside the grid's edge cells."""
+    products w.r.t. the surface, the pressure and the mask (and, for the wall fit, the nodes'
+    accelerations), against ibm.py's torch formulas (float64), for two fish, one of them partly
+    outside the grid's edge cells."""
     qs, _ = bent_fish()
     qs[1] += torch.tensor([-0.038, 0.0], dtype=torch.float64)        # its tail within the kernel of x = 0
     mask = soft_mask(qs, GRID, dtype=torch.float64)
@@ -134,12 +135,14 @@ def test_ibm_force_and_its_adjoint_equal_the_torch_formulas(fit):
     y = torch.arange(GRID.H, dtype=torch.float64).view(1, 1, -1, 1)
     p = 50 * torch.randn(2, 1, GRID.H, GRID.W, generator=g, dtype=torch.float64) + 30 * y
     cot = torch.randn(2, qs.shape[1], 2, generator=g, dtype=torch.float64)
+    acc = 20 * torch.randn(2, qs.shape[1], 2, generator=g, dtype=torch.float64)
+    rho = torch.tensor([50.0, 1000.0], dtype=torch.float64)
 
     def run(fn):
-        q, pr, b = (t.detach().clone().requires_grad_(True) for t in (qs, p, mask))
-        f = fn(q, pr, b, GRID, fit=fit)
+        q, pr, b, a = (t.detach().clone().requires_grad_(True) for t in (qs, p, mask, acc))
+        f = fn(q, pr, b, GRID, fit=fit, wall=(a, rho) if fit == "wall" else None)
         (f * cot).sum().backward()
-        return f.detach(), q.grad, pr.grad, b.grad
+        return (f.detach(), q.grad, pr.grad, b.grad) + ((a.grad,) if fit == "wall" else ())
 
     for got, want in zip(run(ibm_force), run(torch_ibm_force)):
         scale = want.abs().max()
@@ -166,9 +169,12 @@ def test_compiled_ibm_force_gradient_against_central_differences():
     qs, _ = bent_fish(B=1, n=30)
     mask = soft_mask(qs, GRID, dtype=torch.float64).detach()
     p = torch.randn(1, 1, GRID.H, GRID.W, generator=torch.Generator().manual_seed(8), dtype=torch.float64)
-    fn = lambda q, pr, b: OutsidePressureForce.apply(q, pr, b, None, 0.05, GRID.dx, 6.25e-6, 4, True)
+    fn = lambda q, pr, b: OutsidePressureForce.apply(q, pr, b, None, 0.05, GRID.dx, 6.25e-6, 4, LINEAR_FIT)
     assert gradcheck(fn, (qs.requires_grad_(True), p.requires_grad_(True), mask.requires_grad_(True)), eps=1e-8,
                      atol=1e-6, rtol=1e-4, fast_mode=True)
+    acc = torch.randn(qs.shape, generator=torch.Generator().manual_seed(9), dtype=torch.float64)
+    wall = lambda q, pr, b, a: OutsidePressureForce.apply(q, pr, b, None, 0.05, GRID.dx, 6.25e-6, 4, WALL_FIT, a, 50.0)
+    assert gradcheck(wall, (qs, p, mask, acc.requires_grad_(True)), eps=1e-8, atol=1e-6, rtol=1e-4, fast_mode=True)
 
 
 @pytest.mark.parametrize("B", [1, 3])
