@@ -1,7 +1,7 @@
 """Compiled (numba) coupling on the CPU: the band's nearest surface elements and inside flags
 (``band_selection``, no gradient), the mask and boundary velocity of every band cell
-(``BandBoundary``) and the IBM pressure force with ibm.py's default sampling
-(``OutsidePressureForce``), both with hand-written adjoints. They compute band.py's, mask.py's
+(``BandBoundary``) and the IBM pressure force with ibm.py's default sampling and any of its
+fits, the wall's included (``OutsidePressureForce``), both with hand-written adjoints. They compute band.py's, mask.py's
 and ibm.py's formulas, which stay as the reference (tests/coupling/test_kernels.py) and run on
 CUDA and for the other options. Solid -> fluid:
 
