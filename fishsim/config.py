@@ -733,6 +733,10 @@ def to_dataclass(command: str, raw: Any) -> Any:
             raise ConfigError(f"config error: fluid.model must be one of {tuple(FLUID_MODELS)} (got '{model}')")
         schema.fluid = OmegaConf.structured(FLUID_MODELS[model])
     _writable(schema)
+    for path in _dict_fields(ROOTS[command]):    # the composed dict is the whole dict: a key deleted
+        node = OmegaConf.select(schema, path)    # with ~ must not come back from the schema's defaults
+        if isinstance(node, DictConfig) and OmegaConf.select(raw, path) is not None:
+            node.clear()
     try:
         merged = OmegaConf.merge(schema, raw)
         cfg = OmegaConf.to_object(merged)

@@ -63,3 +63,13 @@ def test_knob_values_must_go_coarse_to_fine(tmp_path):
     result = runner.invoke(app, ["validate", "suite=convergence", "convergence.knobs.substeps.values=[16,8,4]",
                                  f"out_dir={tmp_path}"])
     assert result.exit_code == 2 and "coarse to fine" in result.output
+
+
+def test_a_knob_deleted_on_the_command_line_stays_deleted():
+    """``~convergence.knobs.<name>`` runs the suite without that knob: the schema's default knobs
+    must not come back over the composed config (they did: the deletion was silently ignored)."""
+    knobs = load_config("validate", ["suite=convergence", "~convergence.knobs.substeps",
+                                     "~convergence.knobs.frame_step"]).convergence.knobs
+    assert sorted(knobs) == ["grid", "grid_short", "kernel", "penalization"]
+    assert isinstance(knobs["grid"], Knob) and knobs["grid"].values == [1, 2]
+    assert "substeps" in load_config("validate", ["suite=convergence"]).convergence.knobs
