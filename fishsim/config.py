@@ -577,6 +577,7 @@ def load_config(command: str, overrides: list[str] | None = None, config_file: s
 
     overrides = [_run_dir_as_out_dir(o) for o in overrides or []]
     _refuse_hydra_runner_keys(overrides)
+    _refuse_deleted_settings(command, overrides)
     overrides = _into_open_dicts(ROOTS[command], overrides)
     GlobalHydra.instance().clear()
     try:
@@ -639,6 +640,21 @@ def _refuse_hydra_runner_keys(overrides: list[str]) -> None:
         if key in ("hydra", "--multirun") or key.startswith(("hydra.", "hydra/")):
             raise ConfigError(f"config error: '{o}' is a setting of Hydra's job runner, used only by sweeps: add -m "
                               f"(fishsim.multirun); {NO_SWEEPS}")
+
+
+def _refuse_deleted_settings(command: str, overrides: list[str]) -> None:
+    """``~key`` deletes an entry of a free-form dict option (``~params.frequency``,
+    ``~convergence.knobs.substeps``); any other setting always exists (the schema gives it its
+    default back), so deleting it would silently do nothing: ConfigError (one line) instead."""
+    open_dicts = _dict_fields(ROOTS[command])
+    for o in overrides:
+        if not o.startswith("~") or o.startswith("~~"):
+            continue
+        key = o[1:].split("=", 1)[0]
+        if not any(key.startswith(d + ".") for d in open_dicts):
+            raise ConfigError(f"config error: '{o}' deletes a setting, which keeps its default: set it instead "
+                              f"({key}=<value>); ~ deletes only entries of "
+                              f"{', '.join(open_dicts) or 'free-form options (this command has none)'}")
 
 
 def _merge_file(raw: Any, path: str, dotted: list[str], command: str | None = None) -> Any:

@@ -32,6 +32,7 @@ def test_override_applies():
         ("fish.length=abc", "could not be converted"),
         ("fish.profile=zigzag", "fish.profile must be"),
         ("fish=nope", "Could not find 'fish/nope'"),
+        ("~fish.length", "'~fish.length' deletes a setting, which keeps its default"),
     ],
 )
 def test_bad_config_is_one_clear_line(override, fragment):
