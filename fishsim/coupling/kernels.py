@@ -1,9 +1,9 @@
 """Compiled (numba) coupling on the CPU: the band's nearest surface elements and inside flags
 (``band_selection``, no gradient), the mask and boundary velocity of every band cell
 (``BandBoundary``) and the IBM pressure force with ibm.py's default sampling and any of its
-fits, the wall's included (``OutsidePressureForce``), both with hand-written adjoints. They compute band.py's, mask.py's
-and ibm.py's formulas, which stay as the reference (tests/coupling/test_kernels.py) and run on
-CUDA and for the other options. Solid -> fluid:
+fits, the wall's included (``OutsidePressureForce``), both with hand-written adjoints. They
+compute band.py's, mask.py's and ibm.py's formulas, which stay as the reference
+(tests/coupling/test_kernels.py) and run on CUDA and for the other options. Solid -> fluid:
 
     e_l  = |x - c_l|^2,  c_l = a_l + t_l (a_l' - a_l),  t_l = clamp((x - a_l).(a_l' - a_l) / |a_l' - a_l|^2, 0, 1)
     w_l  = softmin weights of e / T over the cell's K' nearest elements (mask.softmin_weights)
