@@ -304,9 +304,7 @@ def ibm_force(qs: Tensor, p: Tensor, mask: Tensor, grid: Grid, sigma_prime: floa
         fits = {MEAN: kernels.MEAN_FIT, LINEAR: kernels.LINEAR_FIT, WALL: kernels.WALL_FIT}
         if fit not in fits:
             raise ValueError(f"fit must be 'mean', 'linear' or 'wall', got {fit!r}")
-        if fit == WALL and wall is None:
-            raise ValueError("fit 'wall' needs wall=(the nodes' accelerations, rho)")
-        acc, rho = (None, 0.0) if fit != WALL else wall
+        acc, rho = wall if fit == WALL and wall is not None else (None, 0.0)    # the kernel checks the pair
         return kernels.OutsidePressureForce.apply(qs, p, mask, None if surface is None else surface.numpy(),
                                                   OUTSIDE_MASK, grid.dx, sigma_prime,
                                                   kernel_radius(sigma_prime, grid.dx), fits[fit], acc, rho)

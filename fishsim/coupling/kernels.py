@@ -985,16 +985,18 @@ class OutsidePressureForce(torch.autograd.Function):
     @staticmethod
     def forward(ctx, q: Tensor, p: Tensor, b: Tensor, surface: np.ndarray | None, outside: float, dx: float,
                 sigma_prime: float, radius: int, fit: int, acc: Tensor | None = None, rho: Tensor | float = 0.0):
-        if fit == WALL_FIT and (acc is None or torch.is_tensor(rho) and rho.requires_grad):
-            raise ValueError("OutsidePressureForce: the wall fit needs the nodes' accelerations and a constant rho")
+        wall = fit == WALL_FIT
+        if wall and (acc is None or torch.is_tensor(rho) and rho.requires_grad):
+            raise ValueError("the IBM's wall fit needs wall=(the nodes' accelerations, a constant rho)")
         settings = (float(outside), (p.shape[-2], p.shape[-1]), float(dx), float(sigma_prime), int(radius), int(fit))
-        rho = np.broadcast_to(np.asarray(torch.as_tensor(rho, dtype=torch.float64).detach().reshape(-1)),
-                              (p.shape[0],)).copy()
-        args = OutsidePressureForce.arrays(q, p, b, surface, acc if fit == WALL_FIT else None, rho, settings)
+        B = p.shape[0]          # rho [B] float64 (read only by the wall fit)
+        rho = np.broadcast_to(_f64(torch.as_tensor(rho)).reshape(-1), (B,)).copy() if wall else np.zeros(B)
+        acc = acc if wall else None
+        args = OutsidePressureForce.arrays(q, p, b, surface, acc, rho, settings)
         f = np.empty(args[0].shape)
         _each_fish(_fish_ibm, _ibm_parallel, *args, f)
         # the tensors, not their float64 copies (two whole grids a frame), wait for the backward
-        ctx.save_for_backward(q, p, b, acc if fit == WALL_FIT else None)
+        ctx.save_for_backward(q, p, b, acc)
         ctx.surface, ctx.settings, ctx.rho = surface, settings, rho
         return torch.from_numpy(f).to(q.dtype)
 
