@@ -577,8 +577,7 @@ def load_config(command: str, overrides: list[str] | None = None, config_file: s
 
     overrides = [_run_dir_as_out_dir(o) for o in overrides or []]
     _refuse_hydra_runner_keys(overrides)
-    _refuse_deleted_settings(command, overrides)
-    overrides = _into_open_dicts(ROOTS[command], overrides)
+    overrides = _open_dict_overrides(ROOTS[command], overrides)
     GlobalHydra.instance().clear()
     try:
         with initialize_config_dir(config_dir=config_dir(), version_base="1.3"):
@@ -618,13 +617,25 @@ def _dict_fields(cls, prefix: str = "") -> list[str]:
     return names
 
 
-def _into_open_dicts(cls, overrides: list[str]) -> list[str]:
-    """``optimizer.options={betas:[0.9,0.99]}`` or ``optimizer.submitit.cluster=local``: a key
-    inside a free-form dict field is new to the composed config, which Hydra refuses as unknown;
-    such overrides are passed as ``++key=value`` (add or replace)."""
+def _open_dict_overrides(cls, overrides: list[str]) -> list[str]:
+    """The overrides as Hydra must see them, measured against the free-form dict fields of the
+    config class ``cls``:
+
+    - ``optimizer.options={betas:[0.9,0.99]}`` or ``optimizer.submitit.cluster=local``: a key
+      inside such a field is new to the composed config, which Hydra refuses as unknown; it is
+      passed as ``++key=value`` (add or replace).
+    - ``~key`` deletes an entry of such a field (``~params.frequency``,
+      ``~convergence.knobs.substeps``); any other setting always exists (the schema gives it its
+      default back), so deleting it would silently do nothing: ConfigError (one line) instead."""
     open_dicts = _dict_fields(cls)
+
     def rewrite(o: str) -> str:
         key = o.split("=", 1)[0]
+        if o.startswith("~") and not o.startswith("~~") and not any(
+                key[1:].startswith(d + ".") for d in open_dicts):
+            raise ConfigError(f"config error: '{o}' deletes a setting, which keeps its default: set it instead "
+                              f"({key[1:]}=<value>); ~ deletes only entries of "
+                              f"{', '.join(open_dicts) or 'free-form options (this command has none)'}")
         inside = "=" in o and not key.startswith(("+", "~")) and any(
             key == d or key.startswith(d + ".") for d in open_dicts)
         return "++" + o if inside else o
@@ -640,21 +651,6 @@ def _refuse_hydra_runner_keys(overrides: list[str]) -> None:
         if key in ("hydra", "--multirun") or key.startswith(("hydra.", "hydra/")):
             raise ConfigError(f"config error: '{o}' is a setting of Hydra's job runner, used only by sweeps: add -m "
                               f"(fishsim.multirun); {NO_SWEEPS}")
-
-
-def _refuse_deleted_settings(command: str, overrides: list[str]) -> None:
-    """``~key`` deletes an entry of a free-form dict option (``~params.frequency``,
-    ``~convergence.knobs.substeps``); any other setting always exists (the schema gives it its
-    default back), so deleting it would silently do nothing: ConfigError (one line) instead."""
-    open_dicts = _dict_fields(ROOTS[command])
-    for o in overrides:
-        if not o.startswith("~") or o.startswith("~~"):
-            continue
-        key = o[1:].split("=", 1)[0]
-        if not any(key.startswith(d + ".") for d in open_dicts):
-            raise ConfigError(f"config error: '{o}' deletes a setting, which keeps its default: set it instead "
-                              f"({key}=<value>); ~ deletes only entries of "
-                              f"{', '.join(open_dicts) or 'free-form options (this command has none)'}")
 
 
 def _merge_file(raw: Any, path: str, dotted: list[str], command: str | None = None) -> Any:
