@@ -22,6 +22,7 @@ from fishsim.fields import Boundary, FluidParams, FluidState, Grid
 from fishsim.fluid import grid as G
 from fishsim.fluid.factory import numerical_stepping
 from fishsim.fluid.numerical import NumericalFluid
+from fishsim.learn.pool import Motion, Rigid, rigid_distance
 
 torch.set_num_threads(1)
 U, mode = float(sys.argv[1]), sys.argv[2]
@@ -34,12 +35,13 @@ cc = g.cell_centres(dtype=torch.float64)
 
 
 def ellipse(x0):
-    """Soft mask (b = 1/2 - d / dx, d the first-order signed distance) and a region 1.5 cm around it."""
+    """Soft mask (b = 1/2 + s / dx, s the training pool's first-order signed distance, > 0 inside)
+    and a region 1.5 cm around it."""
+    at = Motion((x0, 0.125), (0.0, 0.0), (0.0, 0.0), (0.0, 0.0), (0.0, 0.0), 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, (a, c))
+    s = rigid_distance(Rigid("ellipse", (a, c), at), cc)
     x, y = cc[..., 0] - x0, cc[..., 1] - 0.125
-    rr = ((x / a) ** 2 + (y / c) ** 2).sqrt()
-    d = (rr - 1) * rr / ((x / a**2) ** 2 + (y / c**2) ** 2).sqrt().clamp_min(1e-12)
     region = ((x / (a + 0.015)) ** 2 + (y / (c + 0.015)) ** 2 < 1).float()[None, None]
-    return (0.5 - d / dx).clamp(0, 1)[None, None].float(), region
+    return (0.5 + s / dx).clamp(0, 1)[None, None].float(), region
 
 
 params = FluidParams(torch.tensor([rho]), torch.tensor([mu]), h)
