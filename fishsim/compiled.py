@@ -168,12 +168,15 @@ def each_sample(serial, parallel, *args) -> None:
 
 
 def serial_here() -> bool:
-    """Whether this thread is one of ``in_sample_chunks``' (its kernels and transforms then run
-    serially: the chunks are the parallelism)."""
+    """Whether this thread runs ``serially`` (its kernels and transforms then run serially: one of
+    ``in_sample_chunks``' chunks, whose parallelism they are, or work beside other work)."""
     return getattr(_thread, "serial", False)
 
 
-def _serial_call(fn, args):
+def serially(fn, *args):
+    """fn(*args) with this thread's compiled kernels and transforms serial (``serial_here``): for
+    work run in a thread beside other work (``in_sample_chunks``' chunks, the rollout's background
+    recomputation)."""
     _thread.serial = True
     try:
         return fn(*args)
@@ -217,7 +220,7 @@ def in_sample_chunks(fn, chunks: list[slice], *args, each: list | None = None) -
              for k, c in enumerate(chunks)]
     if len(chunks) == 1:
         return [fn(*calls[0])]
-    jobs = [thread_pool(len(chunks), "fishsim-samples").submit(_serial_call, fn, call) for call in calls]
+    jobs = [thread_pool(len(chunks), "fishsim-samples").submit(serially, fn, *call) for call in calls]
     return [job.result() for job in jobs]
 
 

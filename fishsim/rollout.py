@@ -34,7 +34,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from fishsim.compiled import thread_pool
+from fishsim.compiled import serially, thread_pool
 from fishsim.coupling import (
     CouplingConfig,
     exchange_to_solid,
@@ -522,7 +522,8 @@ class Segments:
     background thread while segment k is differentiated. A segment's recomputation (a forward
     with a graph) is about half of its backward and depends only on the segment's inputs, so on
     two cores it runs beside the adjoints instead of before them. Same operations, same order:
-    the gradients are those of a recomputation in turn, bit for bit. ``background``: recompute
+    the gradients are those of a recomputation in turn, bit for bit (its compiled kernels run
+    serially there, ``compiled.serially``). ``background``: recompute
     in the background at all. The rollout turns it on only when its batch leaves a torch thread
     idle (B < threads) and its fluid runs a sample on one thread: a batch that fills the threads,
     or HydroNet, whose convolutions use them all, gained nothing and lost cache (16 fish, 12
@@ -541,7 +542,7 @@ class Segments:
     def prefetch(self, k: int) -> None:
         """Start recomputing segment k in the background (nothing for k < 0 or if started)."""
         if self.background and k >= 0 and k not in self.pending:
-            self.pending[k] = thread_pool(1, "fishsim-recompute").submit(self.recompute, k)
+            self.pending[k] = thread_pool(1, "fishsim-recompute").submit(serially, self.recompute, k)
 
     def take(self, k: int) -> tuple[list[Tensor], tuple[Tensor, ...]]:
         """(inputs, outputs) of segment k recomputed with a graph: the prefetched ones, else now."""

@@ -15,7 +15,8 @@ elements replaces ~100 torch operations on [B, P, K'] tensors; the adjoint recom
 the weights and scatters dL/dq and dL/dqdot into the surface nodes.
 
 The arithmetic is float64 whatever the fluid's dtype. A batch's fish run in parallel (prange), a
-single fish in the calling thread. The band's selection ranks elements by the same squared
+single fish's forward cut into one block of cells (rows) or nodes per torch thread (``_each_fish``;
+the result bit for bit one thread's), its adjoints in the calling thread. The band's selection ranks elements by the same squared
 distances in float64 (band.py ranks float32 ones), so near-ties at the K'-th element may pick
 another one; its weight is ~0 there by the tapered softmin's construction.
 """
@@ -30,7 +31,7 @@ import torch
 from numba import prange
 from torch import Tensor
 
-from fishsim.compiled import jit
+from fishsim.compiled import jit, serial_here
 from fishsim.fields import MASK_FLOOR
 
 
@@ -61,13 +62,21 @@ def _flat_grid(t: Tensor, B: int, cells: int) -> np.ndarray:
     return np.ascontiguousarray(t.detach().numpy()).reshape(B, cells)
 
 
-def _each_fish(one, parallel, *args) -> None:
-    """``parallel(*args)`` over a batch's fish (the arrays' leading dimension), or for a single
-    fish ``one`` on its slices in the calling thread (a parallel region costs more than it saves)."""
+def _each_fish(one, parallel, *args, split=None) -> None:
+    """``parallel(*args)`` over a batch's fish (the arrays' leading dimension); for a single fish
+    ``split(*its slices, pieces)``, its work cut into one piece per torch thread run in parallel
+    (the same result as ``one``; a parallel region costs ~3 us here), or ``one`` on its slices in
+    the calling thread (one thread, no ``split``, or a thread of compiled.in_sample_chunks or of
+    the rollout's background recomputation, whose work runs serially beside other work)."""
     if next(a for a in args if isinstance(a, np.ndarray)).shape[0] > 1:
         parallel(*args)
+        return
+    fish = tuple(a[0] if isinstance(a, np.ndarray) else a for a in args)
+    pieces = 1 if split is None or serial_here() else torch.get_num_threads()
+    if pieces > 1:
+        split(*fish, pieces)
     else:
-        one(*(a[0] if isinstance(a, np.ndarray) else a for a in args))
+        one(*fish)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -162,13 +171,32 @@ def _fish_nearest(q, centres, width, segment, far, nearest, inside, unranked):
     rule: crossings of the horizontal ray to +x, found once per row).  A cell outside the body
     whose squared distance to every element's bounding box exceeds ``far`` (m^2) gets the first
     elements instead of ranking them, flagged in ``unranked`` (BandBoundary gives it b = v_d = 0
-    without looking at its elements: ``_far`` would find them all beyond ``far``).
+    without looking at its elements: ``_far`` would find them all beyond ``far``)."""
+    _rows_nearest(q, centres, width, segment, far, nearest, inside, unranked, 0, centres.shape[0] // width)
+
+
+@jit
+def _row_crossings(ax, ay, abx, aby, y, crossing):
+    """The x of the polyline's crossings with the line at height y, in crossing[:n]; returns n."""
+    n = 0
+    for l in range(ax.shape[0]):
+        if (ay[l] > y) != (ay[l] + aby[l] > y):
+            crossing[n] = ax[l] + (y - ay[l]) * abx[l] / aby[l]
+            n += 1
+    return n
+
+
+@jit
+def _rows_nearest(q, centres, width, segment, far, nearest, inside, unranked, first_row, last_row):
+    """``_fish_nearest`` on the window's rows first_row..last_row - 1 only, with the same
+    candidates, hence the same elements in the same order, as a pass over all rows.
 
     The distance to the polyline is 1-Lipschitz, so the k-th nearest squared distance of a cell
     is at most (sqrt(D) + |x - x'|)^2 with D that of a ranked cell x': the row's previous ranked
-    cell, or for a row's first ranked cell the previous row's first. Only elements within it are
-    ranked (~k + a few of S), and chunks of _CHUNK elements whose bounding box lies beyond it are
-    skipped."""
+    cell, or for a row's first ranked cell the previous row's first (for first_row, found by
+    ranking that cell among all elements: its D is the same exact k-th distance). Only elements
+    within it are ranked (~k + a few of S), and chunks of _CHUNK elements whose bounding box lies
+    beyond it are skipped."""
     S, k = q.shape[0], nearest.shape[1]
     ax, ay, abx, aby, inv = np.empty(S), np.empty(S), np.empty(S), np.empty(S), np.empty(S)
     for l in range(S):
@@ -186,62 +214,96 @@ def _fish_nearest(q, centres, width, segment, far, nearest, inside, unranked):
                 box[c, 2], box[c, 3] = min(box[c, 2], y), max(box[c, 3], y)
     d, index, crossing = np.empty(S), np.empty(S, np.int64), np.empty(S)
     first_kth, first_x, first_y = np.inf, 0.0, 0.0              # the previous row's first ranked cell
-    for row in range(centres.shape[0] // width):
+    for row in range(first_row - 1, -1, -1):                    # the rows before this block's
         y = centres[row * width, 1]
-        n_cross = 0
-        for l in range(S):
-            if (ay[l] > y) != (ay[l] + aby[l] > y):
-                crossing[n_cross] = ax[l] + (y - ay[l]) * abx[l] / aby[l]
-                n_cross += 1
+        n_cross = _row_crossings(ax, ay, abx, aby, y, crossing)
+        col = 0
+        while col < width and not _inside_row(crossing, n_cross, centres[row * width + col, 0]) \
+                and _beyond(box, centres[row * width + col, 0], y, far):
+            col += 1
+        if col < width:
+            x0 = centres[row * width + col, 0]
+            first_kth = _kth(ax, ay, abx, aby, inv, x0, y, math.inf, box, k, d, index)
+            first_x, first_y = x0, y
+            break
+    for row in range(first_row, last_row):
+        y = centres[row * width, 1]
+        n_cross = _row_crossings(ax, ay, abx, aby, y, crossing)
         kth, last_x, ranked = first_kth, first_x, False            # this row's last ranked cell
         for col in range(width):
             p = row * width + col
             x0 = centres[p, 0]
-            right = 0
-            for j in range(n_cross):
-                right += crossing[j] > x0
-            inside[p] = right % 2 == 1
+            inside[p] = _inside_row(crossing, n_cross, x0)
             unranked[p] = not inside[p] and _beyond(box, x0, y, far)
             if unranked[p]:
                 for j in range(k):
                     nearest[p, j] = j
                 continue
             gap = abs(x0 - last_x) if ranked else math.hypot(x0 - first_x, y - first_y)
-            bound = (math.sqrt(kth) + gap) ** 2
-            n = 0
-            for c in range(chunks):
-                gx = max(box[c, 0] - x0, 0.0, x0 - box[c, 1])
-                gy = max(box[c, 2] - y, 0.0, y - box[c, 3])
-                if gx * gx + gy * gy > bound:
-                    continue
-                for l in range(c * _CHUNK, min(S, (c + 1) * _CHUNK)):
-                    rx, ry = x0 - ax[l], y - ay[l]
-                    t = min(max((rx * abx[l] + ry * aby[l]) * inv[l], 0.0), 1.0)
-                    e = (rx - t * abx[l]) ** 2 + (ry - t * aby[l]) ** 2
-                    if e <= bound:
-                        d[n], index[n] = e, l
-                        n += 1
-            if n < k:                                   # round-off in the bound: rank them all
-                n = S
-                for l in range(S):
-                    rx, ry = x0 - ax[l], y - ay[l]
-                    t = min(max((rx * abx[l] + ry * aby[l]) * inv[l], 0.0), 1.0)
-                    d[l], index[l] = (rx - t * abx[l]) ** 2 + (ry - t * aby[l]) ** 2, l
-            if k < n:
-                _select(d, index, n, k)
-            kth = 0.0
+            kth = _kth(ax, ay, abx, aby, inv, x0, y, (math.sqrt(kth) + gap) ** 2, box, k, d, index)
             for j in range(k):
                 nearest[p, j] = index[j]
-                kth = max(kth, d[j])
             if not ranked:
                 first_kth, first_x, first_y = kth, x0, y
             last_x, ranked = x0, True
+
+
+@jit
+def _inside_row(crossing, n_cross, x0):
+    """Whether x0 is inside the polyline on the row whose crossings are crossing[:n_cross]
+    (even-odd rule: the crossings right of x0)."""
+    right = 0
+    for j in range(n_cross):
+        right += crossing[j] > x0
+    return right % 2 == 1
+
+
+@jit
+def _kth(ax, ay, abx, aby, inv, x0, y, bound, box, k, d, index):
+    """The k nearest elements of the point (x0, y) in index[:k] (their squared distances in
+    d[:k]), ranked among those within the squared distance ``bound`` (every element if fewer
+    than k lie within it); returns the k-th nearest squared distance."""
+    S, chunks = ax.shape[0], box.shape[0]
+    n = 0
+    for c in range(chunks):
+        gx = max(box[c, 0] - x0, 0.0, x0 - box[c, 1])
+        gy = max(box[c, 2] - y, 0.0, y - box[c, 3])
+        if gx * gx + gy * gy > bound:
+            continue
+        for l in range(c * _CHUNK, min(S, (c + 1) * _CHUNK)):
+            rx, ry = x0 - ax[l], y - ay[l]
+            t = min(max((rx * abx[l] + ry * aby[l]) * inv[l], 0.0), 1.0)
+            e = (rx - t * abx[l]) ** 2 + (ry - t * aby[l]) ** 2
+            if e <= bound:
+                d[n], index[n] = e, l
+                n += 1
+    if n < k:                                   # round-off in the bound: rank them all
+        n = S
+        for l in range(S):
+            rx, ry = x0 - ax[l], y - ay[l]
+            t = min(max((rx * abx[l] + ry * aby[l]) * inv[l], 0.0), 1.0)
+            d[l], index[l] = (rx - t * abx[l]) ** 2 + (ry - t * aby[l]) ** 2, l
+    if k < n:
+        _select(d, index, n, k)
+    kth = 0.0
+    for j in range(k):
+        kth = max(kth, d[j])
+    return kth
 
 
 @jit(parallel=True)
 def _nearest_parallel(q, centres, width, segment, far, nearest, inside, unranked):
     for b in prange(q.shape[0]):
         _fish_nearest(q[b], centres[b], width, segment, far, nearest[b], inside[b], unranked[b])
+
+
+@jit(parallel=True)
+def _nearest_split(q, centres, width, segment, far, nearest, inside, unranked, pieces):
+    """_fish_nearest of one fish, its rows in ``pieces`` blocks in parallel (the same result)."""
+    rows = centres.shape[0] // width
+    for c in prange(pieces):
+        _rows_nearest(q, centres, width, segment, far, nearest, inside, unranked, c * rows // pieces,
+                      (c + 1) * rows // pieces)
 
 
 def _nearest(q: np.ndarray, x: np.ndarray, k: int, segment: bool, width: int, far: float) -> tuple:
@@ -251,7 +313,8 @@ def _nearest(q: np.ndarray, x: np.ndarray, k: int, segment: bool, width: int, fa
     the body farther than sqrt(far) [m] from it get elements 0..k-1, unranked (``_fish_nearest``)."""
     B, P = x.shape[:2]
     nearest, inside, unranked = np.empty((B, P, k), np.int64), np.empty((B, P), np.bool_), np.empty((B, P), np.bool_)
-    _each_fish(_fish_nearest, _nearest_parallel, q, x, width, segment, float(far), nearest, inside, unranked)
+    _each_fish(_fish_nearest, _nearest_parallel, q, x, width, segment, float(far), nearest, inside, unranked,
+               split=_nearest_split)
     return nearest, inside, unranked
 
 
@@ -386,9 +449,27 @@ def _fish_forward(q, qdot, centres, nearest, inside, unranked, xi, sigma, tau, h
                   u):
     """b [P] and u [P, 2] of one fish's band cells (module docstring); the unranked cells (far
     outside) b = u = 0 at once."""
+    _cells_forward(q, qdot, centres, nearest, inside, unranked, xi, sigma, tau, harmonic, segment, truncated, b, u,
+                   0, centres.shape[0])
+
+
+@jit(parallel=True)
+def _forward_split(q, qdot, centres, nearest, inside, unranked, xi, sigma, tau, harmonic, segment, truncated, b,
+                   u, pieces):
+    """_fish_forward with the cells in ``pieces`` blocks in parallel (each cell's arithmetic as there)."""
+    P = centres.shape[0]
+    for c in prange(pieces):
+        _cells_forward(q, qdot, centres, nearest, inside, unranked, xi, sigma, tau, harmonic, segment, truncated, b,
+                       u, c * P // pieces, (c + 1) * P // pieces)
+
+
+@jit
+def _cells_forward(q, qdot, centres, nearest, inside, unranked, xi, sigma, tau, harmonic, segment, truncated, b,
+                   u, first, last):
+    """_fish_forward on the cells first..last - 1."""
     K = nearest.shape[1]
     e, t, raw, w, g = np.empty(K), np.zeros(K), np.zeros(K), np.empty(K), np.empty(K)
-    for p in range(centres.shape[0]):
+    for p in range(first, last):
         if unranked[p]:
             b[p], u[p, 0], u[p, 1] = 0.0, 0.0, 0.0
             continue
@@ -503,7 +584,7 @@ def _band_boundary(args: tuple) -> tuple[np.ndarray, np.ndarray]:
     truncated)."""
     B, P = args[3].shape[:2]
     b, u = np.empty((B, P)), np.empty((B, P, 2))
-    _each_fish(_fish_forward, _forward_parallel, *args, b, u)
+    _each_fish(_fish_forward, _forward_parallel, *args, b, u, split=_forward_split)
     return b, u
 
 
@@ -780,10 +861,25 @@ def _wall_fit(p, cell, ox, oy, wn, m, nx, ny, slope, sigma_prime, y, s):
 def _fish_ibm(q, p, mask, outside, shape, dx, sigma_prime, radius, fit, acc, rho, f):
     """f [S, 2] = -p_k a_k of one fish (p, mask: its flat [H W] fields; fit: MEAN_FIT, LINEAR_FIT
     or WALL_FIT, the last with the nodes' accelerations acc [S, 2] and the fluid's density rho)."""
+    _nodes_ibm(q, p, mask, outside, shape, dx, sigma_prime, radius, fit, acc, rho, f, 0, q.shape[0])
+
+
+@jit(parallel=True)
+def _ibm_split(q, p, mask, outside, shape, dx, sigma_prime, radius, fit, acc, rho, f, pieces):
+    """_fish_ibm with the nodes in ``pieces`` blocks in parallel (each node's arithmetic as there)."""
+    S = q.shape[0]
+    for c in prange(pieces):
+        _nodes_ibm(q, p, mask, outside, shape, dx, sigma_prime, radius, fit, acc, rho, f, c * S // pieces,
+                   (c + 1) * S // pieces)
+
+
+@jit
+def _nodes_ibm(q, p, mask, outside, shape, dx, sigma_prime, radius, fit, acc, rho, f, first, last):
+    """_fish_ibm's f on the nodes first..last - 1."""
     M = (2 * radius + 1) ** 2
     cell, ox, oy, wn, d = np.empty(M, np.int64), np.empty(M), np.empty(M), np.empty(M), np.empty(M)
     tangential = np.empty(M)
-    for k in range(q.shape[0]):
+    for k in range(first, last):
         ax, ay, _, _ = _chord(q, k)
         norm = math.sqrt(ax * ax + ay * ay)
         nx, ny = ax / norm, ay / norm
@@ -994,7 +1090,7 @@ class OutsidePressureForce(torch.autograd.Function):
         acc = acc if wall else None
         args = OutsidePressureForce.arrays(q, p, b, surface, acc, rho, settings)
         f = np.empty(args[0].shape)
-        _each_fish(_fish_ibm, _ibm_parallel, *args, f)
+        _each_fish(_fish_ibm, _ibm_parallel, *args, f, split=_ibm_split)
         # the tensors, not their float64 copies (two whole grids a frame), wait for the backward
         ctx.save_for_backward(q, p, b, acc)
         ctx.surface, ctx.settings, ctx.rho = surface, settings, rho

@@ -235,3 +235,34 @@ def test_the_union_with_the_walls_on_the_band_equals_the_union_on_the_grid():
     got = with_walls(q, qdot, surface, GRID, cfg, walls, speed)
     want = torch_band_union(*fish_band(q, qdot, surface, GRID, cfg), GRID, walls, speed.float())
     assert torch.equal(got.mask, want.mask) and torch.equal(got.velocity, want.velocity)
+
+
+@pytest.mark.parametrize("pieces", [2, 3])
+def test_one_fish_cut_over_threads_gives_the_one_thread_result_bit_for_bit(pieces):
+    """A single fish's band selection, mask, boundary velocity and IBM force are cut into one
+    piece per torch thread (kernels._each_fish's ``split``): the same nearest elements in the same
+    order (each block of rows starts from the bound a pass over every row would have), inside and
+    unranked flags, b, v_d and force, bit for bit, as one thread gives; a fish on a thin window
+    (more pieces than its mask has rows of ranked cells) too."""
+    from fishsim.coupling.kernels import NEGLIGIBLE, _band_boundary, _selection
+
+    def run():
+        out = []
+        for qs in (bent_fish(B=1)[0], bent_fish(B=1, seed=3)[0] * torch.tensor([1.0, 0.3], dtype=torch.float64)):
+            qdots = torch.randn(qs.shape, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+            sel = _selection(qs.numpy(), GRID.dx, GRID.H, GRID.W, band_margin(SIGMA, GRID.dx), 25, True, NEGLIGIBLE * SIGMA)
+            flat, centres, _, rel, nearest, inside, unranked, _ = sel
+            b, u = _band_boundary((rel, qdots.numpy(), centres, nearest, inside, unranked, 5e-7, SIGMA, 5e-7, True,
+                                   True, True))
+            mask = torch.zeros(1, 1, GRID.H, GRID.W, dtype=torch.float64)
+            mask.view(1, -1)[0, torch.from_numpy(flat[0])] = torch.from_numpy(b[0])
+            p = torch.randn(1, 1, GRID.H, GRID.W, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
+            f = OutsidePressureForce.apply(qs, p, mask, None, 0.5, GRID.dx, GRID.dx ** 2, 3, LINEAR_FIT)
+            out += [nearest, inside, unranked, b, u, f.numpy()]
+        return out
+
+    serial = run()
+    torch.set_num_threads(pieces)                   # restored by conftest's fixture
+    split = run()
+    assert all(a.shape == c.shape and (a == c).all() for a, c in zip(serial, split))
+    assert serial[2].any() and not serial[2].all()  # some cells unranked, some ranked
