@@ -14,11 +14,12 @@ with a_l = q^l, a_l' = q^(l+1) (segments; nodes: c_l = q^l, t_l = 0). One pass o
 elements replaces ~100 torch operations on [B, P, K'] tensors; the adjoint recomputes e, t and
 the weights and scatters dL/dq and dL/dqdot into the surface nodes.
 
-The arithmetic is float64 whatever the fluid's dtype. A batch's fish run in parallel (prange), a
-single fish's forward cut into one block of cells (rows) or nodes per torch thread (``_each_fish``;
-the result bit for bit one thread's), its adjoints in the calling thread. The band's selection ranks elements by the same squared
-distances in float64 (band.py ranks float32 ones), so near-ties at the K'-th element may pick
-another one; its weight is ~0 there by the tapered softmin's construction.
+The arithmetic is float64 whatever the fluid's dtype. A batch's fish run in parallel (prange); a
+single fish's forward is cut into one block of cells (rows) or nodes per torch thread
+(``_each_fish``; the result bit for bit one thread's), its adjoints run in the calling thread.
+The band's selection ranks elements by the same squared distances in float64 (band.py ranks
+float32 ones), so near-ties at the K'-th element may pick another one; its weight is ~0 there
+by the tapered softmin's construction.
 """
 
 from __future__ import annotations
