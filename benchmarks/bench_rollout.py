@@ -181,12 +181,17 @@ def distance_sweep(fluid: str, frequencies=(3.0, 4.0, 5.0, 6.0, 7.0), frames: in
 def optimizer_timing(fluid: str, method: str, frames: int = FRAMES_LONG, popsize: int = 16) -> dict:
     """One iteration of ``fishsim optimize`` (``method`` adam: the paper's forward + backward of
     ``frames`` frames, B = 1; cma: a generation of ``popsize`` fish, one batched forward), in the
-    swim tunnel, as a user runs it (a fresh process): its wall time as the optimiser reports it,
-    and J."""
+    swim tunnel with the centroid's y held (as the paper holds its fish: over 500 frames a free
+    fish may turn into the tank's side wall, HydroNet's at frame 415), as a user runs it (a fresh
+    process): its wall time as the optimiser reports it, and J; or, if the run failed, its
+    error's last line."""
     with tempfile.TemporaryDirectory() as out:
-        subprocess.run([sys.executable, "-m", "fishsim", "optimize", f"fluid={fluid}", f"optimizer.methods=[{method}]",
-                        "optimizer.iterations=1", f"optimizer.popsize={popsize}", f"frames={frames}", "tunnel=true",
-                        f"out_dir={out}"], check=True, capture_output=True)
+        run = subprocess.run([sys.executable, "-m", "fishsim", "optimize", f"fluid={fluid}",
+                              f"optimizer.methods=[{method}]", "optimizer.iterations=1", f"optimizer.popsize={popsize}",
+                              f"frames={frames}", "tunnel=true", "hold_y=true", f"out_dir={out}"],
+                             check=False, capture_output=True, text=True)
+        if run.returncode != 0:
+            return {"failed": (run.stderr.strip().splitlines() or [f"exit status {run.returncode}"])[-1]}
         summary = json.loads((Path(out) / "summary.json").read_text())[method]
     return {"wall_s": summary["wall_s"], "fish_frames": summary["fish_frames"], "J": summary["best_J"]}
 

@@ -228,20 +228,28 @@ class Swimmer:
             walls = Boundary(*(F.interpolate(x, scale_factor=r, mode="nearest") for x in (walls.mask, walls.velocity)))
         return fish, with_walls(state.q, state.qdot, self.surface, grid, self.coupling, walls, scale, band)
 
-    def tunnel_speed(self, state: SwimState, f_ext: Tensor, rho: Tensor, mass: Tensor) -> Tensor:
+    def tunnel_speed(self, state: SwimState, f_ext: Tensor, rho: Tensor, mass: Tensor, step: int) -> Tensor:
         """The swim tunnel's speed after this frame, [B, 2] (U_t+1, U_t), from the fish's x
         momentum: the fish of mass M and area A (per unit depth) swims through the water at U,
 
-            M (U_t+1 - U_t) / h = F_x,t + rho A (U_t - U_t-1) / h,
+            (M + M^) (U_t+1 - U_t) / h = F_x,t + rho A (U_t - U_t-1) / h + s M^ (U_t - U_t-1) / h,
 
-        F_x,t = sum_i f_ext,i,x the fluid's force on the held fish this frame. The last term
+        F_x,t = sum_i f_ext,i,x the fluid's force on the held fish this frame. The rho A term
         undoes the tunnel's own doing: the whole channel's water accelerates with U, and the
         pressure gradient that drives it pushes on the body with rho A dU/dt (the buoyancy of an
-        accelerating flow), a force a fish accelerating through still water does not feel."""
+        accelerating flow), a force a fish accelerating through still water does not feel. M^ is
+        the coupling's added-mass stabilisation (the nodes' extra mass summed, s the force ramp's
+        scale; fishsim.coupling.added_mass), on this rigid x mode as on a free fish's: F_x,t
+        answers the fish's acceleration of the frame before, and the fish's x added mass grows
+        as it turns broadside (sin^2 of its heading times the heave's ~9 M), so without M^ the
+        update is explicit in it: a 5 Hz fish held in y (``hold_y``), yawed past ~20 deg, made U
+        alternate with a growth of ~1.5 a frame until the run blew up (frame 348)."""
         U, U_prev = state.tunnel.unbind(-1)
         area = float(self.solid.fem.area.sum())
-        F = f_ext[..., 0].sum(1) + rho.to(U) * area * (U - U_prev) / self.h
-        return torch.stack([U + self.h * F / mass.sum(), U], -1)
+        extra = 0.0 if self.added_mass is None else float(self.added_mass.sum())
+        scale = burn_in_scale(step, self.coupling.n_burn_in)
+        F = f_ext[..., 0].sum(1) + (rho.to(U) * area + scale * extra) * (U - U_prev) / self.h
+        return torch.stack([U + self.h * F / (mass.sum() + extra), U], -1)
 
     def node_mass(self, like: Tensor) -> Tensor:
         """Lumped nodal masses [N] (kg per unit depth) as ``like``'s dtype and device."""
@@ -346,7 +354,7 @@ class Swimmer:
                                             burn_in_scale(t + 1, self.coupling.n_burn_in))
         if any(self.hold):
             q, qdot = hold_centroid(q, qdot, state.q, mass, self.hold)
-        tunnel = self.tunnel_speed(state, f_ext, params.fluid.rho, mass) if self.tunnel else None
+        tunnel = self.tunnel_speed(state, f_ext, params.fluid.rho, mass, t + 1) if self.tunnel else None
         require_finite(solid_positions_q=q, solid_velocities_qdot=qdot)
         require_sound(q, qdot, self.triangles, self.fluid.grid if self.fluid.exerts_force else None)
         if self.fluid.exerts_force:
