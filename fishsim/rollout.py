@@ -237,19 +237,21 @@ class Swimmer:
         F_x,t = sum_i f_ext,i,x the fluid's force on the held fish this frame. The rho A term
         undoes the tunnel's own doing: the whole channel's water accelerates with U, and the
         pressure gradient that drives it pushes on the body with rho A dU/dt (the buoyancy of an
-        accelerating flow), a force a fish accelerating through still water does not feel. M^ is
-        the coupling's added-mass stabilisation (the nodes' extra mass summed, s the force ramp's
-        scale; fishsim.coupling.added_mass), on this rigid x mode as on a free fish's: F_x,t
+        accelerating flow), a force a fish accelerating through still water does not feel. M^ =
+        ``coupling.added_mass_ratio`` M is the coupling's added-mass stabilisation (s the force
+        ramp's scale; fishsim.coupling.added_mass), on this rigid x mode as on a free fish's
+        (its nodes' with per-node forces, its rigid translation with averaged ones): F_x,t
         answers the fish's acceleration of the frame before, and the fish's x added mass grows
         as it turns broadside (sin^2 of its heading times the heave's ~9 M), so without M^ the
         update is explicit in it: a 5 Hz fish held in y (``hold_y``), yawed past ~20 deg, made U
         alternate with a growth of ~1.5 a frame until the run blew up (frame 348)."""
         U, U_prev = state.tunnel.unbind(-1)
         area = float(self.solid.fem.area.sum())
-        extra = 0.0 if self.added_mass is None else float(self.added_mass.sum())
-        scale = burn_in_scale(step, self.coupling.n_burn_in)
-        F = f_ext[..., 0].sum(1) + (rho.to(U) * area + scale * extra) * (U - U_prev) / self.h
-        return torch.stack([U + self.h * F / (mass.sum() + extra), U], -1)
+        M = mass.sum()
+        extra = (self.coupling.added_mass_ratio if self.fluid.exerts_force else 0.0) * M
+        F = f_ext[..., 0].sum(1) + (rho.to(U) * area + burn_in_scale(step, self.coupling.n_burn_in) * extra) * (
+            U - U_prev) / self.h
+        return torch.stack([U + self.h * F / (M + extra), U], -1)
 
     def node_mass(self, like: Tensor) -> Tensor:
         """Lumped nodal masses [N] (kg per unit depth) as ``like``'s dtype and device."""
