@@ -44,7 +44,12 @@ from fishsim.coupling import (
     united_with_nothing,
     with_walls,
 )
-from fishsim.coupling.added_mass import mass_centroid, stabilise_translation, stabilising_force
+from fishsim.coupling.added_mass import (
+    mass_centroid,
+    stabilise_translation,
+    stabilised_velocity,
+    stabilising_force,
+)
 from fishsim.coupling.config import AVERAGE, WALL
 from fishsim.coupling.forces import burn_in_scale
 from fishsim.errors import ConfigError, SimulationBlowUp
@@ -247,11 +252,10 @@ class Swimmer:
         alternate with a growth of ~1.5 a frame until the run blew up (frame 348)."""
         U, U_prev = state.tunnel.unbind(-1)
         area = float(self.solid.fem.area.sum())
-        M = mass.sum()
-        extra = (self.coupling.added_mass_ratio if self.fluid.exerts_force else 0.0) * M
-        F = f_ext[..., 0].sum(1) + (rho.to(U) * area + burn_in_scale(step, self.coupling.n_burn_in) * extra) * (
-            U - U_prev) / self.h
-        return torch.stack([U + self.h * F / (M + extra), U], -1)
+        F = f_ext[..., 0].sum(1) + rho.to(U) * area * (U - U_prev) / self.h
+        ratio = self.coupling.added_mass_ratio if self.fluid.exerts_force else 0.0
+        U_next = stabilised_velocity(U, U_prev, self.h * F / mass.sum(), ratio, burn_in_scale(step, self.coupling.n_burn_in))
+        return torch.stack([U_next, U], -1)
 
     def node_mass(self, like: Tensor) -> Tensor:
         """Lumped nodal masses [N] (kg per unit depth) as ``like``'s dtype and device."""

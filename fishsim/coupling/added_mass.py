@@ -81,6 +81,14 @@ def mass_centroid(x: Tensor, mass: Tensor) -> Tensor:
     return (x * mass[None, :, None]).sum(1, keepdim=True) / mass.sum()
 
 
+def stabilised_velocity(v: Tensor, v_prev: Tensor, dv: Tensor, ratio: float, scale: float = 1.0) -> Tensor:
+    """A rigid mode's velocity after a step whose unstabilised change is dv = h F / M, with the
+    added-mass stabilisation M^ = ratio M (module docstring): (M + M^) (v_t+1 - v_t) = h F +
+    scale M^ (v_t - v_t-1), i.e. v_t+1 = v_t + (dv + scale ratio (v_t - v_t-1)) / (1 + ratio);
+    v, v_prev: the velocities of frames t and t-1; scale: the force ramp's s. Differentiable."""
+    return v + (dv + scale * ratio * (v - v_prev)) / (1 + ratio)
+
+
 def stabilise_translation(q: Tensor, qdot: Tensor, qdot_t: Tensor, qdot_prev: Tensor, mass: Tensor,
                           ratio: float, h: float, axes: tuple[bool, bool], scale: float = 1.0) -> tuple[Tensor, Tensor]:
     """The added-mass stabilisation of the rigid translation along each axis flagged in ``axes``
@@ -94,6 +102,5 @@ def stabilise_translation(q: Tensor, qdot: Tensor, qdot_t: Tensor, qdot_prev: Te
     force (as per node).  Differentiable."""
     keep = torch.tensor(axes, dtype=q.dtype, device=q.device)
     v_new, v_t, v_prev = (mass_centroid(x, mass) for x in (qdot, qdot_t, qdot_prev))
-    target = v_t + ((v_new - v_t) + scale * ratio * (v_t - v_prev)) / (1 + ratio)
-    shift = (target - v_new) * keep
+    shift = (stabilised_velocity(v_t, v_prev, v_new - v_t, ratio, scale) - v_new) * keep
     return q + h * shift, qdot + shift
