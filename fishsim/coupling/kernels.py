@@ -219,8 +219,7 @@ def _rows_nearest(q, centres, width, segment, far, nearest, inside, unranked, fi
         y = centres[row * width, 1]
         n_cross = _row_crossings(ax, ay, abx, aby, y, crossing)
         col = 0
-        while col < width and not _inside_row(crossing, n_cross, centres[row * width + col, 0]) \
-                and _beyond(box, centres[row * width + col, 0], y, far):
+        while col < width and _cell_flags(crossing, n_cross, box, centres[row * width + col, 0], y, far)[1]:
             col += 1
         if col < width:
             x0 = centres[row * width + col, 0]
@@ -234,8 +233,7 @@ def _rows_nearest(q, centres, width, segment, far, nearest, inside, unranked, fi
         for col in range(width):
             p = row * width + col
             x0 = centres[p, 0]
-            inside[p] = _inside_row(crossing, n_cross, x0)
-            unranked[p] = not inside[p] and _beyond(box, x0, y, far)
+            inside[p], unranked[p] = _cell_flags(crossing, n_cross, box, x0, y, far)
             if unranked[p]:
                 for j in range(k):
                     nearest[p, j] = j
@@ -250,13 +248,15 @@ def _rows_nearest(q, centres, width, segment, far, nearest, inside, unranked, fi
 
 
 @jit
-def _inside_row(crossing, n_cross, x0):
-    """Whether x0 is inside the polyline on the row whose crossings are crossing[:n_cross]
-    (even-odd rule: the crossings right of x0)."""
+def _cell_flags(crossing, n_cross, box, x0, y, far):
+    """(inside, unranked) of the cell centred at (x0, y): inside the polyline by the even-odd rule
+    on its row's crossings crossing[:n_cross] (those right of x0), unranked if outside and
+    farther than sqrt(far) from every chunk of elements (``_beyond``)."""
     right = 0
     for j in range(n_cross):
         right += crossing[j] > x0
-    return right % 2 == 1
+    inside = right % 2 == 1
+    return inside, not inside and _beyond(box, x0, y, far)
 
 
 @jit
