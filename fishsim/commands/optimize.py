@@ -13,7 +13,9 @@ Each method of ``optimizer.methods`` runs into <out_dir>/<method>/:
 
 and <out_dir>/optimize.png/.svg (all methods on one figure, against iterations and fish-frames),
 <out_dir>/summary.json. Every file is rewritten atomically after each iteration, so a run killed
-at any point keeps everything up to its last completed iteration and continues from there.
+at any point keeps everything up to its last completed iteration and continues from there; the
+figure (1-2 s of drawing) after the first iteration, then at most every PLOT_EVERY_S seconds,
+and after each method's last iteration.
 """
 
 from __future__ import annotations
@@ -43,6 +45,8 @@ from fishsim.optimize.problem import Problem, Space
 from fishsim.render.plots import plot_optimisation_history
 from fishsim.resources import announce_time, check_time
 
+PLOT_EVERY_S = 30.0     # the history figure is redrawn at most this often during a method's run [s]
+
 
 def run(cfg: OptimizeConfig) -> dict:
     """Run every method, write the outputs, print the summary; return it."""
@@ -53,20 +57,24 @@ def run(cfg: OptimizeConfig) -> dict:
     console = Console(stderr=True)
     histories: dict[str, list[dict]] = {}
     x0 = problem.initial_x()
+    plotted = [-math.inf]                              # time.monotonic() of the last figure
 
-    def report(method: str, rows: list[dict]) -> dict:
-        """After every iteration: the method's best.yaml, the plot and summary.json of all so far."""
+    def report(method: str, rows: list[dict], last: bool = False) -> dict:
+        """After every iteration: the method's best.yaml and summary.json of all so far; the
+        figure too when it is the method's last iteration or PLOT_EVERY_S have passed."""
         histories[method] = rows
         _write_best(cfg, space, rows, out_dir / method / "best.yaml")
         summary = {m: _summary(r, space, x0) for m, r in histories.items()}
-        _plot(histories, space, cfg, out_dir / "optimize")
+        if last or time.monotonic() - plotted[0] >= PLOT_EVERY_S:
+            _plot(histories, space, cfg, out_dir / "optimize")
+            plotted[0] = time.monotonic()
         atomic_text(out_dir / "summary.json", json.dumps(summary, indent=2))
         return summary
 
     summary = {}
     for method in cfg.optimizer.methods:
         summary = report(method, optimise(problem, cfg, method, out_dir / method, console,
-                                          on_iteration=lambda rows, m=method: report(m, rows)))
+                                          on_iteration=lambda rows, m=method: report(m, rows)), last=True)
     _print(summary, space, cfg)
     Console().print(f"outputs: {out_dir}/ (per method: history.h5, history.csv, best.yaml; plot: optimize.png)")
     return summary
