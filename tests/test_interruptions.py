@@ -14,10 +14,10 @@ from pathlib import Path
 import pytest
 import torch
 
-ITERATIONS = 200
+ITERATIONS = 100
 TINY = ["batch_size=2", "net.hidden=4", "net.depth=2", "pool.size=4", "pool.H=16", "pool.W=32",
-        "pool.fish_length=[0.04,0.05]", "pool.obstacle_cells=[2,3]", "val_every=50", "val_scenes=2", "val_steps=4",
-        "threads=1", "compile_loss=false", "progress=false", "log_every=1", "ckpt_every=50",
+        "pool.fish_length=[0.04,0.05]", "pool.obstacle_cells=[2,3]", "val_every=25", "val_scenes=2", "val_steps=4",
+        "threads=1", "compile_loss=false", "progress=false", "log_every=1", "ckpt_every=25",
         f"iterations={ITERATIONS}"]
 ENV = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
 
@@ -53,12 +53,12 @@ def uninterrupted(tmp_path_factory) -> dict:
 def test_a_resumed_run_equals_an_uninterrupted_one(tmp_path, uninterrupted, sig, code):
     out = tmp_path / "run"
     proc = _train(out)
-    _wait_for_rows(out / "log.csv", 60, proc)               # past the first periodic checkpoint (50)
+    _wait_for_rows(out / "log.csv", 35, proc)               # past the first periodic checkpoint (25)
     proc.send_signal(sig)
     got, text = _finish(proc)
     assert got == code, text[-2000:]
     stopped = torch.load(out / "ckpt.pt", weights_only=False)["iteration"]
-    assert 50 <= stopped < ITERATIONS
+    assert 25 <= stopped < ITERATIONS
     said = text
     got, text = _finish(_train(out, "resume=true"))
     assert got == 0, text[-2000:]
