@@ -1,6 +1,7 @@
 """The source-keyed numba cache (fishsim.compiled): a cached compiled function is re-compiled when
 a compiled function it calls from another file changes, which numba's own per-file stamp misses."""
 
+import os
 import subprocess
 import sys
 import textwrap
@@ -27,7 +28,10 @@ def _package(tmp_path, scale: float) -> None:
 
 
 def _run(tmp_path) -> float:
-    out = subprocess.run([sys.executable, "-c", RUN, str(tmp_path)], capture_output=True, text=True, check=True)
+    """twice(1.0) in a fresh process, its cache beside the package (whatever NUMBA_CACHE_DIR says)."""
+    env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
+    out = subprocess.run([sys.executable, "-c", RUN, str(tmp_path)], capture_output=True, text=True, check=True,
+                         env=env)
     return float(out.stdout)
 
 
