@@ -2,9 +2,10 @@
 Newton and PD matrices, the pressure recovery's Poisson matrix).
 
 The fish is long and thin, so after a reverse Cuthill-McKee reordering its FEM matrices are
-narrow bands: the default mesh's 2362 x 2362 Newton matrix has half-bandwidth w = 39. A banded
-Cholesky K = L L^T then costs n w^2 to factor and 4 n w to solve, against SuperLU's general
-sparse LU (default mesh, one thread: factor 0.84 vs 8.6 ms, solve 0.12 vs 0.57 ms).
+narrow bands: the default mesh's 3606 x 3606 Newton matrix has half-bandwidth w = 41 (1.2 ms to
+factor on one thread, 2026-11-30). A banded Cholesky K = L L^T costs n w^2 to factor and 4 n w to
+solve, against SuperLU's general sparse LU (the former 1181-node mesh, w = 39, one thread: factor
+0.84 vs 8.6 ms, solve 0.12 vs 0.57 ms).
 
 The factor and the triangular solves (`factor`, `solve`) are compiled, written once for one
 matrix (floats) and for eight of one pattern in the lanes of a SIMD vector (simd.py's
