@@ -94,11 +94,11 @@ class PDOptions:
     refresh_iterations: see 'lagged_newton'. 8: a refactorisation costs less than the
         iterations a staler factor adds; with the rollout's predicted start B = 1 takes ~10
         iterations per step (B >= 4 runs in packs, which refactorise every step). On the default
-        fish (1803 nodes, half-bandwidth 41) a refactorisation costs ~3.5 ms, as much as ~10
-        iterations: its exact Newton matrix is mostly indefinite while it swims, so the banded
-        Cholesky (1.2 ms, the assembly 0.4 ms) runs twice, on the exact then the projected
-        matrix. Measured (a 90-frame 5 Hz episode, the solid's ms a frame, two runs each): 8:
-        10.1-11.3, 16: 9.1-10.3, 32: 13.7-13.9, never: 133-143.
+        fish (1803 nodes, half-bandwidth 41) a refactorisation assembles (0.4 ms) and factorises
+        (1.2 ms) the exact Newton matrix, and again its projection where that is indefinite (at
+        35 of a 5 Hz episode's first 150 steps): 1.6-3.5 ms, as much as 5-10 iterations.
+        Measured (a 90-frame 5 Hz episode, the solid's ms a frame, two runs each): 8: 10.1-11.3,
+        16: 9.1-10.3, 32: 13.7-13.9, never: 133-143.
     """
 
     atol: float = 1e-8
