@@ -57,18 +57,20 @@ def run(cfg: OptimizeConfig) -> dict:
     console = Console(stderr=True)
     histories: dict[str, list[dict]] = {}
     x0 = problem.initial_x()
-    plotted = -math.inf                                # time.monotonic() of the last figure
+    plotted, drawn = -math.inf, {}                     # time.monotonic() of the last figure, its iterations
 
     def report(method: str, rows: list[dict], last: bool = False) -> dict:
         """After every iteration: the method's best.yaml and summary.json of all so far; the
-        figure too when it is the method's last iteration or PLOT_EVERY_S have passed."""
-        nonlocal plotted
+        figure too, unless it already shows them, when it is the method's last iteration or
+        PLOT_EVERY_S have passed."""
+        nonlocal plotted, drawn
         histories[method] = rows
         _write_best(cfg, space, rows, out_dir / method / "best.yaml")
         summary = {m: _summary(r, space, x0) for m, r in histories.items()}
-        if last or time.monotonic() - plotted >= PLOT_EVERY_S:
+        shown = {m: len(r) for m, r in histories.items()}
+        if shown != drawn and (last or time.monotonic() - plotted >= PLOT_EVERY_S):
             _plot(histories, space, cfg, out_dir / "optimize")
-            plotted = time.monotonic()
+            plotted, drawn = time.monotonic(), shown
         atomic_text(out_dir / "summary.json", json.dumps(summary, indent=2))
         return summary
 
