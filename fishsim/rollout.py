@@ -45,10 +45,13 @@ from fishsim.coupling import (
     with_walls,
 )
 from fishsim.coupling.added_mass import (
+    aitken_relaxed,
+    body_axis,
     mass_centroid,
     stabilise_translation,
     stabilised_velocity,
     stabilising_force,
+    surge_without_stabilisation,
 )
 from fishsim.coupling.config import AVERAGE, WALL
 from fishsim.coupling.forces import burn_in_scale
@@ -348,10 +351,11 @@ class Swimmer:
         stabilising = self.added_mass_force(state.qdot, state.qdot_prev, t + 1)
         q, qdot = pd_step(self.solid, state.q, state.qdot, contraction, f_ext + stabilising,
                           params.E, start=solid_start, muscle_weight=weight, cache=cache)
+        relax = None
         for _ in range(1, self.coupling.subiterations if self.fluid.exerts_force else 1):
             clock.add("solid", t0, dev)
-            fluid, f_ext, boundary, q, qdot = self.subiterate(state, q, qdot, params, t, contraction, weight, mass,
-                                                              cache, clock)
+            fluid, f_ext, boundary, q, qdot, relax = self.subiterate(state, q, qdot, params, t, contraction, weight,
+                                                                     mass, cache, clock, relax)
             t0 = time.perf_counter()
         if self.fluid.exerts_force and self.coupling.force_mode == AVERAGE and state.qdot_prev is not None:
             free = (not self.hold[0], not self.hold[1])
@@ -370,25 +374,30 @@ class Swimmer:
 
     def subiterate(self, state: SwimState, q: Tensor, qdot: Tensor, params: SwimParams, t: int,
                    contraction: Tensor, weight: Tensor | None, mass: Tensor, cache: SolverCache | None,
-                   clock: PhaseTimer) -> tuple[FluidState, Tensor, Boundary, Tensor, Tensor]:
+                   clock: PhaseTimer, relax: tuple[Tensor, Tensor] | None
+                   ) -> tuple[FluidState, Tensor, Boundary, Tensor, Tensor, tuple[Tensor, Tensor]]:
         """One more pass of the frame's exchange (``coupling.subiterations``): the fluid stepped
         again from frame t with the body at the estimate (q, qdot) of frame t+1, then the solid
-        from frame t with that force F_k and the stabilisation's M^ (qdot - qdot_t) / h:
+        from frame t with that force F_k and the stabilisation's M^ (qdot - qdot_t) / h,
 
-            (M + M^) a_k+1 = F(body_k) + M^ a_k,    a_k = (qdot_k - qdot_t) / h,
+            (M + M^) a~ = F(body_k) + M^ a_k,    a_k = (qdot_k - qdot_t) / h,
 
-        whose fixed point M a = F(body_t+1) does not contain M^ (per mode the passes contract by
-        |M^ - M_a| / (M + M^)). Returns (fluid state, F_k [B, N, 2], the boundary it saw, q,
-        qdot)."""
+        whose fixed point M a = F(body_t+1) does not contain M^; the pass's velocities are then
+        relaxed by Aitken's factor and their surge set without M^ (fishsim.coupling.added_mass:
+        ``aitken_relaxed``, ``surge_without_stabilisation``), and q = q_t + h qdot.  ``relax``:
+        the relaxation's memory from the frame's pass before (None at its first).  Returns (fluid
+        state, F_k [B, N, 2], the boundary it saw, q, qdot, the relaxation's memory)."""
         estimate = SwimState(q, qdot, state.fluid, state.qdot, state.tunnel)
         fish, boundary = self.fish_and_boundary(estimate, alone=self.coupling.force == "exchange")
         fluid, f_ext = self.fluid_step(estimate, fish, boundary, params, t, None, mass, clock)
         t0, dev = time.perf_counter(), q.device
         stabilising = self.added_mass_force(qdot, state.qdot, t + 1)
-        q, qdot = pd_step(self.solid, state.q, state.qdot, contraction, f_ext + stabilising, params.E, start=q,
-                          muscle_weight=weight, cache=cache)
+        _, qdot_pass = pd_step(self.solid, state.q, state.qdot, contraction, f_ext + stabilising, params.E, start=q,
+                               muscle_weight=weight, cache=cache)
+        qdot, relax = aitken_relaxed(qdot, qdot_pass, relax)
+        qdot = surge_without_stabilisation(qdot, state.qdot, f_ext, body_axis(state.q, mass), mass, self.h)
         clock.add("solid", t0, dev)
-        return fluid, f_ext, boundary, q, qdot
+        return fluid, f_ext, boundary, state.q + self.h * qdot, qdot, relax
 
 
 def hold_centroid(q: Tensor, qdot: Tensor, q_prev: Tensor, mass: Tensor, axes: tuple[bool, bool]) -> Tensor:
