@@ -70,6 +70,6 @@ def test_a_knob_deleted_on_the_command_line_stays_deleted():
     must not come back over the composed config (they did: the deletion was silently ignored)."""
     knobs = load_config("validate", ["suite=convergence", "~convergence.knobs.substeps",
                                      "~convergence.knobs.frame_step"]).convergence.knobs
-    assert sorted(knobs) == ["grid", "grid_short", "kernel", "penalization"]
+    assert sorted(knobs) == ["coupling_passes", "grid", "grid_short", "kernel", "penalization"]
     assert isinstance(knobs["grid"], Knob) and knobs["grid"].values == [1, 2]
     assert "substeps" in load_config("validate", ["suite=convergence"]).convergence.knobs

@@ -20,8 +20,8 @@ argmax, mean mismatch (mm and cells) and runtimes; metrics.json, a printed table
 displacement against frequency (swim.png/.svg).
 
 suite=convergence: the same study against each numerical knob of the reference (sub-steps,
-penalisation iterations, the IBM kernel, the grid, the frame step h over the same duration;
-``fishsim.swim_study.convergence_study``):
+penalisation iterations, the IBM kernel, the grid, the frame step h over the same duration,
+the coupling's passes a frame, explicit against converged; ``fishsim.swim_study.convergence_study``):
 displacement and mean thrust per setting, observed orders, Richardson estimates and the
 defaults' errors; metrics.json, a table and convergence.png/.svg.
 """
