@@ -354,8 +354,8 @@ class Swimmer:
         relax = None
         for _ in range(1, self.coupling.subiterations if self.fluid.exerts_force else 1):
             clock.add("solid", t0, dev)
-            fluid, f_ext, boundary, q, qdot, relax = self.subiterate(state, q, qdot, params, t, contraction, weight,
-                                                                     mass, cache, clock, relax)
+            fluid, f_ext, boundary, q, qdot, relax = self.subiterate(state, q, qdot, fluid, params, t, contraction,
+                                                                     weight, mass, cache, clock, relax)
             t0 = time.perf_counter()
         if self.fluid.exerts_force and self.coupling.force_mode == AVERAGE and state.qdot_prev is not None:
             free = (not self.hold[0], not self.hold[1])
@@ -372,7 +372,7 @@ class Swimmer:
         clock.add("solid", t0, dev)
         return SwimState(q, qdot, fluid, state.qdot, tunnel), FrameOutput(f_ext, contraction, boundary)
 
-    def subiterate(self, state: SwimState, q: Tensor, qdot: Tensor, params: SwimParams, t: int,
+    def subiterate(self, state: SwimState, q: Tensor, qdot: Tensor, fluid: FluidState, params: SwimParams, t: int,
                    contraction: Tensor, weight: Tensor | None, mass: Tensor, cache: SolverCache | None,
                    clock: PhaseTimer, relax: tuple[Tensor, Tensor] | None
                    ) -> tuple[FluidState, Tensor, Boundary, Tensor, Tensor, tuple[Tensor, Tensor]]:
@@ -382,14 +382,16 @@ class Swimmer:
 
             (M + M^) a~ = F(body_k) + M^ a_k,    a_k = (qdot_k - qdot_t) / h,
 
-        whose fixed point M a = F(body_t+1) does not contain M^; the pass's velocities are then
+        whose fixed point M a = F(body_t+1) does not contain M^ (the fluid's iterative solves start
+        from ``fluid``, the pass before's state of frame t+1); the pass's velocities are then
         relaxed by Aitken's factor and their surge set without M^ (fishsim.coupling.added_mass:
         ``aitken_relaxed``, ``surge_without_stabilisation``), and q = q_t + h qdot.  ``relax``:
         the relaxation's memory from the frame's pass before (None at its first).  Returns (fluid
         state, F_k [B, N, 2], the boundary it saw, q, qdot, the relaxation's memory)."""
         estimate = SwimState(q, qdot, state.fluid, state.qdot, state.tunnel)
         fish, boundary = self.fish_and_boundary(estimate, alone=self.coupling.force == "exchange")
-        fluid, f_ext = self.fluid_step(estimate, fish, boundary, params, t, None, mass, clock)
+        fluid, f_ext = self.fluid_step(estimate, fish, boundary, params, t, dataclasses.replace(estimate, fluid=fluid),
+                                       mass, clock)
         t0, dev = time.perf_counter(), q.device
         stabilising = self.added_mass_force(qdot, state.qdot, t + 1)
         _, qdot_pass = pd_step(self.solid, state.q, state.qdot, contraction, f_ext + stabilising, params.E, start=q,

@@ -454,8 +454,9 @@ class NumericalFluid:
         """(a_t, p_t, b_t, v_d,t) -> (a_t+1, p_t+1); p_t is not needed by a projection method.
         The new state's ``solves`` are the joint stages' potentials [B, 2 n_max, rH, rW] (stage
         1 and 2 of each sub-step; None with the split passes, whose solves are direct);
-        ``start``: this step's result from the same inputs, whose ``solves`` start the joint
-        stages' PCG (a recomputation's solves then take no iteration)."""
+        ``start``: this step's result from the same or nearby inputs (a recomputation; the
+        coupling's pass before), whose ``solves`` start the joint stages' PCG (a recomputation's
+        solves then take no iteration)."""
         return self.step_with_diagnostics(state, boundary, params, start)[0]
 
     # -- the step ------------------------------------------------------------------------------
@@ -519,7 +520,8 @@ class NumericalFluid:
                   guess: Tensor | None = None):
         """The step's sub-steps as torch formulas, sample b stopping after its own n_b; returns (v',
         sum of the sub-steps' pressure potentials, of their penalisation increments, the joint
-        stages' potentials [B, 2 n_max, H, W] or None). ``guess``: the stages' starts (``step``)."""
+        stages' potentials [B, 2 n_max, H, W] or None). ``guess``: the stages' starts (``step``;
+        any field is a valid start: a step of fewer sub-steps gives its own)."""
         p_sum, pen_sum, solves = 0.0, (0.0, 0.0), []
         n_min, n_max = int(n.min()), int(n.max())
         last, precondition = None, None
@@ -527,7 +529,8 @@ class NumericalFluid:
             weights = tuple(c.detach() for c in immersion_weights(b, self.stiffness * dt))
             precondition = SchwarzPreconditioner(weights, self.fine.dx)
         for i in range(n_max):
-            starts = (last, None) if guess is None else (guess[:, 2 * i, None], guess[:, 2 * i + 1, None])
+            known = guess is not None and 2 * i + 1 < guess.shape[1]    # a guess from fewer sub-steps: the rest start as usual
+            starts = (guess[:, 2 * i, None], guess[:, 2 * i + 1, None]) if known else (last, None)
             new, phi, pen, stages = self._substep(v, b, v_d, nu, dt, starts, precondition)
             last = stages[1]
             if i >= n_min:                            # samples past their own count keep their state
