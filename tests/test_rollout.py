@@ -347,7 +347,8 @@ def test_subiterations_take_the_stabilisation_ratio_out_of_the_answer():
 
 
 def test_subiterations_need_the_stabilised_per_node_coupling():
-    for bad in (["coupling.subiterations=0"], ["coupling.subiterations=3", "coupling.added_mass_ratio=0"],
+    for bad in (["coupling.subiterations=0"], ["coupling.subiterations=2"],
+                ["coupling.subiterations=3", "coupling.added_mass_ratio=0"],
                 ["coupling.subiterations=3", "coupling.force_mode=average"]):
         with pytest.raises(ConfigError, match="coupling.subiterations"):
             load_config("simulate", bad)

@@ -71,11 +71,12 @@ class CouplingConfig:
         frame t+1 and re-solves the solid with M^ (qdot_k - qdot_t) / h in place of M^ a_t
         (fishsim.rollout.Swimmer.subiterate): the fixed point M a = F(body_t+1) no longer
         contains M^, whose lag moves the explicit coupling's 7 Hz fish by ~1.2 % per unit of
-        the ratio (docs/validation.md, "The frame step"). Each pass costs a fluid step and a
-        solid step; with the split passes (fluid.implicit=false) they converge slowly (on the
-        frequency study at ratio 7, 2-4 passes are worse than 1 and 8 still move by ~2 % from
-        6), with the default joint stage they do not settle within 16 (the 7 Hz fish, 60
-        frames, ratios 6 / 8: 0.42 % apart explicit, 0.40 % at 8 passes, 0.56 % at 16);
+        the ratio (docs/validation.md, "The frame step"). Each pass's velocities are relaxed by
+        Aitken's factor, their surge set without M^ (fishsim.coupling.added_mass), and its fluid
+        solves start from the pass before's: 6 passes settle the frequency study to < 1 % (7 Hz
+        fish, 60 frames: 45.26 / 45.13 mm at 6 / 8) at 4.1-4.6x the explicit frame's cost; 3
+        passes are 9 % off there and 2 unstable (refused; docs/validation.md, "Sub-iterations
+        that settle"). Plain passes (before 2026-11-30) did not settle within 16;
         per-node forces and added_mass_ratio > 0 only.
     k_nearest: surface elements kept per cell (their soft-min is tapered to zero at the
         (K + 1)-th, fishsim.coupling.mask.softmin_weights). On the default graded fish (292
@@ -120,6 +121,9 @@ class CouplingConfig:
             raise ConfigError(f"coupling.added_mass_ratio must be >= 0, got {self.added_mass_ratio}")
         if not 1 <= self.subiterations <= 32:
             raise ConfigError(f"coupling.subiterations must be in [1, 32], got {self.subiterations}")
+        if self.subiterations == 2:     # measured: the 7 Hz fish drifted 37 mm sideways in 60 frames
+            raise ConfigError("coupling.subiterations=2 is unstable (one unconverged pass is a scheme of its own): "
+                              "use 1 (explicit) or 6 (converged within the frame)")
         if self.subiterations > 1 and (self.force_mode != PER_NODE or not self.added_mass_ratio > 0):
             raise ConfigError("coupling.subiterations > 1 needs coupling.force_mode=per_node and "
                               "coupling.added_mass_ratio > 0 (the passes converge through the stabilisation)")
