@@ -97,7 +97,8 @@ def _knobs() -> dict[str, Knob]:
             "kernel": Knob("coupling.sigma_prime", [2.5e-5, 1.25e-5, 6.25e-6], 6.25e-6, finer="down"),
             "grid": Knob("fluid.refinement", [1, 2], 1),
             "grid_short": Knob("fluid.refinement", [1, 2, 4], 1, frames=30),
-            "frame_step": Knob("h", [0.01, 0.005, 0.0025], 0.01, finer="down")}
+            "frame_step": Knob("h", [0.01, 0.005, 0.0025], 0.01, finer="down"),
+            "coupling_passes": Knob("coupling.subiterations", [1, 8], 1)}
 
 
 @dataclass
