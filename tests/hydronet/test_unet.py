@@ -83,6 +83,28 @@ def test_step_is_differentiable(grid, tiny_net):
     assert not any(w.requires_grad for w in fluid.model.parameters())
 
 
+def test_a_batch_steps_in_chunks_each_sample_as_alone(grid, tiny_net):
+    """A batch of more samples than ``CHUNK`` is evaluated chunk by chunk: every sample's step,
+    and its gradient, is the one it has in a batch of its own (the symmetric step: 2 B samples)."""
+    from fishsim.fluid.hydronet import unet
+
+    torch.manual_seed(0)
+    fluid = HydroNetFluid(HydroNet(tiny_net), grid)
+    B = unet.CHUNK + 1
+    state, boundary = _random_inputs(grid, batch=B)
+    vd = boundary.velocity.clone().requires_grad_()
+    new = fluid.step(state, Boundary(boundary.mask, vd), paper_params(B))
+    new.a.square().sum().backward()
+    last = slice(B - 1, B)
+    vd_alone = boundary.velocity[last].clone().requires_grad_()
+    alone = fluid.step(FluidState(state.a[last], state.p[last]), Boundary(boundary.mask[last], vd_alone),
+                       paper_params(1))
+    alone.a.square().sum().backward()
+    torch.testing.assert_close(new.a[last], alone.a, rtol=1e-6, atol=0)
+    torch.testing.assert_close(new.p[last], alone.p, rtol=1e-6, atol=1e-6 * float(alone.p.abs().max()))
+    torch.testing.assert_close(vd.grad[last], vd_alone.grad, rtol=1e-5, atol=1e-6 * float(vd_alone.grad.abs().max()))
+
+
 def test_symmetric_step_is_equivariant_under_the_y_reflection(grid, tiny_net):
     """symmetric=True: the step of the mirrored tank is the mirrored step (to round-off), which the
     network alone is not; mirroring twice is the identity, and the mirror keeps v_x and flips v_y."""

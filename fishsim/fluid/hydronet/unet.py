@@ -228,6 +228,16 @@ def inference_copy(model: HydroNet) -> HydroNet:
     return fused.requires_grad_(False)
 
 
+CHUNK = 4
+"""The most samples ``HydroNetFluid.step`` passes the network at once (a batch of B fish is 2B
+samples with the symmetric step); a chunk's result is the same bits as the whole batch's. Its
+activations (~50 MB a sample in a graph) then stay near the cache: on the paper's grid, two
+threads, the shipped U-Net, 32 samples (2026-12-01), forward + backward took 17.0-18.7 ms a sample
+in chunks of 2-8 against 36.7 ms in one call, and a B = 16 episode (30 frames,
+``benchmarks.bench_rollout.episode_timing``) 23.1 / 39.3 ms a fish and frame forward / backward
+in chunks of 4, 22.4 / 43.2 in chunks of 8, 23.7 / 48.5 in chunks of 16, 33.0 / 94.9 whole."""
+
+
 class HydroNetFluid:
     """``FluidModel`` backed by a trained ``HydroNet``, run as its ``inference_copy`` (eval mode:
     BatchNorm uses running stats, folded into the convolutions).
@@ -288,7 +298,7 @@ class HydroNetFluid:
                            for x, y in zip(inputs, mirrored(*inputs)))
             rho, mu = (per_sample(q, state.a).reshape(-1).expand(B).repeat(2) for q in (rho, mu))
         with torch.autocast(dev, dtype=torch.bfloat16, enabled=self.bf16):
-            a, p = self.model(*inputs, rho, mu, self.grid.dx, params.h)
+            a, p = self._evaluate(inputs, rho, mu, params.h)
         if self.symmetric:
             (a, a_m), (p, p_m) = a.chunk(2), p.chunk(2)
             a_back, p_back = mirrored(a_m, p_m, None, None)[:2]
@@ -299,3 +309,13 @@ class HydroNetFluid:
                                  params.mu, params.h, self.grid, self.recovery,
                                  start=state.p if start is None else start.p)
         return FluidState(a=a, p=p)
+
+    def _evaluate(self, inputs: tuple[Tensor, ...], rho: Tensor, mu: Tensor, h: float) -> tuple[Tensor, Tensor]:
+        """The network on (a, p, b, v_d) [N, ...] (rho, mu: scalars or [N]) in chunks of at most
+        ``CHUNK`` samples, each chunk's graph its own; returns (a, p) [N, ...]."""
+        n = max(x.shape[0] for x in inputs)
+        if n <= CHUNK:
+            return self.model(*inputs, rho, mu, self.grid.dx, h)
+        part = lambda q, i: q[i:i + CHUNK] if torch.is_tensor(q) and q.ndim and q.shape[0] == n else q
+        chunks = [self.model(*(part(x, i) for x in (*inputs, rho, mu)), self.grid.dx, h) for i in range(0, n, CHUNK)]
+        return tuple(torch.cat(q) for q in zip(*chunks))
