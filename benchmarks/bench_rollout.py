@@ -5,7 +5,8 @@ with its solid / fluid / coupling split, backward, peak memory) and B = 16 (time
 frame, over ``FISHSIM_BENCH_FRAMES_B16`` = 30 frames), for each fluid model; plus the distance
 travelled in 1.2 s at 3-7 Hz (the paper's Fig. 4 in preview, free swimming), and the peak memory of
 a ``FISHSIM_BENCH_FRAMES_LONG`` = 500-frame HydroNet episode (checkpointed every 10 frames), the
-HydroNet B = 1 episode with its bfloat16 trunk (``fluid.bf16=true``), and with the recovered
+HydroNet episodes (B = 1 and 16) and optimiser units with its bfloat16 trunk (``fluid.bf16=true``;
+fast only on a CPU with bf16 instructions, AMX or AVX512-BF16), and with the recovered
 pressure instead of the network's own (``fluid.pressure=recovered``: timing and distances); and
 for each fluid the optimisers' unit of work as ``fishsim optimize`` runs it (issue 21): an Adam
 iteration of the paper's 500 frames (B = 1, forward + backward) and a CMA-ES generation of 16 fish
@@ -184,9 +185,9 @@ def optimizer_timing(fluid: str, method: str, frames: int = FRAMES_LONG, popsize
     swim tunnel with the centroid's y held (as the paper holds its fish: over 500 frames a free
     fish may turn into the tank's side wall, HydroNet's at frame 415), as a user runs it (a fresh
     process): its wall time as the optimiser reports it, and J; or, if the run failed, its
-    error's last line."""
+    error's last line. ``fluid``: a fluid model or a ``VARIANTS`` key."""
     with tempfile.TemporaryDirectory() as out:
-        run = subprocess.run([sys.executable, "-m", "fishsim", "optimize", f"fluid={fluid}",
+        run = subprocess.run([sys.executable, "-m", "fishsim", "optimize", *VARIANTS.get(fluid, [f"fluid={fluid}"]),
                               f"optimizer.methods=[{method}]", "optimizer.iterations=1", f"optimizer.popsize={popsize}",
                               f"frames={frames}", "tunnel=true", "hold_y=true", f"out_dir={out}"],
                              check=False, capture_output=True, text=True)
@@ -221,7 +222,10 @@ def run() -> dict:
                       f"CMA-ES generation, 16 x {FRAMES_LONG} frames": optimizer_timing(fluid, "cma")}
     out["hydronet"][f"B=1, {FRAMES_LONG} frames"] = _recorded(episode_timing, "hydronet", 1, FRAMES_LONG)
     out["hydronet-network-alone"] = {"B=1": _recorded(episode_timing, "hydronet-network-alone", 1, FRAMES)}
-    out["hydronet-bf16"] = {"B=1": _recorded(episode_timing, "hydronet-bf16", 1, FRAMES)}
+    out["hydronet-bf16"] = {"B=1": _recorded(episode_timing, "hydronet-bf16", 1, FRAMES),
+                            "B=16": _recorded(episode_timing, "hydronet-bf16", 16, FRAMES_B16),
+                            f"Adam iteration, {FRAMES_LONG} frames": optimizer_timing("hydronet-bf16", "adam"),
+                            f"CMA-ES generation, 16 x {FRAMES_LONG} frames": optimizer_timing("hydronet-bf16", "cma")}
     out["hydronet-recovered-pressure"] = {"B=1": _recorded(episode_timing, "hydronet-recovered-pressure", 1, FRAMES),
                                           "distance_1.2s_m": _recorded(distance_sweep, "hydronet-recovered-pressure")}
     return out
