@@ -18,17 +18,23 @@ SUITES = ["bench_solid", "bench_fluid", "bench_hydronet", "bench_rollout", "benc
 HERE = Path(__file__).parent
 
 
+VECTOR_FLAGS = ("avx2", "avx512f", "avx512_bf16", "amx_bf16")
+"""The CPU features the timings depend on most: the solid's packs (AVX-512: one register a pack)
+and HydroNet in bf16 (~2x faster than fp32 with AVX512-BF16 or AMX, ~10x slower without)."""
+
+
 def machine() -> dict:
-    """What the numbers were measured on."""
-    cpu = platform.processor() or platform.machine()
+    """What the numbers were measured on (the CPU, its vector features among VECTOR_FLAGS)."""
+    fields = {}
     try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
+        for line in Path("/proc/cpuinfo").read_text().splitlines():     # the first core's
+            key, _, value = line.partition(":")
+            fields.setdefault(key.strip(), value.strip())
     except OSError:
         pass
-    return {"cpu": cpu, "torch_threads": torch.get_num_threads(), "numba_threads": numba.get_num_threads(),
+    cpu, flags = fields.get("model name") or platform.processor() or platform.machine(), set(fields.get("flags", "").split())
+    return {"cpu": cpu, "cpu_features": [f for f in VECTOR_FLAGS if f in flags],
+            "torch_threads": torch.get_num_threads(), "numba_threads": numba.get_num_threads(),
             "torch": torch.__version__,
             "cuda": torch.cuda.get_device_name() if torch.cuda.is_available() else None,
             "date": time.strftime("%Y-%m-%d %H:%M")}
