@@ -229,8 +229,9 @@ def inference_copy(model: HydroNet) -> HydroNet:
 
 
 CHUNK = 4
-"""The most samples ``HydroNetFluid.step`` passes the network at once (a batch of B fish is 2B
-samples with the symmetric step); a chunk's result is the same bits as the whole batch's. Its
+"""The most samples ``HydroNetFluid.step`` passes the network at once on the CPU (a batch of B
+fish is 2B samples with the symmetric step); a chunk's result is the same bits as the whole
+batch's. Its
 activations (~50 MB a sample in a graph) then stay near the cache: on the paper's grid, two
 threads, the shipped U-Net, 32 samples (2026-12-01), forward + backward took 17.0-18.7 ms a sample
 in chunks of 2-8 against 36.7 ms in one call, and a B = 16 episode (30 frames,
@@ -311,10 +312,11 @@ class HydroNetFluid:
         return FluidState(a=a, p=p)
 
     def _evaluate(self, inputs: tuple[Tensor, ...], rho: Tensor, mu: Tensor, h: float) -> tuple[Tensor, Tensor]:
-        """The network on (a, p, b, v_d) [N, ...] (rho, mu: scalars or [N]) in chunks of at most
-        ``CHUNK`` samples, each chunk's graph its own; returns (a, p) [N, ...]."""
+        """The network on (a, p, b, v_d) [N, ...] (rho, mu: scalars or [N]), on the CPU in chunks
+        of at most ``CHUNK`` samples, each chunk's graph its own (a GPU takes the batch whole);
+        returns (a, p) [N, ...]."""
         n = max(x.shape[0] for x in inputs)
-        if n <= CHUNK:
+        if n <= CHUNK or inputs[0].device.type != "cpu":
             return self.model(*inputs, rho, mu, self.grid.dx, h)
         part = lambda q, i: q[i:i + CHUNK] if torch.is_tensor(q) and q.ndim and q.shape[0] == n else q
         chunks = [self.model(*(part(x, i) for x in (*inputs, rho, mu)), self.grid.dx, h) for i in range(0, n, CHUNK)]
