@@ -230,3 +230,25 @@ def test_cuda_matches_cpu(grid, tiny_net):
         FluidState(state.a.cuda(), state.p.cuda()), Boundary(boundary.mask.cuda(), boundary.velocity.cuda()),
         FluidParams(params.rho.cuda(), params.mu.cuda(), params.h))
     torch.testing.assert_close(out.a.cpu(), ref.a, rtol=1e-3, atol=1e-8)
+
+
+def test_bf16_on_a_cpu_without_bf16_instructions_warns(tmp_path, monkeypatch, capsys):
+    """``cpu_has_bf16`` reads AMX's or AVX512-BF16's flag; ``fluid.bf16=true`` on a CPU with
+    neither (bf16 ~10x slower than float32 there) prints one warning line, and none with either
+    or on a GPU."""
+    from fishsim.fluid import factory
+    from fishsim.fluid.hydronet import config
+
+    files = {name: tmp_path / name for name in ("amx", "avx512", "avx2")}
+    files["amx"].write_text("processor\t: 0\nflags\t\t: fpu sse avx2 avx512f amx_bf16 amx_tile\n")
+    files["avx512"].write_text("processor\t: 0\nflags\t\t: fpu sse avx2 avx512f avx512_bf16\n")
+    files["avx2"].write_text("processor\t: 0\nflags\t\t: fpu sse avx2 fma\n")
+    has_bf16 = config.cpu_has_bf16
+    assert has_bf16(str(files["amx"])) and has_bf16(str(files["avx512"]))
+    assert not has_bf16(str(files["avx2"])) and not has_bf16(str(tmp_path / "missing"))
+    for name, warns in (("avx2", True), ("avx512", False)):
+        monkeypatch.setattr(config, "cpu_has_bf16", lambda path=str(files[name]): has_bf16(path))
+        assert factory.warn_slow_bf16("cpu") is warns
+        err = capsys.readouterr().err
+        assert ("fluid.bf16=true" in err) is warns and err.count("\n") == int(warns)
+    assert factory.warn_slow_bf16("cuda") is False
