@@ -10,7 +10,7 @@ from collections.abc import Callable
 import typer
 from typer.core import TyperCommand
 
-from fishsim.errors import ConfigError, FishsimError, Terminated
+from fishsim.errors import ConfigError, FishsimError, Terminated, stops_surface
 
 app = typer.Typer(
     add_completion=False,
@@ -126,7 +126,8 @@ def _execute(command: str, overrides: list[str] | None, show: bool, run: Callabl
             typer.echo(to_yaml(cfg))
             return
         runrecord.begin(command, to_yaml(cfg), list(overrides or []))
-        run(cfg)
+        with stops_surface():
+            run(cfg)
         status = "complete"
     except FishsimError as err:
         status = f"error: {err}"

@@ -55,7 +55,7 @@ from fishsim.coupling.added_mass import (
 )
 from fishsim.coupling.config import AVERAGE, WALL
 from fishsim.coupling.forces import burn_in_scale
-from fishsim.errors import ConfigError, SimulationBlowUp
+from fishsim.errors import ConfigError, SimulationBlowUp, stops_surface
 from fishsim.fields import Boundary, FluidModel, FluidParams, FluidState, Grid, all_finite
 from fishsim.fluid.grid import curl, faces_to_centres
 from fishsim.mesh.triangulate import element_areas
@@ -670,8 +670,9 @@ def rollout(swimmer: Swimmer, state: SwimState, params: SwimParams, n_frames: in
             mask = masks[t] if replay and isolate else alive[0]
             s_in, p_in = park(s, p, mask, rest) if isolate else (s, p)
             try:
-                s_new, out = swimmer.frame(s_in, p_in, t, start=solutions.get(t) if replay else None,
-                                           muscles=muscles, cache=cache, timer=timer)
+                with stops_surface():
+                    s_new, out = swimmer.frame(s_in, p_in, t, start=solutions.get(t) if replay else None,
+                                               muscles=muscles, cache=cache, timer=timer)
             except SimulationBlowUp as err:
                 if not isolate or replay:
                     raise SimulationBlowUp(f"simulation blew up at frame {t + 1}: {err}") from None

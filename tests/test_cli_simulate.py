@@ -13,6 +13,7 @@ from typer.testing import CliRunner
 
 from fishsim.cli import app
 from fishsim.config import load_config
+from fishsim.errors import Terminated, stops_surface
 from fishsim.io.trajectory import read_trajectory
 
 runner = CliRunner()
@@ -428,3 +429,24 @@ def test_debug_preset_is_a_tiny_episode(tmp_path):
     cfg = load_config("simulate", ["experiment=debug"])
     assert (cfg.tank.H, cfg.tank.W, cfg.frames, cfg.fish.edge_length) == (40, 120, 20, 5e-3)
     assert load_config("optimize", ["experiment=debug"]).frames == 20
+
+
+@pytest.mark.parametrize("stop", [KeyboardInterrupt("Ctrl-C"), Terminated("terminated (SIGTERM)")])
+def test_a_stop_wrapped_by_compiled_code_surfaces_as_the_stop(stop):
+    """A signal landing while numba code calls back into Python reaches Python as a SystemError
+    caused by the KeyboardInterrupt (seen once in the suite: a simulate stopped by SIGINT exited 1
+    with a traceback instead of 130); ``stops_surface`` raises the stop itself, and lets other
+    errors, a SystemError without a stop behind it included, pass unchanged."""
+    def wrapped():
+        try:
+            raise stop
+        except KeyboardInterrupt as err:
+            raise SystemError("CPUDispatcher(...) returned a result with an exception set") from err
+
+    with pytest.raises(type(stop)) as raised, stops_surface():
+        wrapped()
+    assert raised.value is stop
+    with pytest.raises(SystemError), stops_surface():
+        raise SystemError("no stop behind it")
+    with pytest.raises(ValueError), stops_surface():
+        raise ValueError("not a stop")
