@@ -14,6 +14,8 @@ from pathlib import Path
 import numba
 import torch
 
+from fishsim.resources import cpu_fields, cpu_flags
+
 SUITES = ["bench_solid", "bench_fluid", "bench_hydronet", "bench_rollout", "bench_render"]
 HERE = Path(__file__).parent
 
@@ -25,14 +27,8 @@ and HydroNet in bf16 (~2x faster than fp32 with AVX512-BF16 or AMX, ~10x slower 
 
 def machine() -> dict:
     """What the numbers were measured on (the CPU, its vector features among VECTOR_FLAGS)."""
-    fields = {}
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():     # the first core's
-            key, _, value = line.partition(":")
-            fields.setdefault(key.strip(), value.strip())
-    except OSError:
-        pass
-    cpu, flags = fields.get("model name") or platform.processor() or platform.machine(), set(fields.get("flags", "").split())
+    fields = cpu_fields()
+    cpu, flags = fields.get("model name") or platform.processor() or platform.machine(), cpu_flags()
     return {"cpu": cpu, "cpu_features": [f for f in VECTOR_FLAGS if f in flags],
             "torch_threads": torch.get_num_threads(), "numba_threads": numba.get_num_threads(),
             "torch": torch.__version__,

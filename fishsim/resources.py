@@ -92,6 +92,26 @@ def available_bytes() -> float | None:
     return None
 
 
+def cpu_fields(cpuinfo: str = "/proc/cpuinfo") -> dict[str, str]:
+    """The first core's fields of /proc/cpuinfo ("model name", "flags", ...; empty where the file
+    cannot be read)."""
+    fields: dict[str, str] = {}
+    try:
+        for line in Path(cpuinfo).read_text().splitlines():
+            if not line.strip():
+                break
+            key, _, value = line.partition(":")
+            fields.setdefault(key.strip(), value.strip())
+    except OSError:
+        pass
+    return fields
+
+
+def cpu_flags(cpuinfo: str = "/proc/cpuinfo") -> set[str]:
+    """The CPU's feature flags (``cpu_fields``' "flags": avx2, avx512_bf16, amx_bf16, ...)."""
+    return set(cpu_fields(cpuinfo).get("flags", "").split())
+
+
 def episode_seconds(cfg, batch: int, frames: int, gradient: bool = False) -> float:
     """The module docstring's time estimate [s] of ``frames`` frames of ``batch`` fish."""
     f, r = cfg.fluid, refinement(cfg.fluid)
