@@ -72,8 +72,13 @@ VARIANTS = {"hydronet-bf16": ["fluid=hydronet", "fluid.bf16=true"],
             "hydronet-network-alone": ["fluid=hydronet", "fluid.symmetric=false"]}
 
 
+def _fluid_overrides(fluid: str) -> list[str]:
+    """The overrides of a fluid model or a ``VARIANTS`` key."""
+    return list(VARIANTS.get(fluid, [f"fluid={fluid}"]))
+
+
 def _episode(fluid: str, batch: int, frequencies=None, tunnel: bool = False):
-    overrides = list(VARIANTS.get(fluid, [f"fluid={fluid}"])) + ["tunnel=true"] * tunnel
+    overrides = _fluid_overrides(fluid) + ["tunnel=true"] * tunnel
     if frequencies is not None:
         overrides.append("batch.frequency=[" + ",".join(str(f) for f in frequencies) + "]")
     elif batch > 1:
@@ -187,7 +192,7 @@ def optimizer_timing(fluid: str, method: str, frames: int = FRAMES_LONG, popsize
     process): its wall time as the optimiser reports it, and J; or, if the run failed, its
     error's last line. ``fluid``: a fluid model or a ``VARIANTS`` key."""
     with tempfile.TemporaryDirectory() as out:
-        run = subprocess.run([sys.executable, "-m", "fishsim", "optimize", *VARIANTS.get(fluid, [f"fluid={fluid}"]),
+        run = subprocess.run([sys.executable, "-m", "fishsim", "optimize", *_fluid_overrides(fluid),
                               f"optimizer.methods=[{method}]", "optimizer.iterations=1", f"optimizer.popsize={popsize}",
                               f"frames={frames}", "tunnel=true", "hold_y=true", f"out_dir={out}"],
                              check=False, capture_output=True, text=True)

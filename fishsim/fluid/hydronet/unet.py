@@ -231,10 +231,9 @@ def inference_copy(model: HydroNet) -> HydroNet:
 CHUNK = 4
 """The most samples ``HydroNetFluid.step`` passes the network at once on the CPU (a batch of B
 fish is 2B samples with the symmetric step); a chunk's result is the same bits as the whole
-batch's. Its
-activations (~50 MB a sample in a graph) then stay near the cache: on the paper's grid, two
-threads, the shipped U-Net, 32 samples (2026-12-01), forward + backward took 17.0-18.7 ms a sample
-in chunks of 2-8 against 36.7 ms in one call, and a B = 16 episode (30 frames,
+batch's. Its activations (~50 MB a sample in a graph) then stay near the cache: on the paper's
+grid, two threads, the shipped U-Net, 32 samples (2026-12-01), forward + backward took 17.0-18.7
+ms a sample in chunks of 2-8 against 36.7 ms in one call, and a B = 16 episode (30 frames,
 ``benchmarks.bench_rollout.episode_timing``) 23.1 / 39.3 ms a fish and frame forward / backward
 in chunks of 4, 22.4 / 43.2 in chunks of 8, 23.7 / 48.5 in chunks of 16, 33.0 / 94.9 whole."""
 
