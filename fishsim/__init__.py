@@ -33,7 +33,7 @@ def _keep_freed_memory() -> None:
     activation 2-16 MB) from a fresh mmap and returns it to the kernel when freed, and trims the
     heap's free top likewise, so every step's arrays page-fault on each 4 kB page they first touch.
     With the mmap threshold at its maximum (32 MiB) and the trim threshold at 1 GiB they are reused
-    instead. Measured (2026-12-01, two threads, AMD EPYC): HydroNet's step at B = 1 14.6-15.4 ms
+    instead. Measured (2026-12-01, two threads, AMD EPYC): HydroNet's step at B = 1 14.6-15.7 ms
     against 17.7-22.7, the paper's Table 1 forward with HydroNet 6.0-6.1 s against 8.0-8.1, at B =
     16 15.6-16.7 ms a fish and frame against 21.8-22.8; peak RSS unchanged (1.08 / 3.26 GB).
     Either setting alone is slower than neither (setting one turns off glibc's adaptive
