@@ -12,7 +12,7 @@ from scipy import ndimage
 from fishsim.config import HydroNetConfig
 from fishsim.fields import FluidState
 from fishsim.fluid.factory import make_fluid
-from fishsim.fluid.grid import curl, face_masks, stream_function, vector_to_faces
+from fishsim.fluid.grid import curl, face_masks, faces_to_centres, stream_function, vector_to_faces
 from fishsim.fluid.hydronet.config import EvalConfig
 from fishsim.fluid.numerical import immerse, rate_weight
 from fishsim.learn.evaluate import held_out_step, relative_errors
@@ -26,15 +26,10 @@ with torch.no_grad():
     out = net.step(held.start, held.boundary, held.params)
 
 
-def centred(a):
-    vx, vy = curl(a, dx)
-    return 0.5 * (vx[..., :-1] + vx[..., 1:]), 0.5 * (vy[..., :-1, :] + vy[..., 1:, :])
-
-
 e_v, e_p = relative_errors(out, held.reference, held.boundary.mask, dx)
 print("scenes", held.scenes.names)
 print("one-step e_v", e_v.numpy().round(3), "e_p", e_p.numpy().round(3))
-v_net, v_ref, v_0 = centred(out.a), centred(held.reference.a), centred(held.start.a)
+v_net, v_ref, v_0 = (faces_to_centres(curl(a, dx)).numpy() for a in (out.a, held.reference.a, held.start.a))
 bands = ((0, 1), (1, 2), (2, 4), (4, 8), (8, 1e9))
 print("per scene: e_v at cell centres; the reference's own one-step change |v_1 - v_0| / |v_1|; the error's share"
       " by distance from the body and walls (cells, b > 1/2) 0-1 / 1-2 / 2-4 / 4-8 / > 8")
@@ -42,9 +37,9 @@ for n, name in enumerate(held.scenes.names):
     b = held.boundary.mask[n, 0].numpy()
     distance = ndimage.distance_transform_edt(b <= 0.5)
     fluid = 1 - b
-    err = sum(((x[n, 0] - y[n, 0]) ** 2).numpy() for x, y in zip(v_net, v_ref)) * fluid
-    norm = (sum((y[n, 0] ** 2).numpy() for y in v_ref) * fluid).sum()
-    change = (sum(((y[n, 0] - z[n, 0]) ** 2).numpy() for y, z in zip(v_ref, v_0)) * fluid).sum()
+    err = ((v_net[n] - v_ref[n]) ** 2).sum(0) * fluid
+    norm = ((v_ref[n] ** 2).sum(0) * fluid).sum()
+    change = (((v_ref[n] - v_0[n]) ** 2).sum(0) * fluid).sum()
     shares = [err[(distance > lo) & (distance <= hi)].sum() / err.sum() for lo, hi in bands]
     print(f"{name:14s} e_v {np.sqrt(err.sum() / norm):.3f}  change {np.sqrt(change / norm):.3f}  shares",
           np.round(shares, 2))
