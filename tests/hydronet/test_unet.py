@@ -40,6 +40,33 @@ def test_unet_any_size(shape):
     assert UNet(13, 2, 4, 4)(x).shape == (1, 2, *shape)
 
 
+@pytest.mark.parametrize("channels_last", [False, True])
+def test_pointwise_conv_is_conv_in_order_and_keeps_the_gradient_layout(channels_last):
+    """The 1x1 output convolution as ordered multiply-adds: conv2d's map to round-off, the same
+    bits at one and two threads, and its gradient w.r.t. x arrives in x's memory format (so the
+    ReLU before it differentiates two tensors of one layout) with the values of the sliced sum."""
+    from fishsim.fluid.hydronet.unet import pointwise_conv
+
+    torch.manual_seed(0)
+    conv = torch.nn.Conv2d(6, 2, 1)
+    fmt = torch.channels_last if channels_last else torch.contiguous_format
+    x = torch.randn(3, 6, 9, 14).contiguous(memory_format=fmt).requires_grad_()
+    weight = torch.randn(3, 2, 9, 14)
+    out = pointwise_conv(conv, x)
+    torch.testing.assert_close(out, conv(x), rtol=1e-6, atol=1e-6)
+    (out * weight).sum().backward()
+    assert x.grad.is_contiguous(memory_format=fmt)
+    w = conv.weight.detach()[:, :, 0, 0]
+    want = torch.cat([(weight * w[None, :, c, None, None]).sum(1, keepdim=True) for c in range(6)], dim=1)
+    assert torch.equal(x.grad, want)
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        assert torch.equal(pointwise_conv(conv, x), out)
+    finally:
+        torch.set_num_threads(threads)
+
+
 def test_canvas_layout(grid):
     """Centre fields go to the top-left H x W block of the vertex canvas; the mask is replicated."""
     b = torch.rand(1, 1, grid.H, grid.W)
