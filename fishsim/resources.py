@@ -22,16 +22,16 @@ Table 1 episode (300 frames, 10-frame segments, B = 1) at 1.13 GB (estimate 1.55
 record ~1 MB a frame).
 
 The time of an episode (seconds), calibrated on this project's 2-core CPU with nothing else
-running (default fish; the numerical fluid's joint stage, its float32 solves to 1e-3, 2026-11-29,
-late night: 38 ms a frame at B = 1, of which the fluid 28 ms, and 20 ms per fish and frame at
-B = 16 (fluid 17 ms); HydroNet ~37 ms a frame at B = 1; gradient factors from ``make bench``, 300
-frames forward / backward: 11.4 / 15.0 s numerical (2.3; 3.3 at B = 16), 11 / 21 s HydroNet):
-    per fish and frame  t = 7 ms (N / 1803)^1.5 + c_fluid C r^3    c_numerical = 0.9 us, c_hydronet = 0.9 us
-    episode             T frames B fish t, times g for a gradient run (g = 2.5 numerical, 2.9 HydroNet, 1.5 vacuum)
-(the solid's and the numerical fluid's shares lie between B = 1's and a batch's, where the solid
-runs eight fish at once and the fluid two samples at a time: 300 frames at B = 1 estimated at
-10.2 s against 11.4 s measured, a fish and frame at B = 16 at 34 ms against 20; r^3: r^2 the
-cells of the refined grid, r the sub-steps.)  The estimate is printed before a run on the CPU;
+running (default fish, the defaults of 2026-12-01, freed memory kept in the heap; the hosts of
+that week differ by up to 2x): 300 frames at B = 1 take 5.7-6.4 s numerical (fluid 4.4-5.0 s) and
+6.0-6.7 s HydroNet (fluid 4.5-5.1 s) forward, 6.7-7.1 / 12.8-14.4 s backward; a fish and frame at
+B = 16 10.4-10.7 ms numerical, 15.6-16.7 ms HydroNet (fluid 14.1-15.0 ms):
+    per fish and frame  t = 4 ms (N / 1803)^1.5 + c_fluid C r^3    c_numerical = 0.5 us, c_hydronet = 0.55 us
+    episode             T frames B fish t, times g for a gradient run (g = 2.5 numerical, 3.2 HydroNet, 1.5 vacuum)
+(the B = 1 shares: a batch's solid runs eight fish at once and the numerical fluid two samples
+at a time, so a fish and frame at B = 16 is estimated at 19 / 20.5 ms against 10.5 / 16 measured;
+r^3: r^2 the cells of the refined grid, r the sub-steps, 79-92 ms against 10.3-10.8 a step at
+r = 2.)  The estimate is printed before a run on the CPU;
 inside a SLURM job (``SLURM_JOB_END_TIME``) a run estimated to outlast the job is refused.
 """
 
@@ -45,9 +45,9 @@ from pathlib import Path
 from fishsim.errors import ConfigError
 
 NODES_DEFAULT, EDGE_DEFAULT, LENGTH_DEFAULT = 1803, 2.0e-3, 0.2
-SOLID_FRAME_S = 7e-3                                    # solid + coupling, default fish, one frame [s]
-FLUID_CELL_FRAME_S = {"numerical": 0.9e-6, "hydronet": 0.9e-6, "none": 0.0}
-GRADIENT_FACTOR = {"numerical": 2.5, "hydronet": 2.9, "none": 1.5}  # (forward + backward) / forward
+SOLID_FRAME_S = 4e-3                                    # solid + coupling, default fish, one frame [s]
+FLUID_CELL_FRAME_S = {"numerical": 0.5e-6, "hydronet": 0.55e-6, "none": 0.0}
+GRADIENT_FACTOR = {"numerical": 2.5, "hydronet": 3.2, "none": 1.5}  # (forward + backward) / forward
 
 
 def estimated_nodes(length: float, edge_length: float) -> int:

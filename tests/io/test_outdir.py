@@ -90,7 +90,7 @@ def test_a_run_longer_than_its_slurm_job_is_refused_up_front(tmp_path, monkeypat
 def test_the_time_estimate_scales_with_what_the_run_does():
     """The estimate grows linearly in frames and fish, with the refined grid as r^3 (cells and
     sub-steps), and a gradient run costs more than a forward one; the default numerical
-    episode is in the calibration's range (300 frames ~ 7-10 s on the 2-core CPU)."""
+    episode is in the calibration's range (300 frames ~ 6 s on the 2-core CPU)."""
     from fishsim.config import SimulateConfig
     from fishsim.resources import episode_seconds
 
