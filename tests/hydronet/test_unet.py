@@ -40,15 +40,18 @@ def test_unet_any_size(shape):
     assert UNet(13, 2, 4, 4)(x).shape == (1, 2, *shape)
 
 
+@pytest.mark.parametrize("frozen", [False, True])
 @pytest.mark.parametrize("channels_last", [False, True])
-def test_pointwise_conv_is_conv_in_order_and_keeps_the_gradient_layout(channels_last):
-    """The 1x1 output convolution as ordered multiply-adds: conv2d's map to round-off, the same
-    bits at one and two threads, and its gradient w.r.t. x arrives in x's memory format (so the
-    ReLU before it differentiates two tensors of one layout) with the values of the sliced sum."""
+def test_pointwise_conv_is_conv_in_order_and_keeps_the_gradient_layout(channels_last, frozen):
+    """The 1x1 output convolution as ordered multiply-adds, trainable (torch ops) or frozen (the
+    compiled kernel on the CPU): conv2d's map to round-off, the same bits at one and two threads
+    and sample by sample, its gradient w.r.t. x in x's memory format (so the ReLU before it
+    differentiates two tensors of one layout) with the values of the per-channel sum over the
+    outputs, and the two implementations within round-off of each other."""
     from fishsim.fluid.hydronet.unet import pointwise_conv
 
     torch.manual_seed(0)
-    conv = torch.nn.Conv2d(6, 2, 1)
+    conv = torch.nn.Conv2d(6, 2, 1).requires_grad_(not frozen)
     fmt = torch.channels_last if channels_last else torch.contiguous_format
     x = torch.randn(3, 6, 9, 14).contiguous(memory_format=fmt).requires_grad_()
     weight = torch.randn(3, 2, 9, 14)
@@ -63,8 +66,11 @@ def test_pointwise_conv_is_conv_in_order_and_keeps_the_gradient_layout(channels_
     try:
         torch.set_num_threads(2)
         assert torch.equal(pointwise_conv(conv, x), out)
+        assert torch.equal(torch.cat([pointwise_conv(conv, x[k:k + 1]) for k in range(3)]), out)
     finally:
         torch.set_num_threads(threads)
+    other = pointwise_conv(conv.requires_grad_(frozen), x)
+    torch.testing.assert_close(other, out, rtol=1e-6, atol=1e-6)
 
 
 def test_canvas_layout(grid):
