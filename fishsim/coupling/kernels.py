@@ -875,19 +875,29 @@ def _ibm_split(q, p, mask, outside, shape, dx, sigma_prime, radius, fit, acc, rh
 
 
 @jit
+def _node_samples(q, k, mask, outside, shape, dx, sigma_prime, radius, cell, ox, oy, wn):
+    """Node k's chord a = (a_x, a_y) with its neighbours' indices (``_chord``), unit normal n =
+    a / |a| and fluid samples (``_samples`` into cell, ox, oy, wn), the weights normalised by their
+    sum; returns (a_x, a_y, after, before, n_x, n_y, |a|, the raw sum, the divisor used, m)."""
+    ax, ay, after, before = _chord(q, k)
+    norm = math.sqrt(ax * ax + ay * ay)
+    nx, ny = ax / norm, ay / norm
+    raw, m = _samples(q, k, nx, ny, mask, outside, shape, dx, sigma_prime, radius, cell, ox, oy, wn)
+    total = max(raw, np.finfo(np.float64).tiny)
+    for c in range(m):
+        wn[c] /= total
+    return ax, ay, after, before, nx, ny, norm, raw, total, m
+
+
+@jit
 def _nodes_ibm(q, p, mask, outside, shape, dx, sigma_prime, radius, fit, acc, rho, f, first, last):
     """_fish_ibm's f on the nodes first..last - 1."""
     M = (2 * radius + 1) ** 2
     cell, ox, oy, wn, d = np.empty(M, np.int64), np.empty(M), np.empty(M), np.empty(M), np.empty(M)
     tangential = np.empty(M)
     for k in range(first, last):
-        ax, ay, _, _ = _chord(q, k)
-        norm = math.sqrt(ax * ax + ay * ay)
-        nx, ny = ax / norm, ay / norm
-        raw, m = _samples(q, k, nx, ny, mask, outside, shape, dx, sigma_prime, radius, cell, ox, oy, wn)
-        total = max(raw, np.finfo(np.float64).tiny)
-        for c in range(m):
-            wn[c] /= total
+        ax, ay, _, _, nx, ny, _, _, _, m = _node_samples(q, k, mask, outside, shape, dx, sigma_prime, radius,
+                                                         cell, ox, oy, wn)
         if fit == WALL_FIT:
             slope = -rho * (acc[k, 0] * nx + acc[k, 1] * ny)
             p_k = _wall_fit(p, cell, ox, oy, wn, m, nx, ny, slope, sigma_prime, d, tangential)[0]
@@ -933,13 +943,8 @@ def _fish_ibm_backward(q, p, mask, outside, shape, dx, sigma_prime, radius, fit,
     inner, outer = (radius - 1) * dx, (radius + 0.5) * dx
     linear = fit == LINEAR_FIT
     for k in range(q.shape[0]):
-        ax, ay, after, before = _chord(q, k)
-        norm = math.sqrt(ax * ax + ay * ay)
-        nx, ny = ax / norm, ay / norm
-        raw, m = _samples(q, k, nx, ny, mask, outside, shape, dx, sigma_prime, radius, cell, ox, oy, wn)
-        total = max(raw, np.finfo(np.float64).tiny)
-        for c in range(m):
-            wn[c] /= total
+        ax, ay, after, before, nx, ny, norm, raw, total, m = _node_samples(q, k, mask, outside, shape, dx,
+                                                                           sigma_prime, radius, cell, ox, oy, wn)
         g_wn[:m] = 0.0
         g_ox[:m] = 0.0
         g_oy[:m] = 0.0
