@@ -45,8 +45,13 @@ FRAMES = int(os.environ.get("FISHSIM_BENCH_FRAMES", "300"))
 FRAMES_B16 = int(os.environ.get("FISHSIM_BENCH_FRAMES_B16", "30"))  # B = 16: per-fish cost per frame
 # Checkpoint segment lengths [frames]. At B = 16 the numerical fluid's backward tapes 8 sub-steps x 2
 # passes a frame: a 5-frame segment peaked at 12.4 GB (2026-11-26) and a 10-frame one ran out of
-# this machine's 24 GB, so B = 16 recomputes 3-frame segments.
-SEGMENT, SEGMENT_B16 = 10, 3
+# this machine's 24 GB, so B = 16 recomputed 3-frame segments; since 2026-12-01 1-frame ones: the
+# 30-frame episode's peak 1.6 against 3.2 GB with HydroNet (1.3 against 1.55 GB numerical), and
+# the first segment's first touch of that memory, which this VM backed at ~10-16 us a page in
+# some hours (HydroNet's backward then 46-50 against 34-39 ms a fish and frame; numerical 15.7
+# against 16.2-16.6 ms in any hour), a third. A long episode stores one more boundary state a
+# frame (~0.25 MB a fish).
+SEGMENT, SEGMENT_B16 = 10, 1
 FRAMES_LONG = int(os.environ.get("FISHSIM_BENCH_FRAMES_LONG", "500"))  # peak memory of a long episode
 FLUIDS = ["hydronet", "numerical"]
 
