@@ -87,6 +87,11 @@ def _backward_parallel(g, w, gx):
         _backward_rows(g, w, gx, n * H, (n + 1) * H)
 
 
+def memory_format_of(x: Tensor) -> torch.memory_format:
+    """x's memory format: channels_last (NHWC) if x [N, C, h, w] is so laid out, else contiguous."""
+    return torch.channels_last if x.is_contiguous(memory_format=torch.channels_last) else torch.contiguous_format
+
+
 def _nhwc(t: Tensor) -> np.ndarray:
     """[N, C, h, w] -> a numpy view [N, h, w, C] (contiguous for a channels_last tensor)."""
     return t.detach().permute(0, 2, 3, 1).numpy()
@@ -104,16 +109,14 @@ class PointwiseConv(torch.autograd.Function):
         each_sample(_forward_serial, _forward_parallel, _nhwc(x), wn, b.detach().to(x.dtype).contiguous().numpy(),
                     out.numpy())
         ctx.save_for_backward(w)
-        ctx.channels_last = x.is_contiguous(memory_format=torch.channels_last)
-        ctx.x_shape, ctx.x_dtype = x.shape, x.dtype
+        ctx.x_shape, ctx.x_dtype, ctx.x_format = x.shape, x.dtype, memory_format_of(x)
         return out
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad: Tensor) -> tuple[Tensor, None, None]:
         (w,) = ctx.saved_tensors
-        fmt = torch.channels_last if ctx.channels_last else torch.contiguous_format
-        gx = torch.empty(ctx.x_shape, dtype=ctx.x_dtype, memory_format=fmt)
+        gx = torch.empty(ctx.x_shape, dtype=ctx.x_dtype, memory_format=ctx.x_format)
         each_sample(_backward_serial, _backward_parallel, grad.detach().to(ctx.x_dtype).contiguous().numpy(),
                     w.detach().to(ctx.x_dtype).contiguous().numpy(), _nhwc(gx))
         return gx, None, None

@@ -46,7 +46,7 @@ from torch.nn.utils.fusion import fuse_conv_bn_eval
 from fishsim.fields import Boundary, FluidParams, FluidState, Grid, rest_state
 from fishsim.fluid.grid import curl
 from fishsim.fluid.hydronet.config import NETWORK, PRESSURES, RECOVERED, NetConfig
-from fishsim.fluid.hydronet.kernels import PointwiseConv
+from fishsim.fluid.hydronet.kernels import PointwiseConv, memory_format_of
 from fishsim.fluid.hydronet.scales import scales_of
 from fishsim.fluid.pressure import RecoveryConfig, recover_pressure
 from fishsim.fluid.residual import per_sample
@@ -146,8 +146,7 @@ class GradientInLayout(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, x: Tensor) -> Tensor:
-        ctx.fmt = torch.channels_last if x.dim() == 4 and x.is_contiguous(memory_format=torch.channels_last) \
-            else torch.contiguous_format
+        ctx.fmt = memory_format_of(x)
         return x.view_as(x)
 
     @staticmethod
