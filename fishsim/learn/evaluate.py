@@ -164,6 +164,17 @@ def held_out_step(reference: FluidModel | None = None, cfg: EvalConfig = EvalCon
     return HeldOutStep(scenes, params, start, boundary, reference.step(start, boundary, params))
 
 
+def held_out_rollout(model: FluidModel, held: HeldOutStep, cfg: EvalConfig):
+    """``model``'s ``cfg.steps`` steps of the held-out scenes from their common start ``held.start``:
+    yields (k, S_k-1, S_k, boundary_k) for k = warmup + 1 .. warmup + steps."""
+    state = held.start
+    for k in range(cfg.warmup + 1, cfg.warmup + 1 + cfg.steps):
+        boundary = held.scenes.boundary(k)
+        new = model.step(state, boundary, held.params)
+        yield k, state, new, boundary
+        state = new
+
+
 @dataclass
 class Evaluation:
     """metrics: {scene: {metric: value}}; final: the last rollout states' pressure and vorticity
@@ -187,18 +198,15 @@ def evaluate(net: FluidModel, reference: FluidModel, cfg: EvalConfig = EvalConfi
     one_v, one_p = relative_errors(net.step(s0, bd, params), first.reference, bd.mask, grid.dx)
     runs = {}
     for name, model in (("net", net), ("ref", reference)):
-        s, forces, residual, div = s0, [], [], []
-        for k in range(cfg.warmup + 1, cfg.warmup + 1 + cfg.steps):
-            bd = scenes.boundary(k)
-            new = model.step(s, bd, params)
+        forces, residual, div = [], [], []
+        for k, s, new, bd in held_out_rollout(model, first, cfg):
             forces.append(body_forces(scenes, new, bd, k))
             residual.append(momentum_loss(s, new, bd, params, grid))
             div.append(divergence(curl(new.a, grid.dx), grid.dx).abs().flatten(1).amax(1))
-            s = new
             done += 1
             if progress:
                 progress(done, total)
-        runs[name] = {"state": s, "force": torch.stack(forces).mean(0), "residual": torch.stack(residual).mean(0),
+        runs[name] = {"state": new, "force": torch.stack(forces).mean(0), "residual": torch.stack(residual).mean(0),
                       "div": torch.stack(div).amax(0)}
     last = scenes.boundary(cfg.warmup + cfg.steps)
     roll_v, roll_p = relative_errors(runs["net"]["state"], runs["ref"]["state"], last.mask, grid.dx)

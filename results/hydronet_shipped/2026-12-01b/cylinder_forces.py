@@ -9,7 +9,7 @@ import torch
 from fishsim.config import HydroNetConfig
 from fishsim.fluid.factory import make_fluid
 from fishsim.fluid.hydronet.config import EvalConfig
-from fishsim.learn.evaluate import body_forces, held_out_step, reference_fluid
+from fishsim.learn.evaluate import body_forces, held_out_rollout, held_out_step, reference_fluid
 
 torch.set_num_threads(2)
 cfg = EvalConfig()
@@ -18,11 +18,7 @@ scenes = held.scenes
 forces = {}
 with torch.no_grad():
     for name, model in (("net", make_fluid(HydroNetConfig(), cfg.tank)), ("ref", reference_fluid(cfg.tank.grid))):
-        state, history = held.start, []
-        for k in range(cfg.warmup + 1, cfg.warmup + 1 + cfg.steps):
-            boundary = scenes.boundary(k)
-            state = model.step(state, boundary, held.params)
-            history.append(body_forces(scenes, state, boundary, k)[:, 0])
+        history = [body_forces(scenes, new, boundary, k)[:, 0] for k, _, new, boundary in held_out_rollout(model, held, cfg)]
         forces[name] = torch.stack(history).numpy()
 print("scenes", scenes.names)
 print("mean F_x net", forces["net"].mean(0).round(5))
