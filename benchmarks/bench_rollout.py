@@ -10,7 +10,9 @@ fast only on a CPU with bf16 instructions, AMX or AVX512-BF16), and with the rec
 pressure instead of the network's own (``fluid.pressure=recovered``: timing and distances); and
 for each fluid the optimisers' unit of work as ``fishsim optimize`` runs it (issue 21): an Adam
 iteration of the paper's 500 frames (B = 1, forward + backward) and a CMA-ES generation of 16 fish
-over 500 frames. ``FISHSIM_BENCH_FRAMES`` shortens the episode for a quick look.
+over 500 frames; and HydroNet's gradient-free B = 16 forward (as ``simulate`` and a CMA-ES
+generation run it) with the network uncompiled and compiled (``fluid.compile=true``; its
+compilation in the warm-up). ``FISHSIM_BENCH_FRAMES`` shortens the episode for a quick look.
 
 Each measurement runs in a fresh process: memory freed by an earlier one stays resident in the
 allocator, so a shared process would report the largest earlier peak instead of its own."""
@@ -74,7 +76,8 @@ def _peak_mib() -> float:
 
 VARIANTS = {"hydronet-bf16": ["fluid=hydronet", "fluid.bf16=true"],
             "hydronet-recovered-pressure": ["fluid=hydronet", "fluid.pressure=recovered"],
-            "hydronet-network-alone": ["fluid=hydronet", "fluid.symmetric=false"]}
+            "hydronet-network-alone": ["fluid=hydronet", "fluid.symmetric=false"],
+            "hydronet-compiled": ["fluid=hydronet", "fluid.compile=true"]}
 
 
 def _fluid_overrides(fluid: str) -> list[str]:
@@ -179,6 +182,23 @@ def episode_timing(fluid: str, batch: int, frames: int) -> dict:
             "peak_rss_mib": _peak_mib(), "ddistance_domega": float(omega.grad[0])}
 
 
+def forward_timing(fluid: str, batch: int, frames: int) -> dict:
+    """A gradient-free episode (``fishsim simulate``, a CMA-ES generation) of ``batch`` fish at 5
+    Hz in the swim tunnel: its set-up (HydroNet's compilation with ``fluid.compile=true``, in the
+    first frame) and its forward per fish and frame."""
+    t0 = time.perf_counter()
+    ep = _episode(fluid, batch, tunnel=True)
+    state = ep.swimmer.initial_state(ep.params, ep.origin)
+    with torch.no_grad():
+        rollout(ep.swimmer, state, ep.params, 1)
+        warmup = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        rollout(ep.swimmer, state, ep.params, frames)
+        forward = time.perf_counter() - t0
+    return {"frames": frames, "batch": batch, "warmup_s": warmup, "forward_s": forward,
+            "forward_ms_per_frame_per_fish": 1e3 * forward / (frames * batch)}
+
+
 def distance_sweep(fluid: str, frequencies=(3.0, 4.0, 5.0, 6.0, 7.0), frames: int = 120) -> dict:
     """Head x-displacement after ``frames`` frames, one batched run over the frequencies."""
     ep = _episode(fluid, len(frequencies), frequencies)
@@ -231,6 +251,8 @@ def run() -> dict:
                       f"Adam iteration, {FRAMES_LONG} frames": optimizer_timing(fluid, "adam"),
                       f"CMA-ES generation, 16 x {FRAMES_LONG} frames": optimizer_timing(fluid, "cma")}
     out["hydronet"][f"B=1, {FRAMES_LONG} frames"] = _recorded(episode_timing, "hydronet", 1, FRAMES_LONG)
+    out["hydronet"]["B=16 gradient-free"] = _recorded(forward_timing, "hydronet", 16, FRAMES_B16)
+    out["hydronet-compiled"] = {"B=16 gradient-free": _recorded(forward_timing, "hydronet-compiled", 16, FRAMES_B16)}
     out["hydronet-network-alone"] = {"B=1": _recorded(episode_timing, "hydronet-network-alone", 1, FRAMES)}
     out["hydronet-bf16"] = {"B=1": _recorded(episode_timing, "hydronet-bf16", 1, FRAMES),
                             "B=16": _recorded(episode_timing, "hydronet-bf16", 16, FRAMES_B16),

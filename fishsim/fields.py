@@ -26,7 +26,9 @@ Grid and array conventions (docs/physics.md section 4; all lengths in metres, ti
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
 from dataclasses import dataclass
 from typing import Protocol, Self, runtime_checkable
 
@@ -180,6 +182,24 @@ class FluidModel(Protocol):
         p, the numerical fluid's joint stages from its ``solves``); it changes the result only
         within the solvers' tolerance."""
         ...
+
+
+GRADIENT_FREE_WORK: ContextVar[int] = ContextVar("gradient_free_work", default=0)
+"""The fish-frames (batch x frames) of the gradient-free rollout now running, 0 in any other
+context (a differentiable rollout, its checkpointed forward and recomputation included). A fluid
+model may use it to run a faster form of its step whose results differ from the differentiable
+one's by round-off, when the work repays its set-up (HydroNet's compiled network)."""
+
+
+@contextmanager
+def gradient_free(fish_frames: int) -> Iterator[None]:
+    """Mark the block as a rollout of ``fish_frames`` fish-frames that nothing differentiates
+    (``GRADIENT_FREE_WORK``)."""
+    token = GRADIENT_FREE_WORK.set(fish_frames)
+    try:
+        yield
+    finally:
+        GRADIENT_FREE_WORK.reset(token)
 
 
 def rest_state(grid: Grid, batch: int, device=None, dtype=torch.float32) -> FluidState:

@@ -56,7 +56,7 @@ from fishsim.coupling.added_mass import (
 from fishsim.coupling.config import AVERAGE, WALL
 from fishsim.coupling.forces import burn_in_scale
 from fishsim.errors import ConfigError, SimulationBlowUp, stops_surface
-from fishsim.fields import Boundary, FluidModel, FluidParams, FluidState, Grid, all_finite
+from fishsim.fields import Boundary, FluidModel, FluidParams, FluidState, Grid, all_finite, gradient_free
 from fishsim.fluid.grid import curl, faces_to_centres
 from fishsim.mesh.triangulate import element_areas
 from fishsim.solid import SolidModel, SolverCache, pd_step, predicted_start
@@ -646,7 +646,21 @@ def rollout(swimmer: Swimmer, state: SwimState, params: SwimParams, n_frames: in
     timer: a PhaseTimer that the frames add their solid / fluid / coupling wall time to (a
         checkpointed backward's recomputation too).
     Raises SimulationBlowUp naming the frame if a state goes non-finite.
+    A call with autograd off is gradient-free throughout (``fishsim.fields.gradient_free``: the
+    fluid may take a faster path, HydroNet its compiled network).
     """
+    args = (swimmer, state, params, n_frames, segment, on_frame, start, failures, truncate, cache, timer)
+    if torch.is_grad_enabled():
+        return _rollout(*args)
+    with gradient_free(state.q.shape[0] * n_frames):
+        return _rollout(*args)
+
+
+def _rollout(swimmer: Swimmer, state: SwimState, params: SwimParams, n_frames: int, segment: int,
+             on_frame: Callable[[int, SwimState, FrameOutput, dict], None] | None, start: int,
+             failures: dict[int, tuple[int, str]] | None, truncate: int, cache: SolverCache | None,
+             timer: PhaseTimer | None) -> tuple[SwimState, dict[str, Tensor]]:
+    """``rollout``'s frames (its arguments, all given)."""
     recorded = [start - 1]
     isolate, rest = failures is not None, state
     alive = [torch.ones(state.q.shape[0], dtype=torch.bool, device=state.q.device)]

@@ -48,7 +48,8 @@ def make_fluid(cfg, tank, device=None) -> FluidModel:
         if cfg.bf16:
             warn_slow_bf16(torch.device(device or "cpu").type)
         return HydroNetFluid(model, tank.grid, bf16=cfg.bf16, pressure=cfg.pressure,
-                             recovery=RecoveryConfig(tol=cfg.pressure_tol), symmetric=cfg.symmetric)
+                             recovery=RecoveryConfig(tol=cfg.pressure_tol), symmetric=cfg.symmetric,
+                             compile=cfg.compile)
     raise ValueError(f"unknown fluid model {cfg.model!r}")
 
 

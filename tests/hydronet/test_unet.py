@@ -1,5 +1,7 @@
 """HydroNet network: architecture, FluidModel contract, bounds, mean removal, conditioning."""
 
+import dataclasses
+
 import pytest
 import torch
 
@@ -285,3 +287,87 @@ def test_bf16_on_a_cpu_without_bf16_instructions_warns(tmp_path, monkeypatch, ca
         err = capsys.readouterr().err
         assert ("fluid.bf16=true" in err) is warns and err.count("\n") == int(warns)
     assert factory.warn_slow_bf16("cuda") is False
+
+
+def test_compiled_network_in_gradient_free_rollouts_only(grid, tiny_net):
+    """``compile``: the network's chunks of ``CHUNK`` samples run compiled (torch.compile) only
+    where nothing is differentiated (``fishsim.fields.gradient_free``) and, at "auto", only in
+    rollouts of ``COMPILE_MIN_WORK`` fish-frames or more; the compiled step is the eager step to
+    round-off, and everywhere else the eager step's bits."""
+    from fishsim.fields import gradient_free
+    from fishsim.fluid.hydronet import unet
+
+    torch.manual_seed(0)
+    net = HydroNet(tiny_net)
+    B = unet.CHUNK // 2                                  # the symmetric step: one whole chunk
+    state, boundary = _random_inputs(grid, batch=B)
+    eager = HydroNetFluid(net, grid, compile=False)
+    fluid = HydroNetFluid(net, grid, compile=True)
+    auto = HydroNetFluid(net, grid)
+    step = lambda f: f.step(state, boundary, paper_params(B))
+    with torch.no_grad():
+        reference = step(eager)
+        for outside in (step(fluid), step(auto)):        # no gradient-free rollout: eager, same bits
+            assert torch.equal(outside.a, reference.a) and torch.equal(outside.p, reference.p)
+        with gradient_free(unet.COMPILE_MIN_WORK - 1):
+            below = step(auto)
+            compiled = step(fluid)
+        assert torch.equal(below.a, reference.a) and not auto._compiled_ran
+    assert fluid._compiled_ran
+    torch.testing.assert_close(compiled.a, reference.a, rtol=1e-5, atol=1e-6 * float(reference.a.abs().max()))
+    torch.testing.assert_close(compiled.p, reference.p, rtol=1e-5, atol=1e-5 * float(reference.p.abs().max()))
+    with gradient_free(unet.COMPILE_MIN_WORK), torch.enable_grad():   # autograd on: eager
+        graph = step(fluid)
+    assert torch.equal(graph.a.detach(), reference.a)
+    with pytest.raises(ValueError, match="compile must be"):
+        HydroNetFluid(net, grid, compile="sometimes")
+
+
+def test_a_gradient_free_rollout_tells_the_fluid_its_work(monkeypatch):
+    """``rollout`` with autograd off marks its frames gradient-free with B x frames; a
+    differentiable rollout (its checkpointed forward included) does not."""
+    from fishsim.config import load_config
+    from fishsim.episode import build_episode
+    from fishsim.fields import GRADIENT_FREE_WORK
+    from fishsim.rollout import Swimmer, rollout
+
+    seen = []
+    frame = Swimmer.frame
+
+    def recording(self, *args, **kwargs):
+        seen.append(GRADIENT_FREE_WORK.get())
+        return frame(self, *args, **kwargs)
+
+    monkeypatch.setattr(Swimmer, "frame", recording)
+    ep = build_episode(load_config("simulate", ["fluid=none", "batch.frequency=[3,5]"]))
+    state = ep.swimmer.initial_state(ep.params, ep.origin)
+    with torch.no_grad():
+        rollout(ep.swimmer, state, ep.params, 3)
+    assert seen == [6, 6, 6]
+    seen.clear()
+    E = ep.params.E.clone().requires_grad_()
+    _, m = rollout(ep.swimmer, state, dataclasses.replace(ep.params, E=E), 2, segment=1)
+    m["head_x"].sum().backward()
+    assert seen and set(seen) == {0}
+
+
+def test_a_network_that_cannot_compile_warns_once_and_runs_uncompiled(grid, tiny_net, monkeypatch, capsys):
+    """Where torch.compile fails (no C++ compiler), one warning, then the eager network."""
+    from fishsim.fields import gradient_free
+    from fishsim.fluid.hydronet import unet
+
+    def no_compiler(*args, **kwargs):
+        def failing(*a, **k):
+            raise RuntimeError("no C++ compiler")
+        return failing
+
+    monkeypatch.setattr(torch, "compile", no_compiler)
+    B = unet.CHUNK // 2
+    state, boundary = _random_inputs(grid, batch=B)
+    net = HydroNet(tiny_net)
+    fluid = HydroNetFluid(net, grid, compile=True)
+    with torch.no_grad(), gradient_free(unet.COMPILE_MIN_WORK):
+        steps = [fluid.step(state, boundary, paper_params(B)) for _ in range(2)]
+        reference = HydroNetFluid(net, grid, compile=False).step(state, boundary, paper_params(B))
+    assert all(torch.equal(s.a, reference.a) for s in steps) and fluid.compile is False
+    assert capsys.readouterr().err.count("could not be compiled") == 1
