@@ -12,7 +12,7 @@ import torch
 from fishsim.config import FishConfig, SimulateConfig
 from fishsim.errors import ConfigError
 from fishsim.fluid.factory import fluid_dtype, fluid_params, hydronet_file, make_fluid, make_walls
-from fishsim.fluid.hydronet.trained_range import check_fluid
+from fishsim.fluid.hydronet.trained_range import check_channel, check_fluid
 from fishsim.resources import check_memory
 from fishsim.rollout import Swimmer, SwimParams
 from fishsim.solid import SolidModel
@@ -73,6 +73,8 @@ def build_episode(cfg: SimulateConfig) -> Episode:
     if cfg.fluid.model == "hydronet":
         check_fluid(fluid.model, hydronet_file(cfg.fluid), cfg.fluid.rho, cfg.fluid.mu,
                     cfg.tank.dx, cfg.h, cfg.fluid.strict_range)
+        if cfg.tunnel or cfg.tank.inflow:
+            check_channel(fluid.model, hydronet_file(cfg.fluid), fluid.grid.W, cfg.fluid.strict_range)
     solid = SolidModel(mesh, cfg.solid.material, h=cfg.h, options=cfg.solid.pd,
                        added_mass_ratio=cfg.coupling.stabilisation_ratio if fluid.exerts_force else 0.0,
                        muscles=build_muscles(cfg.fish, mesh))

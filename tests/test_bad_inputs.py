@@ -12,7 +12,7 @@ from typer.testing import CliRunner
 from fishsim.cli import app
 from fishsim.fluid.factory import SHIPPED_HYDRONET
 from fishsim.fluid.hydronet import load_hydronet
-from fishsim.fluid.hydronet.trained_range import check_fluid, outside
+from fishsim.fluid.hydronet.trained_range import check_channel, check_fluid, outside
 
 runner = CliRunner()
 TINY_SIM = ["fluid=none", "fish.edge_length=5e-3", "frames=2"]
@@ -114,7 +114,7 @@ PAPER_FLUID = {"rho": [50.0, 50.0], "mu": [1.25e-4, 1.25e-4], "dx": 2.5e-3, "h":
 
 
 def test_the_shipped_model_knows_its_training_fluid():
-    assert load_hydronet(SHIPPED_HYDRONET).training_range == PAPER_FLUID
+    assert load_hydronet(SHIPPED_HYDRONET).training_range == {**PAPER_FLUID, "scene_cells": [64, 128]}
     assert outside(PAPER_FLUID, 50.0, 1.25e-4, 2.5e-3, 0.01) == []
     assert outside(PAPER_FLUID, 1000.0, 1e-3, 2.5e-3, 0.02) == ["rho = 1000", "mu = 0.001", "h = 0.02"]
 
@@ -129,4 +129,18 @@ def test_a_fluid_outside_the_training_range_warns_or_is_refused(here, capsys):
                                  "fish.edge_length=5e-3", "frames=1"])
     _one_line_error(strict, "was trained for rho in [50, 50] kg/m^3, mu in [0.000125, 0.000125] Pa s", "rho = 1000",
                     "fluid=numerical", "strict_range=true refuses it")
+    assert _files(here) == {"afile", "adir", "x.h5"}
+
+
+def test_a_channel_flow_longer_than_hydronet_s_scenes_warns_or_is_refused(here, capsys):
+    """The shipped HydroNet learned channel flows on 64 x 128-cell scenes (its metadata's pool):
+    a swim tunnel or inflow through a longer tank warns, or is refused with strict_range."""
+    model = load_hydronet(SHIPPED_HYDRONET)
+    assert model.training_range["scene_cells"] == [64, 128]
+    assert check_channel(model, "m.pt", 128, strict=True) is None
+    assert "300-cell tank" in check_channel(model, "m.pt", 300, strict=False)
+    assert capsys.readouterr().err.startswith("warning: HydroNet m.pt learned channel flows on scenes of 64 x 128")
+    strict = runner.invoke(app, ["simulate", "fluid=hydronet", "tunnel=true", "fluid.strict_range=true",
+                                 "fish.edge_length=5e-3", "frames=1"])
+    _one_line_error(strict, "its flow does not cross", "fluid=numerical", "strict_range=true refuses it")
     assert _files(here) == {"afile", "adir", "x.h5"}

@@ -79,7 +79,8 @@ def test_save_load_round_trip_and_deterministic_steps(shipped, tmp_path):
         b = HydroNetFluid(again, grid).step(state, boundary, params)
         c = HydroNetFluid(again, grid).step(state, boundary, params)
     assert torch.equal(a.a, b.a) and torch.equal(a.p, b.p) and torch.equal(b.p, c.p)
-    trained = {"rho": [50.0, 50.0], "mu": [1.25e-4, 1.25e-4], "dx": 2.5e-3, "h": 0.01}   # carried over, in both files
+    trained = {"rho": [50.0, 50.0], "mu": [1.25e-4, 1.25e-4], "dx": 2.5e-3, "h": 0.01,   # carried over, in both files
+               "scene_cells": [64, 128]}                   # the shipped file's from its metadata's pool
     assert json.loads(path.with_suffix(".json").read_text()) == {"note": "round trip", "training_range": trained}
     assert torch.load(path, weights_only=False)["training_range"] == trained == again.training_range
     assert np.isfinite(a.p.numpy()).all() and a.p.abs().max() > 0

@@ -241,7 +241,7 @@ def test_best_model_loads_as_fluid_model(cfg):
     best = torch.load(os.path.join(cfg.out_dir, "best.pt"), weights_only=False)
     assert best["val"] == out["best_val"] <= out["last_val"]
     assert best["training_range"] == {"rho": list(cfg.pool.rho), "mu": list(cfg.pool.mu), "dx": cfg.pool.dx,
-                                      "h": cfg.pool.h}
+                                      "h": cfg.pool.h, "scene_cells": [cfg.pool.H, cfg.pool.W]}
     fluid = HydroNetFluid(load_hydronet(os.path.join(cfg.out_dir, "best.pt")), cfg.pool.grid)
     _, state, boundary, params = ScenePool(cfg.pool, 2, seed=5).ask(2)
     new = fluid.step(state, boundary, params)
