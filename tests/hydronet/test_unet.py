@@ -1,6 +1,7 @@
 """HydroNet network: architecture, FluidModel contract, bounds, mean removal, conditioning."""
 
 import dataclasses
+import shutil
 
 import pytest
 import torch
@@ -289,6 +290,8 @@ def test_bf16_on_a_cpu_without_bf16_instructions_warns(tmp_path, monkeypatch, ca
     assert factory.warn_slow_bf16("cuda") is False
 
 
+@pytest.mark.skipif(shutil.which("g++") is None and shutil.which("clang++") is None,
+                    reason="torch.compile needs a C++ compiler on the CPU")
 def test_compiled_network_in_gradient_free_rollouts_only(grid, tiny_net):
     """``compile``: the network's chunks of ``CHUNK`` samples run compiled (torch.compile) only
     where nothing is differentiated (``fishsim.fields.gradient_free``) and, at "auto", only in
