@@ -27,6 +27,7 @@ import dataclasses
 import time
 from collections.abc import Callable
 from concurrent.futures import Future
+from contextlib import nullcontext
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -649,84 +650,74 @@ def rollout(swimmer: Swimmer, state: SwimState, params: SwimParams, n_frames: in
     A call with autograd off is gradient-free throughout (``fishsim.fields.gradient_free``: the
     fluid may take a faster path, HydroNet its compiled network).
     """
-    args = (swimmer, state, params, n_frames, segment, on_frame, start, failures, truncate, cache, timer)
-    if torch.is_grad_enabled():
-        return _rollout(*args)
-    with gradient_free(state.q.shape[0] * n_frames):
-        return _rollout(*args)
+    marked = nullcontext() if torch.is_grad_enabled() else gradient_free(state.q.shape[0] * n_frames)
+    with marked:
+        recorded = [start - 1]
+        isolate, rest = failures is not None, state
+        alive = [torch.ones(state.q.shape[0], dtype=torch.bool, device=state.q.device)]
+        masks: dict[int, Tensor] = {}             # frame -> the alive mask it ran with (replayed)
+        seg = segment if segment > 0 and torch.is_grad_enabled() else n_frames
+        solutions: dict[int, SwimState] = {}      # frame -> forward solution, replayed in recomputation
+        cache = SolverCache() if cache is None else cache
 
+        idle = state.q.shape[0] < torch.get_num_threads() and not swimmer.fluid.threads_per_sample
+        tensors, chunks, segments = state.tensors(), [], Segments(background=idle)
+        n_state = len(tensors)
 
-def _rollout(swimmer: Swimmer, state: SwimState, params: SwimParams, n_frames: int, segment: int,
-             on_frame: Callable[[int, SwimState, FrameOutput, dict], None] | None, start: int,
-             failures: dict[int, tuple[int, str]] | None, truncate: int, cache: SolverCache | None,
-             timer: PhaseTimer | None) -> tuple[SwimState, dict[str, Tensor]]:
-    """``rollout``'s frames (its arguments, all given)."""
-    recorded = [start - 1]
-    isolate, rest = failures is not None, state
-    alive = [torch.ones(state.q.shape[0], dtype=torch.bool, device=state.q.device)]
-    masks: dict[int, Tensor] = {}             # frame -> the alive mask it ran with (replayed)
-    seg = segment if segment > 0 and torch.is_grad_enabled() else n_frames
-    solutions: dict[int, SwimState] = {}      # frame -> forward solution, replayed in recomputation
-    cache = SolverCache() if cache is None else cache
+        def run_frames(t0: int, count: int, anchor: float, *tensors: Tensor):
+            s, rows = state.with_tensors(tensors[:n_state]), []
+            p = _with_param_tensors(params, tensors[n_state:])
+            if anchor:
+                p = dataclasses.replace(p, controller=dataclasses.replace(p.controller, t_anchor=anchor))
+            muscles = swimmer.muscle_weights(p)                     # once per segment, not per frame
+            for t in range(t0, t0 + count):
+                replay = t <= recorded[0]
+                mask = masks[t] if replay and isolate else alive[0]
+                s_in, p_in = park(s, p, mask, rest) if isolate else (s, p)
+                try:
+                    with stops_surface():
+                        s_new, out = swimmer.frame(s_in, p_in, t, start=solutions.get(t) if replay else None,
+                                                   muscles=muscles, cache=cache, timer=timer)
+                except SimulationBlowUp as err:
+                    if not isolate or replay:
+                        raise SimulationBlowUp(f"simulation blew up at frame {t + 1}: {err}") from None
+                    mask = mask & ~failing_samples(swimmer, s_in, p_in, t, mask, failures, err)
+                    alive[0] = mask
+                    s_in, p_in = park(s, p, mask, rest)
+                    s_new, out = swimmer.frame(s_in, p_in, t, muscles=muscles, cache=cache, timer=timer)
+                s = s_new
+                m = frame_metrics(swimmer, s, out)
+                if not replay:
+                    masks[t] = mask
+                    if on_frame is not None:
+                        on_frame(t, s, out, m)
+                    recorded[0] = t
+                    if keep_solutions:
+                        solutions[t] = _detached(s)
+                rows.append(torch.stack(list(m.values())))
+            return (*s.tensors(), torch.stack(rows))
 
-    idle = state.q.shape[0] < torch.get_num_threads() and not swimmer.fluid.threads_per_sample
-    tensors, chunks, segments = state.tensors(), [], Segments(background=idle)
-    n_state = len(tensors)
-
-    def run_frames(t0: int, count: int, anchor: float, *tensors: Tensor):
-        s, rows = state.with_tensors(tensors[:n_state]), []
-        p = _with_param_tensors(params, tensors[n_state:])
-        if anchor:
-            p = dataclasses.replace(p, controller=dataclasses.replace(p.controller, t_anchor=anchor))
-        muscles = swimmer.muscle_weights(p)                     # once per segment, not per frame
-        for t in range(t0, t0 + count):
-            replay = t <= recorded[0]
-            mask = masks[t] if replay and isolate else alive[0]
-            s_in, p_in = park(s, p, mask, rest) if isolate else (s, p)
-            try:
-                with stops_surface():
-                    s_new, out = swimmer.frame(s_in, p_in, t, start=solutions.get(t) if replay else None,
-                                               muscles=muscles, cache=cache, timer=timer)
-            except SimulationBlowUp as err:
-                if not isolate or replay:
-                    raise SimulationBlowUp(f"simulation blew up at frame {t + 1}: {err}") from None
-                mask = mask & ~failing_samples(swimmer, s_in, p_in, t, mask, failures, err)
-                alive[0] = mask
-                s_in, p_in = park(s, p, mask, rest)
-                s_new, out = swimmer.frame(s_in, p_in, t, muscles=muscles, cache=cache, timer=timer)
-            s = s_new
-            m = frame_metrics(swimmer, s, out)
-            if not replay:
-                masks[t] = mask
-                if on_frame is not None:
-                    on_frame(t, s, out, m)
-                recorded[0] = t
-                if keep_solutions:
-                    solutions[t] = _detached(s)
-            rows.append(torch.stack(list(m.values())))
-        return (*s.tensors(), torch.stack(rows))
-
-    keep_solutions = seg < n_frames and any(x.requires_grad for x in (*tensors, *_param_tensors(params)))
-    t, anchor = start, 0.0
-    while t < start + n_frames:
-        count = min(seg, start + n_frames - t)
-        if truncate > 0 and torch.is_grad_enabled():
-            done = t - start
-            if done and done % truncate == 0:
-                tensors = tuple(x.detach() for x in tensors)
-                anchor = t * swimmer.h                  # the gait's phase is frozen with the state
-            count = min(count, truncate - done % truncate)
-        inputs = (*tensors, *_param_tensors(params))
-        if seg < n_frames:
-            result = CheckpointedFrames.apply(lambda *x, t0=t, n=count, a=anchor: run_frames(t0, n, a, *x), segments,
-                                              *inputs)
-        else:
-            result = run_frames(t, count, anchor, *inputs)
-        tensors, rows = result[:-1], result[-1]
-        chunks.append(rows)
-        t += count
-    stacked = torch.cat(chunks)  # [n_frames, n_metrics, B]
-    return state.with_tensors(tensors), {name: stacked[:, i] for i, name in enumerate(METRICS)}
+        keep_solutions = seg < n_frames and any(x.requires_grad for x in (*tensors, *_param_tensors(params)))
+        t, anchor = start, 0.0
+        while t < start + n_frames:
+            count = min(seg, start + n_frames - t)
+            if truncate > 0 and torch.is_grad_enabled():
+                done = t - start
+                if done and done % truncate == 0:
+                    tensors = tuple(x.detach() for x in tensors)
+                    anchor = t * swimmer.h                  # the gait's phase is frozen with the state
+                count = min(count, truncate - done % truncate)
+            inputs = (*tensors, *_param_tensors(params))
+            if seg < n_frames:
+                result = CheckpointedFrames.apply(lambda *x, t0=t, n=count, a=anchor: run_frames(t0, n, a, *x), segments,
+                                                  *inputs)
+            else:
+                result = run_frames(t, count, anchor, *inputs)
+            tensors, rows = result[:-1], result[-1]
+            chunks.append(rows)
+            t += count
+        stacked = torch.cat(chunks)  # [n_frames, n_metrics, B]
+        return state.with_tensors(tensors), {name: stacked[:, i] for i, name in enumerate(METRICS)}
 
 
 def _select(keep: Tensor, x: Tensor | None, other: Tensor | None) -> Tensor | None:
