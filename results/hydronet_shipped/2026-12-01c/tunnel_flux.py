@@ -1,7 +1,7 @@
 """The flux across columns of the tank over the fluid rows, in U x the fluid's height, a 5 Hz fish
 in the swim tunnel after FRAMES frames.
 
-    PYTHONPATH=. python tunnel_flux.py FRAMES FLUID
+    PYTHONPATH=. python tunnel_flux.py FRAMES FLUID [OVERRIDES...]
 """
 import sys, torch
 from fishsim.config import load_config
@@ -9,8 +9,8 @@ from fishsim.episode import build_episode
 from fishsim.rollout import rollout
 from fishsim.fluid.grid import curl
 torch.set_num_threads(2)
-frames = int(sys.argv[1]); fluid = sys.argv[2]
-sim = load_config("simulate", [f"fluid={fluid}", f"frames={frames}", "tunnel=true", "batch.frequency=[5]"])
+frames = int(sys.argv[1]); fluid = sys.argv[2]; extra = sys.argv[3:]
+sim = load_config("simulate", [f"fluid={fluid}", f"frames={frames}", "tunnel=true", "batch.frequency=[5]", *extra])
 ep = build_episode(sim)
 sw = ep.swimmer
 s0 = sw.initial_state(ep.params, ep.origin)
