@@ -139,6 +139,18 @@ def adjoint_clock(fluid_model):
             undo()
 
 
+def _warmed(fluid: str, batch: int):
+    """(episode in the swim tunnel, its initial state, the warm-up's seconds): mesh, solid
+    factorisation and fluid model built, and a first frame run without a graph (HydroNet's
+    compilation with ``fluid.compile=true``)."""
+    t0 = time.perf_counter()
+    ep = _episode(fluid, batch, tunnel=True)
+    state = ep.swimmer.initial_state(ep.params, ep.origin)
+    with torch.no_grad():
+        rollout(ep.swimmer, state, ep.params, 1)
+    return ep, state, time.perf_counter() - t0
+
+
 def episode_timing(fluid: str, batch: int, frames: int) -> dict:
     """Warm-up (build mesh, solid factorisation, fluid model; first frame), forward (split
     solid / fluid / coupling), backward of the distance swum through the water (head x + h sum U)
@@ -147,14 +159,9 @@ def episode_timing(fluid: str, batch: int, frames: int) -> dict:
     (SEGMENT_B16 at B > 1); in the swim tunnel. The recomputation of every segment but the last
     runs in a background thread beside the adjoints (rollout.Segments), so the parts overlap and
     add up to more than the backward's wall time."""
-    t0 = time.perf_counter()
-    ep = _episode(fluid, batch, tunnel=True)
+    ep, state, warmup = _warmed(fluid, batch)
     sw = ep.swimmer
     params, omega = _differentiable(ep.params)
-    state = sw.initial_state(params, ep.origin)
-    with torch.no_grad():
-        rollout(sw, state, params, 1)
-    warmup = time.perf_counter() - t0
     timer = PhaseTimer()
     _reset_peak()
     with adjoint_clock(sw.fluid) as adjoint:    # its module hooks must be in place for the forward
@@ -186,12 +193,8 @@ def forward_timing(fluid: str, batch: int, frames: int) -> dict:
     """A gradient-free episode (``fishsim simulate``, a CMA-ES generation) of ``batch`` fish at 5
     Hz in the swim tunnel: its set-up (HydroNet's compilation with ``fluid.compile=true``, in the
     first frame) and its forward per fish and frame."""
-    t0 = time.perf_counter()
-    ep = _episode(fluid, batch, tunnel=True)
-    state = ep.swimmer.initial_state(ep.params, ep.origin)
+    ep, state, warmup = _warmed(fluid, batch)
     with torch.no_grad():
-        rollout(ep.swimmer, state, ep.params, 1)
-        warmup = time.perf_counter() - t0
         t0 = time.perf_counter()
         rollout(ep.swimmer, state, ep.params, frames)
         forward = time.perf_counter() - t0
